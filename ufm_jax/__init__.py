@@ -1,0 +1,26 @@
+"""UFM-JAX: Unified Flow & Matching in JAX/Flax.
+
+Top-level API (imported lazily so that `import ufm_jax` stays cheap):
+  - `load_official(snapshot_dir)`: (model, params) from a Hugging Face snapshot of the PyTorch release.
+  - `load(checkpoint_dir)`: (model, params) from a checkpoint written by `python -m ufm_jax.convert`.
+  - `predict(model, params, source, target)`: the official high-level inference on HWC uint8 images.
+"""
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "load_official": ("ufm_jax.convert", "load_official"),
+    "load": ("ufm_jax.convert", "load"),
+    "predict": ("ufm_jax.inference", "predict"),
+}
+
+
+def __getattr__(name):
+  if name in _LAZY:
+    import importlib
+    module, attr = _LAZY[name]
+    return getattr(importlib.import_module(module), attr)
+  raise AttributeError(f"module 'ufm_jax' has no attribute {name!r}")
+
+
+__all__ = list(_LAZY)

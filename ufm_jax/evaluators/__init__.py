@@ -1,0 +1,1 @@
+"""Evaluators, one per benchmark family, chosen by name from config or `evaluate.py --bench`."""

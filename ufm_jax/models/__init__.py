@@ -1,0 +1,1 @@
+"""Flax (linen) modules of UFM; parameter names mirror the official PyTorch modules."""
