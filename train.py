@@ -57,6 +57,100 @@ def build_loss(config):
   return functools.partial(losses.ufm_loss, **config.get("loss_kwargs", {}))
 
 
+class EvalResult:
+  def __init__(self, scalars, images=None):
+    self.scalars, self.images = scalars, images or {}
+
+
+class HeldoutEval:
+  """EPE and covisibility accuracy on fixed held-out pairs of a registered source.
+
+  Config: source, root, kwargs (source options), num_pairs, shape (H, W: centre crop, which keeps
+  flow labels valid), batch_size, every, num_images (flow/covis pictures to TensorBoard).
+  """
+
+  def __init__(self, cfg, mesh):
+    import numpy as np
+    from ufm_jax import sharding
+    from ufm_jax.data import get_source
+    self.every = int(cfg.get("every", 0))
+    self.mesh = mesh
+    src = get_source(cfg.source, cfg.get("root"), **dict(cfg.get("kwargs", {})))
+    n = min(int(cfg.num_pairs), len(src))
+    h, w = cfg.shape
+    keys = ("image0", "image1", "flow", "covisibility", "flow_valid", "covis_valid")
+    samples = []
+    for i in range(n):
+      s = src[i]
+      H, W = s["image0"].shape[:2]
+      if H < h or W < w:
+        raise ValueError(f"eval source {cfg.source}: sample {i} is {H}x{W}, smaller than the eval "
+                         f"shape {h}x{w}")
+      y0, x0 = (H - h) // 2, (W - w) // 2
+      samples.append({k: np.asarray(s[k])[y0:y0 + h, x0:x0 + w] for k in keys})
+    self.samples = samples
+    div = sharding.batch_divisor(mesh)
+    bs = int(cfg.get("batch_size", div))
+    self.batch_size = -(-bs // div) * div
+    self.num_images = int(cfg.get("num_images", 2))
+
+  def run(self, predict, params) -> EvalResult:
+    import jax
+    import numpy as np
+    from ufm_jax import sharding
+    n, bs = len(self.samples), self.batch_size
+    P, pid = jax.process_count(), jax.process_index()
+    epe_sum = valid_sum = acc_sum = cv_sum = 0.0
+    px = {1: 0.0, 3: 0.0, 5: 0.0}
+    images = {}
+    for start in range(0, n, bs):
+      chunk = self.samples[start:start + bs]
+      real = len(chunk)
+      chunk = chunk + [chunk[-1]] * (bs - real)  # pad to a fixed shape; padded rows are ignored
+      batch = {k: np.stack([c[k] for c in chunk]) for k in chunk[0]}
+      per = bs // P
+      local = {k: v[pid * per:(pid + 1) * per] for k, v in batch.items()}
+      out = jax.device_get(predict(params, sharding.make_global_batch(local, self.mesh)))
+      flow = np.asarray(out["flow"], np.float64)[:real]
+      covis = np.asarray(out["covisibility"])[:real]
+      epe = np.linalg.norm(flow - batch["flow"][:real], axis=-1)
+      fv = batch["flow_valid"][:real]
+      epe_sum += float(epe[fv].sum())
+      valid_sum += float(fv.sum())
+      for t in px:
+        px[t] += float((epe[fv] > t).sum())
+      cvv = batch["covis_valid"][:real]
+      acc_sum += float(((covis >= 0.5) == batch["covisibility"][:real])[cvv].sum())
+      cv_sum += float(cvv.sum())
+      for j in range(real):
+        i = start + j
+        if i < self.num_images:
+          try:
+            from ufm_jax import viz
+          except ImportError:
+            break
+          images[f"pair{i}"] = viz.panel(batch["image0"][j], batch["image1"][j], flow[j].astype(
+              np.float32), covis[j])
+          images[f"pair{i}_gt"] = viz.panel(batch["image0"][j], batch["image1"][j],
+                                            batch["flow"][j], batch["covisibility"][j])
+    scalars = {"epe": epe_sum / max(valid_sum, 1.0),
+               **{f"px{t}": 100.0 * v / max(valid_sum, 1.0) for t, v in px.items()},
+               "covis_acc": acc_sum / max(cv_sum, 1.0), "num_pairs": float(n)}
+    return EvalResult(scalars, images)
+
+
+def build_evaluators(evals_cfg, mesh):
+  """name -> evaluator; `type: heldout` is built in, other types come from ufm_jax.evaluators."""
+  out = {}
+  for name, cfg in dict(evals_cfg).items():
+    kind = cfg.get("type", "heldout")
+    if kind == "heldout":
+      out[name] = HeldoutEval(cfg, mesh)
+    else:
+      out[name] = _import(kind)(cfg, mesh)
+  return out
+
+
 class Writer:
   """metrics.jsonl / eval.jsonl (process 0) + TensorBoard events + console lines."""
 
@@ -202,8 +296,7 @@ def main(argv):
     print(f"resumed from step {start_step}", flush=True)
 
   # ---------------------------------------------------------------------------------- evals
-  from ufm_jax import train_eval
-  evaluators = train_eval.build_evaluators(config.get("evals", {}), mesh, workdir)
+  evaluators = build_evaluators(config.get("evals", {}), mesh)
   writer = Writer(workdir, is_main)
 
   def run_evals(step, force=False):

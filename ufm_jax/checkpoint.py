@@ -37,11 +37,11 @@ from flax import traverse_util
 
 def _grain_iterator(it) -> bool:
   try:
-    import grain.python as gp
+    from grain._src.python import data_loader
     from grain._src.python.dataset import dataset as gds
   except ImportError:  # pragma: no cover
     return False
-  return isinstance(it, (gp.DataLoaderIterator, gds.DatasetIterator))
+  return isinstance(it, (data_loader.DataLoaderIterator, gds.DatasetIterator))
 
 
 def make_manager(workdir, save_interval_steps: int, keep: int, async_save: bool = True):
@@ -66,6 +66,8 @@ def _data_save_args(data_iter):
 
 def save(manager, step: int, state, data_iter=None, force: bool = False) -> bool:
   """Saves when `step` is on the interval (or `force`); returns whether a save was started."""
+  if not force and not manager.should_save(step):
+    return False
   items = {"state": ocp.args.StandardSave(state)}
   data = _data_save_args(data_iter)
   if data is not None:

@@ -62,6 +62,8 @@ def make_mesh(mesh_config: Sequence[tuple[str, int]], devices=None) -> Mesh:
     if len(devices) % known:
       raise ValueError(f"config.mesh {list(mesh_config)} does not divide {len(devices)} devices")
     sizes[sizes.index(-1)] = len(devices) // known
+  if -1 not in sizes and int(np.prod(sizes)) < len(devices) and jax.process_count() == 1:
+    devices = devices[:int(np.prod(sizes))]  # an explicit smaller mesh uses the first devices
   if int(np.prod(sizes)) != len(devices):
     raise ValueError(f"config.mesh {list(mesh_config)} needs {int(np.prod(sizes))} devices, "
                      f"have {len(devices)}")
