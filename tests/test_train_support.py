@@ -67,7 +67,7 @@ def tiny_config(**overrides):
   c.keep_ckpt = 2
   c.log_training_steps = 1
   c.async_checkpoint = True
-  c.mesh = [("data", -1), ("fsdp", 1)]
+  c.mesh = "data:-1,fsdp:1"
   c.sharding_rules = [(".*", "fsdp")]
   c.model_fn = "test_train_support:tiny_model"
   c.model = ml_collections.ConfigDict({"width": 8})

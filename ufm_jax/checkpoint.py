@@ -301,19 +301,33 @@ def _dinov2_to_flax(sd: dict[str, np.ndarray], template) -> dict[str, np.ndarray
 # --- UFM parameters --------------------------------------------------------------------------
 
 
+def checkpoint_steps(path) -> list[int]:
+  """Completed checkpoint steps in a workdir or its checkpoints/ folder."""
+  path = pathlib.Path(path)
+  d = path / "checkpoints" if (path / "checkpoints").is_dir() else path
+  return sorted(int(x.name) for x in d.glob("*") if x.name.isdigit() and (x / "state").is_dir()
+                and not x.name.endswith(".orbax-checkpoint-tmp"))
+
+
+def read_state_numpy(path, step: int | None = None) -> tuple[dict, int]:
+  """The saved TrainState as a tree of numpy arrays (any mesh it was written from) and its step."""
+  path = pathlib.Path(path).absolute()
+  d = path / "checkpoints" if (path / "checkpoints").is_dir() else path
+  steps = checkpoint_steps(d)
+  if not steps:
+    raise FileNotFoundError(f"no checkpoint steps under {d}")
+  step = steps[-1] if step is None else step
+  ckptr = ocp.PyTreeCheckpointer()
+  item = d / str(step) / "state"
+  tree = ckptr.metadata(item).item_metadata.tree
+  restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree)
+  return ckptr.restore(item, args=ocp.args.PyTreeRestore(item=None, restore_args=restore_args)), step
+
+
 def _latest_params_from_workdir(path: pathlib.Path, template):
-  ckpt_dir = path / "checkpoints" if (path / "checkpoints").is_dir() else path
-  mngr = ocp.CheckpointManager(ckpt_dir.absolute(), item_names=("state", "data"),
-                               options=ocp.CheckpointManagerOptions(read_only=True))
-  step = mngr.latest_step()
-  if step is None:
-    raise FileNotFoundError(f"model_init: no checkpoint steps under {ckpt_dir}")
-  meta = mngr.item_metadata(step)
-  state_meta = meta["state"] if meta is not None and "state" in meta else None
-  restored = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
-  params = restored["state"]["params"]
-  del state_meta
-  return {k: np.asarray(v) for k, v in _flat(params).items()}, f"{ckpt_dir}@{step}"
+  del template
+  state, step = read_state_numpy(path)
+  return _flat(state["params"]), f"{path}@{step}"
 
 
 def guess_kind(spec: str) -> tuple[str, str]:

@@ -3,7 +3,8 @@
 Everything about how arrays are laid out on devices lives here; `train.py` only calls it.
 
 Config:
-  config.mesh = [("data", -1), ("fsdp", 1)]   axis names and sizes; one -1 takes the remaining devices
+  config.mesh = "data:-1,fsdp:1"   axis names and sizes (or a list of (name, size) pairs); one size
+                                   of -1 takes the remaining devices
   config.sharding_rules = [(regex, rule), ...]  on the "/"-joined param path, first match wins:
       "fsdp"       shard the largest dimension divisible by the fsdp axis size over `fsdp`
       "replicate"  keep a full copy on every device
@@ -47,8 +48,18 @@ def maybe_initialize_distributed():
   return False
 
 
-def make_mesh(mesh_config: Sequence[tuple[str, int]], devices=None) -> Mesh:
-  """Mesh from [(axis, size), ...]; a size of -1 means "all remaining devices"."""
+def parse_mesh(mesh_config) -> list[tuple[str, int]]:
+  if isinstance(mesh_config, str):
+    try:
+      return [(a.split(":")[0].strip(), int(a.split(":")[1])) for a in mesh_config.split(",")]
+    except (IndexError, ValueError) as e:
+      raise ValueError(f"config.mesh={mesh_config!r}: want 'axis:size,axis:size'") from e
+  return [(str(n), int(s)) for n, s in mesh_config]
+
+
+def make_mesh(mesh_config, devices=None) -> Mesh:
+  """Mesh from "data:-1,fsdp:2" or [(axis, size), ...]; -1 means "all remaining devices"."""
+  mesh_config = parse_mesh(mesh_config)
   devices = list(jax.devices() if devices is None else devices)
   names = [str(n) for n, _ in mesh_config]
   for required in BATCH_AXES:
