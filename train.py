@@ -339,6 +339,7 @@ def main(argv):
                "lr": lrs.get("default"), **{f"lr_{g}": v for g, v in lrs.items()},
                "pairs_per_s": pairs_s}
         writer.scalars("metrics.jsonl", step, rec, "train")
+        logging.info("process %d metrics %s", jax.process_index(), json.dumps(rec))
         if is_main:
           ep = f" ep {rec['epoch']:.3f}" if rec["epoch"] is not None else ""
           print(f"step {step}/{total_steps}{ep} loss {rec['loss']:.5f} "
