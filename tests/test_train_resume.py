@@ -4,6 +4,7 @@ uninterrupted run; SIGTERM saves a checkpoint at the current step and exits with
 import json
 import os
 import pathlib
+import re
 import signal
 import subprocess
 import sys
@@ -77,11 +78,11 @@ def test_sigkill_resume_bitwise_and_sigterm_saves(tmp_path):
   assert f"resumed from step {resume_from}" in out
   saved = [l for l in out.splitlines() if l.startswith("preempted: saved step")]
   assert saved, out[-2000:]
-  term_step = int(saved[0].split()[-3])
+  term_step = int(re.search(r"saved step (\d+)", saved[0]).group(1))
   assert checkpoint.checkpoint_steps(run_dir / "checkpoints")[-1] == term_step
   state, _ = checkpoint.read_state_numpy(run_dir, term_step)
   assert int(state["step"]) == term_step
-  assert term_step % 4 != 0 or term_step > killed_at  # saved off the regular interval if needed
+  assert term_step >= killed_at + 3
 
   # Resume again to the end.
   p = _start(run_dir)
