@@ -293,3 +293,17 @@ def test_shape_errors_name_the_argument():
     g.correspondence_from_depth(d, K, np.eye(4), d, np.eye(4)[:3, :2], np.eye(4), *TAU)
   with pytest.raises(ValueError, match="depth0"):
     g.correspondence_from_depth(np.ones(4), K, np.eye(4), d, K, np.eye(4), *TAU)
+
+
+def test_target_image_of_another_size():
+  # Same camera centre, target at half resolution: target pixel = (u + 0.5) / 2 - 0.5 for the
+  # centre-at-integer convention (K1 = S K0 with the half-pixel shift).
+  z = 7.0
+  S = np.array([[0.5, 0, -0.25], [0, 0.5, -0.25], [0, 0, 1.0]])
+  K1 = S @ K
+  depth0, depth1 = np.full((H, W), z), np.full((H // 2, W // 2), z)
+  out = g.correspondence_from_depth(depth0, K, np.eye(4), depth1, K1, np.eye(4), *TAU)
+  u, v = grid()
+  np.testing.assert_allclose(out["flow"][..., 0], (u + 0.5) / 2 - 0.5 - u, atol=1e-6)
+  np.testing.assert_allclose(out["flow"][..., 1], (v + 0.5) / 2 - 0.5 - v, atol=1e-6)
+  assert out["covisibility"].all()

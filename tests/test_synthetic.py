@@ -121,3 +121,13 @@ def test_speed_is_reasonable():
     S.generate_pair(S.pair_seed(0, "train", i), cfg)
   # ~40 ms per pair (both directions) on a quiet core; generous bound for a shared machine.
   assert (time.perf_counter() - t) / 3 < 0.5
+
+
+def test_every_ray_hits_and_no_camera_inside_an_object():
+  cfg = S.SyntheticConfig(size=(14, 14))
+  for i in range(40):
+    fwd, _ = S.generate_pair(S.pair_seed(11, "train", i), cfg)
+    for k in ("depth0", "depth1"):
+      d = fwd["meta"][k]
+      assert np.isfinite(d).all() and d.min() > 0.2, (i, k, d.min())
+    assert fwd["flow_valid"].any()

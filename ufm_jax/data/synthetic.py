@@ -132,6 +132,42 @@ def _roll(c2w, angle):
   return out
 
 
+def _bounding_radius(prim: Primitive) -> float:
+  return float(np.linalg.norm(prim.extent)) if prim.kind == "box" else float(prim.extent[0])
+
+
+def _clear_of(prims, eye, margin=0.3) -> bool:
+  """The camera centre is at least `margin` outside every object's bounding sphere at both times."""
+  for prim in prims:
+    if prim.kind == "room":
+      if (np.abs(eye) > prim.extent - margin).any():
+        return False
+      continue
+    for pose in (prim.pose0, prim.pose1):
+      if np.linalg.norm(eye - pose[:3, 3]) < _bounding_radius(prim) + margin:
+        return False
+  return True
+
+
+def _cameras(rng, pair_type, config):
+  target = rng.uniform(-0.5, 0.5, 3)
+  dist, azim = rng.uniform(5, 7), rng.uniform(0, 2 * np.pi)
+  elev = np.deg2rad(rng.uniform(-10, 40))
+  c2w0 = _roll(geo.look_at(_orbit_eye(target, dist, azim, elev), target),
+               np.deg2rad(rng.uniform(-10, 10)))
+  if pair_type == "flow":
+    eye1 = c2w0[:3, 3] + rng.normal(0, 0.12, 3)
+    c2w1 = geo.pose_from_rt(c2w0[:3, :3] @ _rotation(rng, np.deg2rad(3)), eye1)
+  else:
+    angle = np.deg2rad(rng.uniform(config.min_view_angle_deg, config.max_view_angle_deg))
+    azim1 = azim + angle * rng.choice([-1, 1]) * rng.uniform(0.7, 1.0)
+    elev1 = np.clip(elev + rng.uniform(-0.3, 0.3) * angle, np.deg2rad(-15), np.deg2rad(60))
+    target1 = target + rng.uniform(-0.3, 0.3, 3)
+    eye1 = _orbit_eye(target1, rng.uniform(5, 7), azim1, elev1)
+    c2w1 = _roll(geo.look_at(eye1, target1), np.deg2rad(rng.uniform(-10, 10)))
+  return c2w0, c2w1
+
+
 def make_scene(seed, config: SyntheticConfig = SyntheticConfig()) -> Scene:
   """Draws a scene and a camera pair from `seed` (an int or a np.random.SeedSequence)."""
   rng = np.random.default_rng(seed)
@@ -141,7 +177,6 @@ def make_scene(seed, config: SyntheticConfig = SyntheticConfig()) -> Scene:
                      **_texture(rng, scale=2.0))]
   n_obj = int(rng.integers(config.num_objects[0], config.num_objects[1] + 1))
   for _ in range(n_obj):
-    # Objects stay within 2 + 0.9 * sqrt(3) < 3.6 of the origin; cameras are >= 4.1 away.
     pos = rng.uniform(-1, 1, 3)
     pos *= rng.uniform(0, 2.0) / max(np.linalg.norm(pos), _EPS)
     pose = geo.pose_from_rt(_rotation(rng, np.pi), pos)
@@ -164,21 +199,12 @@ def make_scene(seed, config: SyntheticConfig = SyntheticConfig()) -> Scene:
     obj.pose1 = motion @ obj.pose0  # rotate about its centre, then shift
     obj.pose1[:3, 3] = obj.pose0[:3, 3] + shift
 
-  target = rng.uniform(-0.5, 0.5, 3)
-  dist, azim = rng.uniform(5, 7), rng.uniform(0, 2 * np.pi)
-  elev = np.deg2rad(rng.uniform(-10, 40))
-  c2w0 = _roll(geo.look_at(_orbit_eye(target, dist, azim, elev), target),
-               np.deg2rad(rng.uniform(-10, 10)))
-  if pair_type == "flow":
-    eye1 = c2w0[:3, 3] + rng.normal(0, 0.12, 3)
-    c2w1 = geo.pose_from_rt(c2w0[:3, :3] @ _rotation(rng, np.deg2rad(3)), eye1)
+  for _ in range(100):  # redraw cameras that would sit inside (or touch) an object
+    c2w0, c2w1 = _cameras(rng, pair_type, config)
+    if all(_clear_of(prims, T[:3, 3]) for T in (c2w0, c2w1)):
+      break
   else:
-    angle = np.deg2rad(rng.uniform(config.min_view_angle_deg, config.max_view_angle_deg))
-    azim1 = azim + angle * rng.choice([-1, 1]) * rng.uniform(0.7, 1.0)
-    elev1 = np.clip(elev + rng.uniform(-0.3, 0.3) * angle, np.deg2rad(-15), np.deg2rad(60))
-    target1 = target + rng.uniform(-0.3, 0.3, 3)
-    eye1 = _orbit_eye(target1, rng.uniform(5, 7), azim1, elev1)
-    c2w1 = _roll(geo.look_at(eye1, target1), np.deg2rad(rng.uniform(-10, 10)))
+    raise RuntimeError(f"synthetic: no camera pair clear of the objects for seed {seed}")
   return Scene(prims, _camera_K(rng, h, w), _camera_K(rng, h, w), c2w0, c2w1, (h, w),
                pair_type, moving)
 
