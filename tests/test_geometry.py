@@ -80,10 +80,12 @@ def two_plane_depth(cam_x, x_edge, z_near=5.0, z_far=10.0):
   return np.where(x_at_near < x_edge, z_near, z_far)
 
 
-def test_near_plane_occludes_far_plane():
+@pytest.mark.parametrize("search", [0.0, 0.5])
+def test_near_plane_occludes_far_plane(search):
   x_edge, tx = 0.0, -1.0
   depth0, depth1 = two_plane_depth(0.0, x_edge), two_plane_depth(tx, x_edge)
-  out = g.correspondence_from_depth(depth0, K, np.eye(4), depth1, K, translation([tx, 0, 0]), *TAU)
+  out = g.correspondence_from_depth(depth0, K, np.eye(4), depth1, K, translation([tx, 0, 0]), *TAU,
+                                    subpixel_search=search)
   u, v = grid()
   near = depth0 == 5.0
   du = np.where(near, -FX * tx / 5.0, -FX * tx / 10.0)
@@ -97,7 +99,7 @@ def test_near_plane_occludes_far_plane():
   # Bilinear depth mixing is ambiguous within a pixel of a depth edge in image 1: skip those.
   target_x = tx + (u + du - CX) / FX * 5.0  # where the ray to the target pixel crosses z = 5
   edge_px = np.abs(target_x - x_edge) / 5.0 * FX
-  sure = edge_px > 1.5
+  sure = edge_px > 1.5 + search
   assert occluded[sure].sum() >= 3 * H  # the test scene really has an occluded band
   np.testing.assert_array_equal(out["covisibility"][sure], expected[sure])
   assert out["fov_mask"][occluded].all()  # occlusion is not a field-of-view matter

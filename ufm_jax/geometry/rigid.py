@@ -49,7 +49,7 @@ def object_motions(object_poses0, object_poses1) -> tuple[np.ndarray, np.ndarray
 
 def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, object_poses0,
                                       depth1, K1, cam2world1, object_poses1,
-                                      tau_d: float, tau_r: float):
+                                      tau_d: float, tau_r: float, subpixel_search: float = 0.0):
   """Flow 0->1 and covisibility for a scene of rigid objects.
 
   segmentation0: [H, W] int object id per source pixel. object_poses0/1: object-to-world poses
@@ -70,4 +70,5 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
   points = camera.transform(cam2world0, camera.unproject(np.where(valid0, depth0, 0.0), K0))
   M = motions[ids]  # [H, W, 4, 4]
   moved = np.einsum("hwij,hwj->hwi", M[..., :3, :3], points) + M[..., :3, 3]
-  return covisibility_from_points(moved, valid0, depth1, K1, cam2world1, tau_d, tau_r)
+  return covisibility_from_points(moved, valid0, depth1, K1, cam2world1, tau_d, tau_r,
+                                  subpixel_search)
