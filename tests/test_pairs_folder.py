@@ -44,6 +44,7 @@ def test_reads_the_format(tmp_path):
   (tmp_path / "a" / "meta.json").write_text(json.dumps({"K0": np.eye(3).tolist(), "note": "x"}))
   make_pair(tmp_path / "b", masks=False)
   (tmp_path / "not_a_pair").mkdir()
+  make_pair(tmp_path / ".c.tmp123")  # a pair folder still being written
   src = data.get_source("pairs_folder", str(tmp_path), split="train")  # flat folder: any split
   assert len(src) == 2
   s = src[0]

@@ -5,7 +5,8 @@ Layout (see data/pairs_folder/README.md):
                           covisibility.png flow_valid.png covis_valid.png   optional, 0/255
                           meta.json depth.npz (depth0, depth1)              optional
                           reverse/flow.flo [+ the three masks]              optional, 1 -> 0 labels
-Pairs are the sub-folders holding an image0.png, in sorted order. When `<root>/<split>` exists it
+Pairs are the sub-folders holding an image0.png, in sorted order (names starting with "." are
+skipped: folders still being written). When `<root>/<split>` exists it
 is used, otherwise `root` itself (a flat folder of pairs serves every split).
 Missing masks: flow_valid = finite flow; covisibility = the FoV mask of the flow with
 covis_valid all False (unknown covisibility never trains the covisibility head, like
@@ -88,8 +89,9 @@ class PairsFolder:
     if split and os.path.isdir(os.path.join(root, split)):
       root = os.path.join(root, split)
     self.root = root
-    self.pairs = sorted(d for d in os.listdir(root)
-                        if os.path.isfile(os.path.join(root, d, "image0.png")))
+    # Dot-folders are pairs still being written (see synthetic.write_pair).
+    self.pairs = sorted(d for d in os.listdir(root) if not d.startswith(".")
+                        and os.path.isfile(os.path.join(root, d, "image0.png")))
     if not self.pairs:
       raise FileNotFoundError(f"pairs_folder: no pair folders (sub-folders holding image0.png) "
                               f"in {root}")
