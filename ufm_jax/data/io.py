@@ -149,7 +149,7 @@ def read_pfm(path: str | os.PathLike) -> np.ndarray:
     raise ValueError(f"{path}: PFM payload has {len(body)} bytes, expected {w}*{h}*{channels}*4 "
                      f"= {4 * n}")
   arr = np.frombuffer(body, dtype).reshape((h, w, channels) if channels == 3 else (h, w))
-  return np.ascontiguousarray(arr[::-1]).astype(np.float32)
+  return arr[::-1].astype(np.float32, order="C")
 
 
 def write_pfm(path: str | os.PathLike, array: np.ndarray, little_endian: bool = True) -> None:
@@ -289,12 +289,12 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
   elif img.dtype != np.uint8:
     raise ValueError(f"{path}: expected an 8- or 16-bit image, got dtype {img.dtype}")
   if img.ndim == 2:
-    return np.repeat(img[..., None], 3, -1)
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
   if img.shape[2] == 4:
-    img = img[..., :3]
-  elif img.shape[2] != 3:
+    return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+  if img.shape[2] != 3:
     raise ValueError(f"{path}: expected 1, 3 or 4 channels, got {img.shape[2]}")
-  return np.ascontiguousarray(img[..., ::-1])
+  return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:

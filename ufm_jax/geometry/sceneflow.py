@@ -41,39 +41,42 @@ def fov_mask(flow: np.ndarray) -> np.ndarray:
   h, w = flow.shape[:2]
   u = np.arange(w, dtype=np.float32)[None, :] + flow[..., 0]
   v = np.arange(h, dtype=np.float32)[:, None] + flow[..., 1]
+  # NaN compares False, so non-finite flow is out of view.
   with np.errstate(invalid="ignore"):
-    return (np.isfinite(flow).all(-1) & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5))
+    return (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)
 
 
 def _ray_norm(u, v, K):
   """||K^-1 [u, v, 1]|| for a pinhole K without skew."""
-  x = (u - K[0, 2]) / K[0, 0]
-  y = (v - K[1, 2]) / K[1, 1]
-  return np.sqrt(x * x + y * y + 1.0)
+  x = (u - np.float32(K[0, 2])) * np.float32(1.0 / K[0, 0])
+  y = (v - np.float32(K[1, 2])) * np.float32(1.0 / K[1, 1])
+  return np.sqrt(x * x + y * y + np.float32(1.0))
 
 
 def _bilinear(img: np.ndarray, valid: np.ndarray, u: np.ndarray, v: np.ndarray):
   """Samples img at (u, v); where a needed neighbour is invalid, falls back to nearest.
 
   Coordinates in the half-pixel border band are clamped to the outermost centres.
-  Returns (value, nearest_valid).
+  Returns (value, nearest_valid). Flat-index gathers keep this fast on full frames.
   """
   h, w = img.shape
   uc = np.clip(u, 0, w - 1)
   vc = np.clip(v, 0, h - 1)
-  u0 = np.minimum(np.floor(uc).astype(np.int64), max(w - 2, 0))
-  v0 = np.minimum(np.floor(vc).astype(np.int64), max(h - 2, 0))
-  u1 = np.minimum(u0 + 1, w - 1)
-  v1 = np.minimum(v0 + 1, h - 1)
-  a = (uc - u0).astype(np.float64)
-  b = (vc - v0).astype(np.float64)
-  val = ((1 - a) * (1 - b) * img[v0, u0] + a * (1 - b) * img[v0, u1] + (1 - a) * b * img[v1, u0]
-         + a * b * img[v1, u1])
-  all_valid = valid[v0, u0] & valid[v0, u1] & valid[v1, u0] & valid[v1, u1]
-  un = np.clip(np.round(uc).astype(np.int64), 0, w - 1)
-  vn = np.clip(np.round(vc).astype(np.int64), 0, h - 1)
-  nearest_valid = valid[vn, un]
-  return np.where(all_valid, val, img[vn, un]), nearest_valid
+  u0 = np.minimum(uc.astype(np.int32), max(w - 2, 0))  # uc >= 0, so truncation is floor
+  v0 = np.minimum(vc.astype(np.int32), max(h - 2, 0))
+  a = uc - u0
+  b = vc - v0
+  i00 = v0 * w + u0
+  i01 = i00 + (1 if w > 1 else 0)
+  i10 = i00 + (w if h > 1 else 0)
+  i11 = i10 + (i01 - i00)
+  flat, ok = img.ravel(), valid.ravel()
+  val = ((1 - b) * ((1 - a) * flat.take(i00) + a * flat.take(i01))
+         + b * ((1 - a) * flat.take(i10) + a * flat.take(i11)))
+  all_valid = ok.take(i00) & ok.take(i01) & ok.take(i10) & ok.take(i11)
+  inear = np.rint(vc).astype(np.int32) * w + np.rint(uc).astype(np.int32)
+  nearest_valid = ok.take(inear)
+  return np.where(all_valid, val, flat.take(inear)), nearest_valid
 
 
 def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_change: np.ndarray,
@@ -102,30 +105,30 @@ def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_c
     if np.shape(a) != (h, w):
       raise ValueError(f"sceneflow_covisibility: {name} has shape {np.shape(a)}, expected {(h, w)}")
   K = sceneflow_intrinsics(h, w) if K is None else np.asarray(K, np.float64)
-  fb = K[0, 0] * baseline
-  d0 = np.asarray(disparity0, np.float64)
-  d1 = np.asarray(disparity1, np.float64)
-  dm = d0 + np.asarray(disparity_change, np.float64)  # disparity of the moved point
+  fb = np.float32(K[0, 0] * baseline)
+  d0 = np.asarray(disparity0, np.float32)
+  d1 = np.asarray(disparity1, np.float32)
+  dm = d0 + np.asarray(disparity_change, np.float32)  # disparity of the moved point
   with np.errstate(invalid="ignore", divide="ignore"):
     valid0 = np.isfinite(d0) & (d0 > 0)
     valid1 = np.isfinite(d1) & (d1 > 0)
-    depth0 = np.where(valid0, fb / np.where(valid0, d0, 1.0), 0.0)
-    depth1 = np.where(valid1, fb / np.where(valid1, d1, 1.0), 0.0)
+    depth0 = np.where(valid0, fb / d0, np.float32(0))
+    depth1 = np.where(valid1, fb / d1, np.float32(0))
     moved_ok = valid0 & np.isfinite(dm) & (dm > 0)  # positive disparity = in front of the camera
-    z_moved = np.where(moved_ok, fb / np.where(moved_ok, dm, 1.0), 0.0)
+    z_moved = np.where(moved_ok, fb / dm, np.float32(0))
 
   fov = fov_mask(flow) & moved_ok
-  u_t = np.arange(w, dtype=np.float64)[None, :] + np.nan_to_num(flow[..., 0]).astype(np.float64)
-  v_t = np.arange(h, dtype=np.float64)[:, None] + np.nan_to_num(flow[..., 1]).astype(np.float64)
   # Keep out-of-view samples inside the array; their result is masked by `fov` below.
-  u_s, v_s = np.clip(u_t, -0.5, w - 0.5), np.clip(v_t, -0.5, h - 0.5)
+  u_s = np.clip(np.arange(w, dtype=np.float32)[None, :] + np.nan_to_num(flow[..., 0]), -0.5, w - 0.5)
+  v_s = np.clip(np.arange(h, dtype=np.float32)[:, None] + np.nan_to_num(flow[..., 1]), -0.5, h - 0.5)
 
-  range1 = depth1 * _ray_norm(np.arange(w)[None, :], np.arange(h)[:, None], K)
-  observed, other_valid = _bilinear(range1, valid1, u_s, v_s)
+  grid_norm = _ray_norm(np.arange(w, dtype=np.float32)[None, :],
+                        np.arange(h, dtype=np.float32)[:, None], K)
+  observed, other_valid = _bilinear(depth1 * grid_norm, valid1, u_s, v_s)
   expected = z_moved * _ray_norm(u_s, v_s, K)
-  error = np.where(fov, np.abs(expected - observed), np.inf)
-  covisible = fov & other_valid & (error < tau_d + tau_r * expected)
+  error = np.where(fov, np.abs(expected - observed), np.float32(np.inf))
+  covisible = fov & other_valid & (error < np.float32(tau_d) + np.float32(tau_r) * expected)
   covis_valid = (valid0 & ~fov) | (fov & other_valid)
   return dict(covisibility=covisible, fov_mask=fov, valid=valid0, covis_valid=covis_valid,
-              error=error.astype(np.float32), depth0=depth0.astype(np.float32),
+              error=error.astype(np.float32, copy=False), depth0=depth0.astype(np.float32),
               depth1=depth1.astype(np.float32))

@@ -74,7 +74,7 @@ class FlyingChairs:
       raise ValueError(f"{stem}_flow.flo: flow {flow.shape[:2]} and images {image0.shape[:2]}, "
                        f"{image1.shape[:2]} differ in size")
     with np.errstate(invalid="ignore"):
-      flow_valid = np.isfinite(flow).all(-1) & (np.abs(flow) < MAX_FLOW).all(-1)
+      flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)  # NaN fails
     flow = np.where(flow_valid[..., None], flow, 0.0).astype(np.float32)
     covisibility = sceneflow.fov_mask(flow) & flow_valid
     return dict(image0=image0, image1=image1, flow=flow, covisibility=covisibility,

@@ -142,7 +142,7 @@ class SceneFlowSource:
         raise ValueError(f"{flow_path if name == 'flow' else change_path}: {name} shape "
                          f"{arr.shape} does not match the {h}x{w} images of {scene}/{cam}")
     with np.errstate(invalid="ignore"):
-      flow_valid = np.isfinite(flow).all(-1) & (np.abs(flow) < MAX_FLOW).all(-1)
+      flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)  # NaN fails
     flow = np.where(flow_valid[..., None], flow, 0.0).astype(np.float32)
     K = sceneflow.sceneflow_intrinsics(h, w)
     geo = sceneflow.sceneflow_covisibility(np.where(flow_valid[..., None], flow, np.nan), disp0,

@@ -152,7 +152,7 @@ class Spring:
       raise ValueError(f"{flow_path}: flow is {full.shape[0]}x{full.shape[1]}, expected the 2x "
                        f"resolution {2 * h}x{2 * w} of the {h}x{w} frames")
     flow = np.ascontiguousarray(full[::2, ::2])
-    flow_valid = np.isfinite(flow).all(-1)
+    flow_valid = np.isfinite(flow[..., 0]) & np.isfinite(flow[..., 1])
     flow = np.where(flow_valid[..., None], flow, 0.0).astype(np.float32)
     mm_path = os.path.join(base, "maps", f"matchmap_flow_{fb}_{cam}",
                            f"matchmap_flow_{fb}_{cam}_{src:04d}.png")
