@@ -121,3 +121,19 @@ def test_shape_errors():
   with pytest.raises(ValueError, match="disparity1 has shape"):
     sceneflow.sceneflow_covisibility(np.zeros((2, 2, 2)), np.ones((2, 2)), np.zeros((2, 2)),
                                      np.ones((3, 2)), 0.01, 0.001)
+
+
+def test_invalid_target_neighbour_falls_back_to_nearest():
+  # The point lands at u = 2.25 next to an invalid target pixel (u = 3): blending the invalid
+  # value in would break the match; the nearest valid sample (u = 2) carries the right depth.
+  h, w = 1, 6
+  K = np.array([[1e6, 0, 2.5], [0, 1e6, 0.0], [0, 0, 1]])
+  fb = K[0, 0]
+  disp0 = np.full((h, w), fb / 4.0)
+  disp1 = np.full((h, w), fb / 4.0)
+  disp1[0, 3] = 0.0
+  flow = np.zeros((h, w, 2), np.float32)
+  flow[0, 2, 0] = 0.25
+  out = sceneflow.sceneflow_covisibility(flow, disp0, np.zeros((h, w)), disp1, 0.01, 0.0, K=K)
+  assert out["covisibility"][0, 2] and out["covis_valid"][0, 2]
+  assert not out["covisibility"][0, 3] and not out["covis_valid"][0, 3]
