@@ -347,7 +347,8 @@ class Pipeline:
     return iter(self.dataset)
 
 
-def _open_sources(datasets: Mapping[str, Mapping[str, Any]], split: str | None):
+def _open_sources(datasets: Mapping[str, Mapping[str, Any]], split: str | None,
+                  data_root: str | None):
   present, dropped = {}, []
   for name, spec in datasets.items():
     spec = dict(spec)
@@ -359,13 +360,17 @@ def _open_sources(datasets: Mapping[str, Mapping[str, Any]], split: str | None):
                      "expected quota, root, options")
     if quota <= 0:
       continue
-    if root is not None and not os.path.exists(os.path.expanduser(str(root))):
+    if root is not None:
+      root = os.path.expanduser(str(root))
+      if data_root is not None and not os.path.isabs(root):
+        root = os.path.join(os.path.expanduser(str(data_root)), root)
+    if root is not None and not os.path.exists(root):
       dropped.append(f"{name} ({root})")
       continue
     if split is not None:
       options.setdefault("split", split)
     try:
-      source = get_source(name, None if root is None else os.path.expanduser(str(root)), **options)
+      source = get_source(name, root, **options)
     except FileNotFoundError as e:
       dropped.append(f"{name} ({e})")
       continue
@@ -385,12 +390,12 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
            process_index: int | None = None, process_count: int | None = None) -> Pipeline:
   """Builds the training pipeline from an input block (see `configs/common.py:input_config`).
 
-  Keys: datasets {name: {quota, root, options}}, batch_size (global pairs per step, counting both
-  directions when symmetrized), symmetrize, longest_side, aspect_ratios, augment {...},
-  num_workers, worker_buffer_size, read_threads, prefetch_buffer_size, max_skip_fraction,
+  Keys: datasets {name: {quota, root, options}} (relative roots are under data_root), data_root,
+  batch_size (global pairs per step, counting both directions when symmetrized), symmetrize,
+  longest_side, aspect_ratios, augment {...}, num_workers, worker_buffer_size, read_threads, prefetch_buffer_size, max_skip_fraction,
   skip_check_min_samples, split. process_index/count default to jax's (grain ShardByJaxProcess).
   """
-  cfg = dict(config)
+  cfg = dict(config.to_dict() if hasattr(config, "to_dict") else config)
   if process_index is None or process_count is None:
     shard = grain.sharding.ShardByJaxProcess(drop_remainder=True)
     process_index, process_count = shard.shard_index, shard.shard_count
@@ -404,7 +409,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
                      f"batch, got {per_host} on each of {process_count} processes")
   unique_per_host = per_host // 2 if symmetrize else per_host
 
-  present, dropped = _open_sources(cfg["datasets"], cfg.get("split"))
+  present, dropped = _open_sources(cfg["datasets"], cfg.get("split"), cfg.get("data_root"))
   names = tuple(present)
   sources = [present[n][0] for n in names]
   quotas = tuple(present[n][1] for n in names)
