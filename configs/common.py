@@ -65,12 +65,14 @@ def input_config(datasets: ml_collections.ConfigDict | Mapping[str, Any], *, bat
                  data_root: str = DEFAULT_DATA_ROOT, aspect_ratios=TRAIN_SHAPE_ASPECTS,
                  augment: Mapping[str, Any] | None = None, num_workers: int = 8,
                  read_threads: int = 2, prefetch_buffer_size: int = 2, worker_buffer_size: int = 1,
-                 max_skip_fraction: float = 0.01, skip_check_min_samples: int = 100
-                 ) -> ml_collections.ConfigDict:
+                 max_skip_fraction: float = 0.01, skip_check_min_samples: int = 100,
+                 reverse_fallback: str = "unsupervised") -> ml_collections.ConfigDict:
   """The `config.input` block read by `ufm_jax.data.pipeline.create`.
 
   batch_size is the global number of pairs per step, both directions counted when symmetrized
   (the paper's 96 = 48 unique pairs); each process gets batch_size / process_count.
+  reverse_fallback: what symmetrize does for datasets without backward labels ('unsupervised':
+  the (b, a) row has all masks False; 'error': refuse to build).
   """
   return ml_collections.ConfigDict({
       "datasets": ml_collections.ConfigDict(datasets),
@@ -86,6 +88,7 @@ def input_config(datasets: ml_collections.ConfigDict | Mapping[str, Any], *, bat
       "worker_buffer_size": worker_buffer_size,
       "max_skip_fraction": max_skip_fraction,
       "skip_check_min_samples": skip_check_min_samples,
+      "reverse_fallback": reverse_fallback,
   })
 
 

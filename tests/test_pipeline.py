@@ -248,14 +248,51 @@ def test_absent_dataset_dropped_with_one_warning(tmp_path, caplog):
     pipeline.create(cfg, seed=0, process_index=0, process_count=1)
 
 
-def test_symmetrize_needs_backward_labels(tmp_path):
-  cfg = make_config(tmp_path, [(8, {"n": 10, "reversible": False})])
+def test_symmetrize_without_backward_labels(tmp_path):
+  cfg = make_config(tmp_path, [(8, {"n": 10, "reversible": False})], reverse_fallback="error")
   with pytest.raises(ValueError, match="'_tp_d0' cannot be symmetrized"):
     pipeline.create(cfg, seed=0, process_index=0, process_count=1)
+  cfg["reverse_fallback"] = "unsupervised"   # the default: (b, a) rows carry no supervision
+  b = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)))
+  np.testing.assert_array_equal(b["image0"][1::2], b["image1"][::2])
+  for k in ("flow_valid", "covis_valid", "covisibility"):
+    assert b[k][::2].all() and not b[k][1::2].any()
   cfg["symmetrize"] = False
   pipe = pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)
   b = next(iter(pipe))
   assert b["image0"].shape[0] == 8 and len(set(decode(b, False))) == 8
+
+
+class BothFake(FakeSource):
+  """Backward labels through `both(i)` / `has_backward(i)` (the synthetic and pairs_folder spelling);
+  odd indices have none."""
+
+  def both(self, i):
+    return self._pair(i, False), self._pair(i, True)
+
+  def has_backward(self, i):
+    return i % 2 == 0
+
+
+register("_tp_both")(BothFake)
+
+
+def test_symmetrize_via_both_and_per_sample_fallback(tmp_path):
+  cfg = make_config(tmp_path, [])
+  (tmp_path / "b").mkdir()
+  cfg["datasets"] = {"_tp_both": {"quota": 12, "root": str(tmp_path / "b"), "options": {"n": 12}}}
+  pipe = pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)
+  n = 0
+  for b in pipe:
+    for row, (_, i) in enumerate(decode(b, True)):
+      n += 1
+      bwd = {k: b[k][2 * row + 1] for k in ("flow", "flow_valid")}
+      if i % 2 == 0:
+        np.testing.assert_allclose(bwd["flow"], -b["flow"][2 * row])
+        assert bwd["flow_valid"].all()
+      else:
+        assert not bwd["flow_valid"].any()
+  assert n == 12
 
 
 def test_bad_batch_sizes(tmp_path):

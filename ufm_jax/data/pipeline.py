@@ -15,7 +15,10 @@ k) comes from (seed, position), never from process-local generators.
 Batches are dicts of numpy arrays with a leading batch axis of the per-host batch size:
 image0, image1 [B,H,W,3] uint8; flow [B,H,W,2] float32; covisibility, flow_valid, covis_valid
 [B,H,W] bool; dataset_id [B] int32 (index into `Pipeline.names`); epoch [B] int32. With
-symmetrize, rows (2i, 2i+1) are (a, b) and (b, a).
+symmetrize, rows (2i, 2i+1) are (a, b) and (b, a): backward labels come from the source (its
+`both(i)`, `backward(i)` or `reverse(i)`), else from depth + poses in meta (ufm_jax.geometry), else
+(reverse_fallback='unsupervised', e.g. FlyingChairs, HD1K) the (b, a) row has all masks False, so
+the loss must tolerate rows without supervised pixels (FlyingChairs' covis_valid is all False too).
 
 A sample that raises while loading or fails validation is skipped: a replacement is drawn from the
 same dataset (deterministically), the failure is logged with the error text (readers name the
@@ -208,17 +211,43 @@ def geometry_reverse(sample: Mapping[str, Any]) -> dict:
           "covis_valid": (valid1 & ~fov) | (fov & v_other), "meta": meta}
 
 
-def reverse_mode(source, name: str) -> str:
-  """How backward labels of `source` are obtained: 'source' (its `reverse(i)`) or 'geometry'."""
-  if callable(getattr(source, "reverse", None)):
-    return "source"
+def unsupervised_reverse(sample: Mapping[str, Any]) -> dict:
+  """The swapped pair with every supervision mask False: keeps the (a,b),(b,a) batch layout for
+  datasets without backward labels (FlyingChairs, HD1K) without training on made-up labels."""
+  hw = np.shape(sample["image1"])[:2]
+  off = np.zeros(hw, bool)
+  return {"image0": sample["image1"], "image1": sample["image0"],
+          "flow": np.zeros(hw + (2,), np.float32), "covisibility": off, "flow_valid": off,
+          "covis_valid": off, "meta": sample.get("meta", {})}
+
+
+def _source_backward(source):
+  """The source's own backward accessor; sources spell it `both`, `backward` or `reverse`."""
+  if getattr(source, "has_reverse", True) is False:
+    return None, None
+  for attr in ("both", "backward", "reverse"):
+    fn = getattr(source, attr, None)
+    if callable(fn):
+      return attr, fn
+  return None, None
+
+
+def reverse_mode(source, name: str, fallback: str = "unsupervised") -> str:
+  """How backward labels of `source` are obtained: 'both' / 'backward' / 'reverse' (its method),
+  'geometry' (depth + poses in meta), else `fallback` ('unsupervised' or 'error')."""
+  attr, _ = _source_backward(source)
+  if attr:
+    return attr
   meta = source[0].get("meta", {})
   if all(k in meta for k in _GEOMETRY_META):
     return "geometry"
+  if fallback == "unsupervised":
+    return "unsupervised"
   raise ValueError(
-      f"dataset {name!r} cannot be symmetrized: its source has no `reverse(index)` method and its "
-      f"samples' meta lack {[k for k in _GEOMETRY_META if k not in meta]} to compute backward labels;"
-      " set input.symmetrize=False or drop it from the mixture")
+      f"dataset {name!r} cannot be symmetrized: its source has no `both`/`backward`/`reverse` "
+      f"method and its samples' meta lack {[k for k in _GEOMETRY_META if k not in meta]} to "
+      "compute backward labels; set input.symmetrize=False, input.reverse_fallback='unsupervised'"
+      " or drop it from the mixture")
 
 
 class LoadPair:
@@ -232,13 +261,27 @@ class LoadPair:
 
   def _load(self, d: int, i: int):
     where = f"{self.names[d]}[{i}]"
-    sample = check_sample(self.sources[d][i], where)
-    reverse = None
-    if self.symmetrize:
-      if self.reverse_modes[d] == "source":
-        reverse = check_sample(self.sources[d].reverse(i), where + ".reverse")
-      else:
-        reverse = check_sample(geometry_reverse(sample), where + ".reverse")
+    src = self.sources[d]
+    mode = self.reverse_modes[d] if self.symmetrize else None
+    if mode in ("both", "backward", "reverse") and not getattr(src, "has_backward",
+                                                               lambda _: True)(i):
+      mode = "per_sample"   # e.g. a pairs_folder pair without reverse/ labels
+    if mode == "both":
+      sample, reverse = src.both(i)
+    else:
+      sample, reverse = src[i], None
+      if mode in ("backward", "reverse"):
+        reverse = getattr(src, mode)(i)
+    sample = check_sample(sample, where)
+    if mode == "per_sample":
+      meta = sample.get("meta", {})
+      mode = "geometry" if all(k in meta for k in _GEOMETRY_META) else "unsupervised"
+    if mode == "geometry":
+      reverse = geometry_reverse(sample)
+    elif mode == "unsupervised":
+      reverse = unsupervised_reverse(sample)
+    if reverse is not None:
+      reverse = check_sample(reverse, where + ".reverse")
       if (reverse["image0"].shape != sample["image1"].shape
           or reverse["image1"].shape != sample["image0"].shape):
         raise ValueError(f"{where}: reverse sample image shapes {reverse['image0'].shape}, "
@@ -393,7 +436,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   Keys: datasets {name: {quota, root, options}} (relative roots are under data_root), data_root,
   batch_size (global pairs per step, counting both directions when symmetrized), symmetrize,
   longest_side, aspect_ratios, augment {...}, num_workers, worker_buffer_size, read_threads, prefetch_buffer_size, max_skip_fraction,
-  skip_check_min_samples, split. process_index/count default to jax's (grain ShardByJaxProcess).
+  skip_check_min_samples, reverse_fallback, split. process_index/count default to jax's (grain ShardByJaxProcess).
   """
   cfg = dict(config.to_dict() if hasattr(config, "to_dict") else config)
   if process_index is None or process_count is None:
@@ -414,7 +457,16 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   sources = [present[n][0] for n in names]
   quotas = tuple(present[n][1] for n in names)
   sizes = tuple(len(s) for s in sources)
-  modes = tuple(reverse_mode(s, n) for s, n in zip(sources, names)) if symmetrize else ()
+  modes = ()
+  if symmetrize:
+    fallback = str(cfg.get("reverse_fallback", "unsupervised"))
+    if fallback not in ("unsupervised", "error"):
+      raise ValueError(f"input.reverse_fallback must be 'unsupervised' or 'error', got {fallback!r}")
+    modes = tuple(reverse_mode(s, n, fallback) for s, n in zip(sources, names))
+    unsup = [n for n, m in zip(names, modes) if m == "unsupervised"]
+    if unsup:
+      log.warning("no backward labels for %s: their (b, a) rows in symmetrized batches carry no "
+                  "supervision (all masks False)", ", ".join(unsup))
   shapes = augment_lib.training_shapes(int(cfg.get("longest_side", 560)),
                                        tuple(cfg.get("aspect_ratios",
                                                      augment_lib.DEFAULT_ASPECT_RATIOS)))
