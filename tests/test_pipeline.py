@@ -323,3 +323,39 @@ def test_worker_processes_same_batches_and_resume(tmp_path):
     assert_batches_equal(ref[5:], batches(it2, 3))
   finally:
     it2.close()
+
+
+class PlaneFake(FakeSource):
+  """Fronto-parallel plane at depth 4 seen by two cameras 0.2 apart along x (f = 20): the forward
+  flow is u = -f * tx / Z = -1 px everywhere; no backward accessor, depth + poses in meta."""
+
+  def __getitem__(self, i):
+    sample = self._pair(i, False)
+    h, w = HW
+    k = np.array([[20.0, 0, (w - 1) / 2], [0, 20.0, (h - 1) / 2], [0, 0, 1]])
+    c2w1 = np.eye(4)
+    c2w1[0, 3] = 0.2
+    sample["flow"] = np.tile(np.float32([-1, 0]), HW + (1,))
+    sample["meta"] = {"dataset": "synthetic", "K0": k, "K1": k, "cam2world0": np.eye(4),
+                      "cam2world1": c2w1, "depth0": np.full(HW, 4.0, np.float32),
+                      "depth1": np.full(HW, 4.0, np.float32)}
+    return sample
+
+
+register("_tp_plane")(PlaneFake)
+
+
+def test_symmetrize_backward_from_depth_and_poses(tmp_path):
+  pytest.importorskip("ufm_jax.geometry")
+  cfg = make_config(tmp_path, [])
+  (tmp_path / "p").mkdir()
+  cfg["datasets"] = {"_tp_plane": {"quota": 4, "root": str(tmp_path / "p"), "options": {"n": 4}}}
+  cfg["augment"] = {"color_prob": 0.0, "zoom": (1.0, 1.0), "view_scale_jitter": 0.0}
+  b = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)))
+  for row in range(4):
+    fwd, bwd = 2 * row, 2 * row + 1
+    m = b["flow_valid"][bwd] & b["covisibility"][bwd]
+    assert m.mean() > 0.5   # all but the column leaving the view
+    # Both views are scaled alike, so the backward flow is the negated forward one: +s px.
+    np.testing.assert_allclose(b["flow"][bwd][m], -b["flow"][fwd][m], atol=1e-4)
+    assert abs(b["flow"][fwd][0, 0, 0]) > 0.9

@@ -185,30 +185,22 @@ def check_sample(sample: Mapping[str, Any], where: str) -> dict:
   return out
 
 
+def _thresholds_known(meta) -> bool:
+  from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
+  return str(meta.get("dataset", "")).lower() in geometry.COVIS_THRESHOLDS
+
+
 def geometry_reverse(sample: Mapping[str, Any]) -> dict:
-  """Backward labels (image1 -> image0) from depth + poses in meta (static scenes)."""
+  """Backward labels (image1 -> image0) from depth + poses in meta (static scenes), with the
+  dataset's Table S1 thresholds and the same label rules the sources use."""
   from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
   meta = sample["meta"]
-  name = str(meta.get("dataset", "")).lower()
-  if name not in geometry.COVIS_THRESHOLDS:
-    raise ValueError(f"no covisibility thresholds for dataset {name!r} in geometry.COVIS_THRESHOLDS")
-  tau_d, tau_r = geometry.COVIS_THRESHOLDS[name]
-  d0, d1 = (np.asarray(meta[k], np.float32) for k in ("depth0", "depth1"))
-  c = geometry.correspondence_from_depth(d1, meta["K1"], meta["cam2world1"],
-                                         d0, meta["K0"], meta["cam2world0"], tau_d, tau_r)
-  h, w = d1.shape
-  valid0 = np.isfinite(d0) & (d0 > 0)
-  xs = np.arange(w)[None, :] + c["flow"][..., 0]
-  ys = np.arange(h)[:, None] + c["flow"][..., 1]
-  inside = c["fov_mask"] & np.isfinite(xs) & np.isfinite(ys)
-  xi = np.clip(np.floor(np.nan_to_num(xs) + 0.5).astype(np.int64), 0, d0.shape[1] - 1)
-  yi = np.clip(np.floor(np.nan_to_num(ys) + 0.5).astype(np.int64), 0, d0.shape[0] - 1)
-  v_other = inside & valid0[yi, xi]
-  valid1 = np.asarray(c["valid"], bool)
-  fov = np.asarray(c["fov_mask"], bool)
-  return {"image0": sample["image1"], "image1": sample["image0"], "flow": c["flow"],
-          "covisibility": np.asarray(c["covisibility"], bool), "flow_valid": valid1 & fov,
-          "covis_valid": (valid1 & ~fov) | (fov & v_other), "meta": meta}
+  tau_d, tau_r = geometry.COVIS_THRESHOLDS[str(meta["dataset"]).lower()]
+  corr = geometry.correspondence_from_depth(meta["depth1"], meta["K1"], meta["cam2world1"],
+                                            meta["depth0"], meta["K0"], meta["cam2world0"],
+                                            tau_d, tau_r)
+  return {"image0": sample["image1"], "image1": sample["image0"],
+          **geometry.labels_from_correspondence(corr), "meta": meta}
 
 
 def unsupervised_reverse(sample: Mapping[str, Any]) -> dict:
@@ -239,7 +231,7 @@ def reverse_mode(source, name: str, fallback: str = "unsupervised") -> str:
   if attr:
     return attr
   meta = source[0].get("meta", {})
-  if all(k in meta for k in _GEOMETRY_META):
+  if all(k in meta for k in _GEOMETRY_META) and _thresholds_known(meta):
     return "geometry"
   if fallback == "unsupervised":
     return "unsupervised"
@@ -275,7 +267,8 @@ class LoadPair:
     sample = check_sample(sample, where)
     if mode == "per_sample":
       meta = sample.get("meta", {})
-      mode = "geometry" if all(k in meta for k in _GEOMETRY_META) else "unsupervised"
+      mode = ("geometry" if all(k in meta for k in _GEOMETRY_META) and _thresholds_known(meta)
+              else "unsupervised")
     if mode == "geometry":
       reverse = geometry_reverse(sample)
     elif mode == "unsupervised":
