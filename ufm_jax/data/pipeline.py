@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import threading
 import zlib
 from typing import Any, Mapping, Sequence
 
@@ -122,22 +123,29 @@ class MixtureIndex(grain.MapDataset):
     super().__init__()
     self.layout = layout
     self._plans: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    self._lock = threading.Lock()   # grain reads with several threads
 
   def __getstate__(self):
     state = self.__dict__.copy()
     state["_plans"] = {}   # recomputed in worker processes
+    del state["_lock"]
     return state
+
+  def __setstate__(self, state):
+    self.__dict__.update(state)
+    self._lock = threading.Lock()
 
   def __len__(self) -> int:
     return self.layout.num_steps * self.layout.unique_per_host
 
   def plan(self, epoch: int):
-    if epoch not in self._plans:
-      if len(self._plans) >= 2:
-        self._plans.pop(min(self._plans))
-      lay = self.layout
-      self._plans[epoch] = epoch_plan(lay.names, lay.sizes, lay.quotas, lay.seed, epoch)
-    return self._plans[epoch]
+    with self._lock:
+      if epoch not in self._plans:
+        if len(self._plans) >= 2:   # batches straddle at most two epochs
+          self._plans.pop(min(self._plans))
+        lay = self.layout
+        self._plans[epoch] = epoch_plan(lay.names, lay.sizes, lay.quotas, lay.seed, epoch)
+      return self._plans[epoch]
 
   def __getitem__(self, j):
     if isinstance(j, slice):
