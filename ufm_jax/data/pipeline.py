@@ -297,9 +297,8 @@ class LoadPair:
         sample, reverse = self._load(d, i)
         break
       except Exception as e:  # pylint: disable=broad-except  # any unreadable sample is skipped
-        msg = f"skipped {self.names[d]}[{i}]: {type(e).__name__}: {e}"
-        log.warning(msg)
-        skipped.append(msg)
+        # Logged (with running counts) when the batch reaches the main process.
+        skipped.append(f"skipped {self.names[d]}[{i}]: {type(e).__name__}: {e}")
         i = int(np.random.default_rng([self.layout.seed, g, attempt, 3]).integers(
             self.layout.sizes[d]))
     else:
