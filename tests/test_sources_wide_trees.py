@@ -1,0 +1,261 @@
+"""Tiny on-disk trees for the wide-baseline readers, with a scene whose correspondences are known.
+
+The scene is one textured plane n.X = d seen by two pinhole cameras. Depth is rendered
+analytically (z-depth at pixel centres), and the true flow is the plane-induced homography
+H = K1 (R + t n0^T / d0) K0^-1, a formula independent of the depth-reprojection code under test.
+Each `write_<dataset>` stores the scene in that dataset's own on-disk conventions (w2c vs c2w,
+OpenGL / NED axes, COLMAP pixel centres, range depth, millimetres, invalid markers), so a reader
+that gets a convention wrong produces a flow that disagrees with H.
+
+Run as a script to print per-sample load times at each dataset's native training-size shape:
+  PYTHONPATH=. python tests/test_sources_wide_trees.py
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+
+import cv2
+import h5py
+import numpy as np
+
+
+def look_at(eye, target, up=(0.0, -1.0, 0.0), roll=0.0):
+  """OpenCV c2w at `eye` looking at `target` (independent of ufm_jax.geometry on purpose)."""
+  eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
+  z = target - eye
+  z /= np.linalg.norm(z)
+  x = np.cross(z, up)
+  x /= np.linalg.norm(x)
+  y = np.cross(z, x)
+  R = np.stack([x, y, z], 1)
+  c, s = np.cos(roll), np.sin(roll)
+  R = R @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+  T = np.eye(4)
+  T[:3, :3], T[:3, 3] = R, eye
+  return T
+
+
+def K_of(fx, fy, cx, cy):
+  return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+
+
+class PlaneScene:
+  """Two views of the plane n.X = d (world units = metres)."""
+
+  def __init__(self, hw0=(36, 48), hw1=None, K0=None, K1=None, c2w0=None, c2w1=None,
+               normal=(0.15, -0.1, -1.0), point=(0.0, 0.0, 5.0), inv0=None, inv1=None):
+    self.hw = [tuple(hw0), tuple(hw1 or hw0)]
+    def default_K(hw, f):
+      return K_of(f * hw[1], f * hw[1] * 1.02, hw[1] / 2 - 0.7, hw[0] / 2 + 0.4)
+    self.K = [K0 if K0 is not None else default_K(self.hw[0], 0.9),
+              K1 if K1 is not None else default_K(self.hw[1], 1.1)]
+    self.c2w = [c2w0 if c2w0 is not None else look_at((0, 0, 0), (0.3, 0.2, 5.0)),
+                c2w1 if c2w1 is not None else look_at((1.0, -0.4, 1.6), (0.0, 0.3, 5.2), roll=0.2)]
+    n = np.asarray(normal, np.float64)
+    self.n = n / np.linalg.norm(n)
+    self.d = float(self.n @ np.asarray(point, np.float64))
+    self.invalid = []
+    for i, box in enumerate((inv0, inv1)):
+      m = np.zeros(self.hw[i], bool)
+      if box is None:  # default holes: a small rectangle in each view
+        h, w = self.hw[i]
+        box = (h // 5, h // 5 + max(2, h // 8), w // 6 + i * w // 2, w // 6 + i * w // 2 + max(2, w // 8))
+      if box:
+        m[box[0]:box[1], box[2]:box[3]] = True
+      self.invalid.append(m)
+
+  def rays_world(self, i):
+    h, w = self.hw[i]
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    pix = np.stack([u, v, np.ones_like(u)], -1)
+    rc = pix @ np.linalg.inv(self.K[i]).T            # z = 1 camera rays
+    return rc @ self.c2w[i][:3, :3].T, rc
+
+  def z_depth(self, i):
+    """Analytic z-depth; the holes are returned as 0."""
+    rw, _ = self.rays_world(i)
+    C = self.c2w[i][:3, 3]
+    t = (self.d - self.n @ C) / (rw @ self.n)
+    return np.where(self.invalid[i] | (t <= 0), 0.0, t)
+
+  def range_depth(self, i):
+    _, rc = self.rays_world(i)
+    return self.z_depth(i) * np.linalg.norm(rc, axis=-1)
+
+  def image(self, i):
+    rw, _ = self.rays_world(i)
+    C = self.c2w[i][:3, 3]
+    t = (self.d - self.n @ C) / (rw @ self.n)
+    X = C + rw * t[..., None]
+    chans = [np.sin(3.1 * X[..., 0] + 1.7 * X[..., 1]), np.sin(2.3 * X[..., 1] - 2.9 * X[..., 0]),
+             np.cos(4.0 * X[..., 0] * X[..., 1] + X[..., 2])]
+    return np.clip(128 + 110 * np.stack(chans, -1), 0, 255).astype(np.uint8)
+
+  def homography(self):
+    T10 = np.linalg.inv(self.c2w[1]) @ self.c2w[0]
+    R0 = self.c2w[0][:3, :3]
+    n0 = R0.T @ self.n
+    d0 = self.d - self.n @ self.c2w[0][:3, 3]
+    H = self.K[1] @ (T10[:3, :3] + np.outer(T10[:3, 3], n0) / d0) @ np.linalg.inv(self.K[0])
+    return H
+
+  def expected(self):
+    """Flow 0->1, in-view mask, target-in-hole mask, ambiguous mask (near borders / hole edges)."""
+    h, w = self.hw[0]
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    p = np.stack([u, v, np.ones_like(u)], -1) @ self.homography().T
+    tgt = p[..., :2] / p[..., 2:]
+    flow = tgt - np.stack([u, v], -1)
+    h1, w1 = self.hw[1]
+    inside = (tgt[..., 0] >= -0.5) & (tgt[..., 0] < w1 - 0.5) & (tgt[..., 1] >= -0.5) & \
+        (tgt[..., 1] < h1 - 0.5) & (p[..., 2] > 0)
+    near_border = (np.abs(tgt[..., 0] + 0.5) < 0.05) | (np.abs(tgt[..., 0] - w1 + 0.5) < 0.05) | \
+        (np.abs(tgt[..., 1] + 0.5) < 0.05) | (np.abs(tgt[..., 1] - h1 + 0.5) < 0.05)
+    ti = np.clip(np.rint(tgt[..., 1]), 0, h1 - 1).astype(int)
+    tj = np.clip(np.rint(tgt[..., 0]), 0, w1 - 1).astype(int)
+    hole1 = self.invalid[1][ti, tj] & inside
+    # Bilinear depth lookups may mix hole and valid neighbours within a pixel of the hole edge.
+    hole_u8 = self.invalid[1].astype(np.uint8)
+    grown = cv2.dilate(hole_u8, np.ones((3, 3), np.uint8)) > 0
+    core = cv2.erode(hole_u8, np.ones((3, 3), np.uint8), borderValue=1) > 0
+    near_hole = (grown[ti, tj] & ~core[ti, tj]) & inside
+    return dict(flow=flow, inside=inside & ~self.invalid[0], hole1=hole1,
+                ambiguous=near_border | near_hole, near_border=near_border,
+                valid0=~self.invalid[0])
+
+
+def check_plane_sample(sample, scene: PlaneScene, tol=2e-3, depth_tol=1e-4, units=1.0):
+  """Asserts the sample's labels against the closed-form homography."""
+  e = scene.expected()
+  for key in ("image0", "image1"):
+    assert sample[key].dtype == np.uint8 and sample[key].ndim == 3 and sample[key].shape[2] == 3
+  assert sample["image0"].shape[:2] == scene.hw[0] and sample["image1"].shape[:2] == scene.hw[1]
+  flow = sample["flow"]
+  assert flow.shape == scene.hw[0] + (2,) and flow.dtype == np.float32
+  m = e["inside"]
+  assert m.sum() > 0.3 * m.size, "test scene should be mostly covisible"
+  err = np.abs(flow - e["flow"]).max(-1)
+  assert err[m].max() < tol, f"flow differs from the plane homography by {err[m].max():.4f} px"
+  ok = ~e["ambiguous"]
+  covis_exp = e["inside"] & ~e["hole1"]
+  bad = (sample["covisibility"] != covis_exp) & ok
+  assert not bad.any(), f"{bad.sum()} pixels with wrong covisibility"
+  assert not sample["covisibility"][~e["valid0"]].any()
+  cv_exp = e["valid0"] & ~e["hole1"]
+  bad = (sample["covis_valid"] != cv_exp) & ~e["near_border"]
+  assert not bad.any(), f"{bad.sum()} pixels with wrong covis_valid"
+  assert (sample["flow_valid"] == e["valid0"]).all()
+  meta = sample["meta"]
+  for i in (0, 1):
+    np.testing.assert_allclose(meta[f"K{i}"], scene.K[i], atol=1e-3)
+    np.testing.assert_allclose(meta[f"cam2world{i}"][:3, :3], scene.c2w[i][:3, :3], atol=1e-4)
+    np.testing.assert_allclose(meta[f"cam2world{i}"][:3, 3], scene.c2w[i][:3, 3] * units,
+                               atol=1e-4 * max(units, 1))
+    if f"depth{i}" in meta:
+      np.testing.assert_allclose(meta[f"depth{i}"], scene.z_depth(i) * units,
+                                 rtol=depth_tol, atol=depth_tol)
+
+
+# ------------------------------------------------------------------------------------ file writers
+
+def _mkdir(*parts):
+  path = os.path.join(*parts)
+  os.makedirs(path, exist_ok=True)
+  return path
+
+
+def write_image(path, rgb):
+  assert cv2.imwrite(path, np.ascontiguousarray(rgb[..., ::-1]),
+                     [cv2.IMWRITE_JPEG_QUALITY, 95] if path.lower().endswith((".jpg", ".jpeg"))
+                     else [])
+
+
+def write_pfm(path, data):
+  data = np.asarray(data, np.float32)
+  tag = b"PF" if data.ndim == 3 else b"Pf"
+  with open(path, "wb") as f:
+    f.write(tag + b"\n" + f"{data.shape[1]} {data.shape[0]}\n".encode() + b"-1\n")
+    f.write(np.ascontiguousarray(data[::-1]).astype("<f4").tobytes())
+
+
+def write_mvsnet_cam(path, w2c, K, depth_min=0.5, interval=0.01):
+  with open(path, "w") as f:
+    f.write("extrinsic\n")
+    for r in w2c:
+      f.write(" ".join(f"{x:.10f}" for x in r) + "\n")
+    f.write("\nintrinsic\n")
+    for r in K:
+      f.write(" ".join(f"{x:.10f}" for x in r) + "\n")
+    f.write(f"\n{depth_min} {interval} 192 {depth_min + 191 * interval}\n")
+
+
+def write_float3(path, arr):
+  arr = np.asarray(arr, np.float32)
+  with open(path, "wb") as f:
+    f.write(b"float\n" + f"{arr.ndim}\n".encode())
+    for d in reversed(arr.shape):
+      f.write(f"{d}\n".encode())
+    f.write(arr.astype("<f4").tobytes())
+
+
+def rotmat_to_qvec(R):
+  """3x3 rotation -> unit quaternion (w, x, y, z), Shepperd's method."""
+  m = R
+  tr = np.trace(m)
+  if tr > 0:
+    s = np.sqrt(tr + 1.0) * 2
+    q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+  elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+    s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+    q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+  elif m[1, 1] > m[2, 2]:
+    s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+    q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+  else:
+    s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+    q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+  q = np.array(q)
+  return q / np.linalg.norm(q)
+
+
+BLENDED_SCENE = "5a2a95f032a1c655cfe3de62"  # seq_low % 10 != 0 -> train split
+
+
+def write_blendedmvs(root, scene: PlaneScene, name=BLENDED_SCENE):
+  d = os.path.join(root, name)
+  for sub in ("blended_images", "cams", "rendered_depth_maps"):
+    _mkdir(d, sub)
+  for i in (0, 1):
+    write_image(os.path.join(d, "blended_images", f"{i:08d}.jpg"), scene.image(i))
+    write_image(os.path.join(d, "blended_images", f"{i:08d}_masked.jpg"), scene.image(i) * 0)
+    write_mvsnet_cam(os.path.join(d, "cams", f"{i:08d}_cam.txt"), np.linalg.inv(scene.c2w[i]),
+                     scene.K[i])
+    write_pfm(os.path.join(d, "rendered_depth_maps", f"{i:08d}.pfm"), scene.z_depth(i))
+  with open(os.path.join(d, "cams", "pair.txt"), "w") as f:
+    f.write("2\n0\n1 1 500.0\n1\n1 0 500.0\n")
+  return name
+
+
+def timing_scenes():
+  """(dataset, writer, PlaneScene at the dataset's native size) for the load-time report."""
+  return []
+
+
+if __name__ == "__main__":
+  import tempfile
+  import time
+  from ufm_jax import data
+  for name, writer, scene, kwargs in timing_scenes():
+    with tempfile.TemporaryDirectory() as tmp:
+      writer(tmp, scene)
+      src = data.get_source(name, tmp, **kwargs)
+      src[0]
+      t = time.perf_counter()
+      n = 5
+      for _ in range(n):
+        src[0]
+      print(f"{name:14s} {scene.hw[0][1]}x{scene.hw[0][0]}: {1e3 * (time.perf_counter() - t) / n:.1f} "
+            "ms/sample")
