@@ -239,6 +239,127 @@ def write_blendedmvs(root, scene: PlaneScene, name=BLENDED_SCENE):
   return name
 
 
+def megadepth_scene(hw=(36, 48), pre_wh=((96, 72), (80, 60)), f=(80.0, 70.0), **kw):
+  """MegaDepth's undistorted-image intrinsics are, by DUSt3R's rule, getOptimalNewCameraMatrix of
+  the COLMAP camera (+ a pixel-centre convention of its own); the scene is rendered with them."""
+  Ks, cams = [], []
+  for (w, h), fi in zip(pre_wh, f):
+    K_pre = K_of(fi, fi, w / 2 + 0.3, h / 2 - 0.2)
+    K_post = cv2.getOptimalNewCameraMatrix(K_pre, np.zeros(4), (w, h), 0, (hw[1], hw[0]),
+                                           centerPrincipalPoint=True)[0]
+    Ks.append(K_post)
+    cams.append((w, h, fi, K_pre[0, 2], K_pre[1, 2]))
+  scene = PlaneScene(hw0=hw, K0=Ks[0], K1=Ks[1], **kw)
+  scene.colmap_cams = cams
+  return scene
+
+
+def write_megadepth(root, scene, name="0001", sub="0"):
+  dense = os.path.join(root, name, f"dense{sub}")
+  _mkdir(dense, "imgs"), _mkdir(dense, "depths")
+  sparse = _mkdir(root, name, "sparse", "manhattan", sub)
+  with open(os.path.join(sparse, "cameras.txt"), "w") as f:
+    f.write("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, "
+            "PARAMS[]\n# Number of cameras: 2\n")
+    for i, (w, h, fi, cx, cy) in enumerate(scene.colmap_cams):
+      f.write(f"{i + 1} SIMPLE_RADIAL {w} {h} {fi} {cx} {cy} 0\n")
+  with open(os.path.join(sparse, "images.txt"), "w") as f:
+    f.write("# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, "
+            "TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n# Number of images: 2\n")
+    for i in (0, 1):
+      w2c = np.linalg.inv(scene.c2w[i])
+      q = rotmat_to_qvec(w2c[:3, :3])
+      f.write(f"{i + 1} {' '.join(f'{x:.12f}' for x in q)} "
+              f"{' '.join(f'{x:.12f}' for x in w2c[:3, 3])} {i + 1} img{i}.jpg\n")
+      f.write("\n" if i == 0 else "1.0 2.0 -1\n")  # an empty 2D-points line must parse too
+  for i in (0, 1):
+    write_image(os.path.join(dense, "imgs", f"img{i}.jpg"), scene.image(i))
+    with h5py.File(os.path.join(dense, "depths", f"img{i}.h5"), "w") as f:
+      f.create_dataset("depth", data=scene.z_depth(i).astype(np.float32))
+  return f"{name}/{sub}", "img0.jpg", "img1.jpg"
+
+
+NED_FROM_OPENCV = np.array([[0.0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
+
+
+def tartanair_scene(hw=(40, 40), **kw):
+  h, w = hw
+  K = K_of(w / 2, h / 2, w / 2, h / 2)
+  return PlaneScene(hw0=hw, K0=K, K1=K, **kw)
+
+
+def write_tartanair_v2(root, scene, env="AbandonedFactory", traj="P000", cam="lcam_front",
+                       frames=(3, 4)):
+  d = _mkdir(root, env, "Data_easy", traj)
+  _mkdir(d, f"image_{cam}"), _mkdir(d, f"depth_{cam}")
+  lines = []
+  for k in range(max(frames) + 1):
+    view = frames.index(k) if k in frames else 0
+    c2w_ned = scene.c2w[view] @ NED_FROM_OPENCV.T
+    q = rotmat_to_qvec(c2w_ned[:3, :3])  # w x y z
+    t = c2w_ned[:3, 3]
+    lines.append(" ".join(f"{x:.12f}" for x in (*t, q[1], q[2], q[3], q[0])))
+    if k in frames:
+      write_image(os.path.join(d, f"image_{cam}", f"{k:06d}_{cam}.png"), scene.image(view))
+      depth = scene.z_depth(view).astype("<f4")
+      assert cv2.imwrite(os.path.join(d, f"depth_{cam}", f"{k:06d}_{cam}_depth.png"),
+                         depth.view(np.uint8).reshape(depth.shape + (4,)))
+  with open(os.path.join(d, f"pose_{cam}.txt"), "w") as f:
+    f.write("\n".join(lines) + "\n")
+  return f"{env}/Data_easy/{traj}", f"{cam}/{frames[0]:06d}", f"{cam}/{frames[1]:06d}"
+
+
+def write_scannetpp(root, scene, name="0a5c013435"):
+  from ufm_jax.data.sources._exr import write_exr
+  d = os.path.join(root, name)
+  _mkdir(d, "images"), _mkdir(d, "rendered_depth")
+  frames = []
+  for i in (0, 1):
+    fn = f"DSC{i:05d}"
+    write_image(os.path.join(d, "images", fn + ".jpg"), scene.image(i))
+    write_exr(os.path.join(d, "rendered_depth", fn + ".exr"), scene.z_depth(i), half=False)
+    K = scene.K[i]
+    frames.append(dict(frame_name=fn, file_path=f"images/{fn}.jpg",
+                       rendered_depth=f"rendered_depth/{fn}.exr",
+                       transform_matrix=scene.c2w[i].tolist(), fl_x=K[0, 0], fl_y=K[1, 1],
+                       cx=K[0, 2], cy=K[1, 2], h=scene.hw[i][0], w=scene.hw[i][1]))
+  with open(os.path.join(d, "scene_meta.json"), "w") as f:
+    json.dump(dict(scene_name=name, dataset_name="scannetppv2", version="0.1",
+                   camera_convention="opencv", camera_model="PINHOLE", scale_type="metric",
+                   shared_intrinsics=False, frames=frames), f)
+  return name, "DSC00000", "DSC00001"
+
+
+def write_habitat(root, scene, path="hm3d/00042-abcd", key="000123", half=True):
+  from ufm_jax.data.sources._exr import write_exr
+  d = _mkdir(root, path)
+  for i, view in ((1, 0), (2, 1)):
+    write_image(os.path.join(d, f"{key}_{i}.jpeg"), scene.image(view))
+    write_exr(os.path.join(d, f"{key}_{i}_depth.exr"), scene.z_depth(view), half=half)
+    with open(os.path.join(d, f"{key}_{i}_camera_params.json"), "w") as f:
+      json.dump(dict(camera_intrinsics=scene.K[view].tolist(),
+                     R_cam2world=scene.c2w[view][:3, :3].tolist(),
+                     t_cam2world=scene.c2w[view][:3, 3].tolist()), f)
+  return path, f"{key}_1", f"{key}_2"
+
+
+def write_staticthings(root, scene, letter="A", seq="0042", frames=(("left", 6), ("right", 7))):
+  for i, (cam, idx) in enumerate(frames):
+    for kind in ("frames_finalpass", "frames_cleanpass", "depths", "poses"):
+      _mkdir(root, kind, "TRAIN", letter, seq, cam)
+    _mkdir(root, "intrinsics", "TRAIN", letter, seq)
+    for kind in ("frames_finalpass", "frames_cleanpass"):
+      write_image(os.path.join(root, kind, "TRAIN", letter, seq, cam, f"{idx:04d}.png"),
+                  scene.image(i))
+    base = ("TRAIN", letter, seq, cam, f"{idx:04d}.float3")
+    write_float3(os.path.join(root, "depths", *base), scene.z_depth(i))
+    write_float3(os.path.join(root, "poses", *base), np.linalg.inv(scene.c2w[i]))
+    write_float3(os.path.join(root, "intrinsics", "TRAIN", letter, seq, f"{idx:04d}.float3"),
+                 scene.K[i])
+  return f"TRAIN/{letter}/{seq}", f"{frames[0][0]}/{frames[0][1]:04d}", \
+      f"{frames[1][0]}/{frames[1][1]:04d}"
+
+
 def timing_scenes():
   """(dataset, writer, PlaneScene at the dataset's native size) for the load-time report."""
   return []
