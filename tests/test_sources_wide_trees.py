@@ -360,6 +360,56 @@ def write_staticthings(root, scene, letter="A", seq="0042", frames=(("left", 6),
       f"{frames[1][0]}/{frames[1][1]:04d}"
 
 
+def write_dtu(root, scene, scan="scan1", views=(0, 1), light=3):
+  """DTU keeps millimetres: the plane scene (metres) is written scaled by 1000."""
+  _mkdir(root, "Rectified", scan), _mkdir(root, "Cameras"), _mkdir(root, "Depths_raw", scan)
+  for i, v in enumerate(views):
+    write_image(os.path.join(root, "Rectified", scan, f"rect_{v + 1:03d}_{light}_r5000.png"),
+                scene.image(i))
+    w2c = np.linalg.inv(scene.c2w[i])
+    w2c[:3, 3] *= 1000
+    write_mvsnet_cam(os.path.join(root, "Cameras", f"{v:08d}_cam.txt"), w2c, scene.K[i],
+                     depth_min=425, interval=2.5)
+    depth = scene.z_depth(i) * 1000
+    depth[scene.invalid[i]] = np.nan  # DTU marks missing depth with 0 or nan
+    write_pfm(os.path.join(root, "Depths_raw", scan, f"depth_map_{v:04d}.pfm"), depth)
+  with open(os.path.join(root, "Cameras", "pair.txt"), "w") as f:
+    f.write(f"2\n{views[0]}\n1 {views[1]} 900.0\n{views[1]}\n1 {views[0]} 900.0\n")
+  return scan, str(views[0]), str(views[1])
+
+
+def write_eth3d_prepared(root, scene, name="courtyard"):
+  from ufm_jax.data.sources._exr import write_exr
+  d = os.path.join(root, name)
+  _mkdir(d, "images"), _mkdir(d, "depth")
+  frames = []
+  for i in (0, 1):
+    fn = f"DSC_{i:04d}"
+    write_image(os.path.join(d, "images", fn + ".jpg"), scene.image(i))
+    write_exr(os.path.join(d, "depth", fn + ".exr"), scene.z_depth(i))
+    K = scene.K[i]
+    frames.append(dict(frame_name=fn, file_path=f"images/{fn}.jpg", depth=f"depth/{fn}.exr",
+                       transform_matrix=scene.c2w[i].tolist(), fl_x=K[0, 0], fl_y=K[1, 1],
+                       cx=K[0, 2], cy=K[1, 2]))
+  with open(os.path.join(d, "scene_meta.json"), "w") as f:
+    json.dump(dict(scene_name=name, camera_convention="opencv", frames=frames), f)
+  return name, "DSC_0000", "DSC_0001"
+
+
+def write_tawb(root, scene, split="test", env="Sewerage", pair=7):
+  from ufm_jax.data.sources._exr import write_exr
+  d = os.path.join(root, split, env)
+  for sub in ("images", "depth", "camera_params", "poses"):
+    _mkdir(d, sub)
+  for i in (0, 1):
+    n = f"{pair:08d}_{i}"
+    write_image(os.path.join(d, "images", n + ".png"), scene.image(i))
+    write_exr(os.path.join(d, "depth", n + ".exr"), scene.z_depth(i))
+    np.save(os.path.join(d, "camera_params", n + ".npy"), scene.K[i])
+    np.save(os.path.join(d, "poses", n + ".npy"), scene.c2w[i])
+  return env, f"{pair:08d}_0", f"{pair:08d}_1"
+
+
 def timing_scenes():
   """(dataset, writer, PlaneScene at the dataset's native size) for the load-time report."""
   return []
