@@ -410,6 +410,132 @@ def write_tawb(root, scene, split="test", env="Sewerage", pair=7):
   return env, f"{pair:08d}_0", f"{pair:08d}_1"
 
 
+def _quat_from_R(R):
+  return rotmat_to_qvec(R)
+
+
+def _axis_rot(axis, ang):
+  axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+  K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+  return np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
+
+
+class KubricScene:
+  """Static background plane (segmentation id 0) + a moving square patch (id 1) seen by static
+  cameras; frame t of the object pose: rotation about its normal and a translation."""
+
+  def __init__(self, hw=(40, 60), num_frames=6, half=0.9):
+    self.hw = hw
+    h, w = hw
+    self.K = [K_of(0.9 * w, 0.9 * w, w / 2 - 0.5, h / 2 - 0.5),
+              K_of(0.9 * w, 0.9 * w, w / 2 - 0.5, h / 2 - 0.5)]
+    self.c2w = [look_at((0, 0, 0), (0.2, 0.1, 6.0)), look_at((1.4, -0.5, 0.8), (0.1, 0.2, 6.0))]
+    self.n = np.array([0.1, -0.05, -1.0])
+    self.n /= np.linalg.norm(self.n)
+    self.d = float(self.n @ np.array([0, 0, 6.0]))
+    self.half = half
+    self.num_frames = num_frames
+
+  def obj_pose(self, t):
+    T = np.eye(4)
+    T[:3, :3] = _axis_rot((0.2, 0.1, 1.0), 0.08 * t) @ _axis_rot((1, 0, 0), np.pi + 0.2)
+    T[:3, 3] = (0.15 * t - 0.3, 0.05 * t, 4.0)
+    return T
+
+  def cast(self, C, rays, t):
+    """Distance along unit world rays to the first hit, and the hit's id."""
+    tb = (self.d - self.n @ C) / (rays @ self.n)
+    T = self.obj_pose(t)
+    no, po = T[:3, 2], T[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+      to = ((po - C) @ no) / (rays @ no)
+    X = C + rays * to[..., None]
+    local = (X - po) @ T[:3, :3]
+    on = (to > 0) & (np.abs(local[..., 0]) <= self.half) & (np.abs(local[..., 1]) <= self.half)
+    dist = np.where(on & (to < tb), to, tb)
+    seg = (on & (to < tb)).astype(np.int32)
+    return dist, seg
+
+  def unit_rays(self, v):
+    h, w = self.hw
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    rc = np.stack([uu, vv, np.ones_like(uu)], -1) @ np.linalg.inv(self.K[v]).T
+    rw = rc @ self.c2w[v][:3, :3].T
+    return rw / np.linalg.norm(rw, axis=-1, keepdims=True)
+
+  def render(self, v, t):
+    C = self.c2w[v][:3, 3]
+    rays = self.unit_rays(v)
+    dist, seg = self.cast(C, rays, t)
+    X = C + rays * dist[..., None]
+    T = self.obj_pose(t)
+    local = np.where(seg[..., None] == 1, (X - T[:3, 3]) @ T[:3, :3], X)  # texture moves along
+    chans = [np.sin(5.0 * local[..., 0] + 2.0 * local[..., 1]), np.cos(4.0 * local[..., 1]),
+             np.sin(3.0 * local[..., 0] * local[..., 1] + seg)]
+    img = np.clip(128 + 110 * np.stack(chans, -1), 0, 255).astype(np.uint8)
+    return img, dist, seg
+
+  def expected(self, v0, t0, v1, t1):
+    C0, C1 = self.c2w[v0][:3, 3], self.c2w[v1][:3, 3]
+    rays = self.unit_rays(v0)
+    dist, seg = self.cast(C0, rays, t0)
+    X = C0 + rays * dist[..., None]
+    M = self.obj_pose(t1) @ np.linalg.inv(self.obj_pose(t0))
+    Xm = np.where(seg[..., None] == 1, X @ M[:3, :3].T + M[:3, 3], X)
+    w2c1 = np.linalg.inv(self.c2w[v1])
+    Xc = Xm @ w2c1[:3, :3].T + w2c1[:3, 3]
+    uv = Xc[..., :2] / Xc[..., 2:] * np.diag(self.K[v1])[:2] + self.K[v1][:2, 2]
+    h, w = self.hw
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    flow = uv - np.stack([uu, vv], -1)
+    inside = (uv[..., 0] >= -0.5) & (uv[..., 0] < w - 0.5) & (uv[..., 1] >= -0.5) & \
+        (uv[..., 1] < h - 0.5) & (Xc[..., 2] > 0)
+    r = np.linalg.norm(Xm - C1, axis=-1)
+    first, _ = self.cast(C1, (Xm - C1) / r[..., None], t1)
+    visible = inside & (first > r - 1e-3)
+    # ambiguous: near object outlines in either image, or targets near the image border
+    _, seg1 = self.cast(C1, self.unit_rays(v1), t1)
+    edge = lambda s: cv2.dilate(s.astype(np.uint8), np.ones((5, 5), np.uint8)) != \
+        cv2.erode(s.astype(np.uint8), np.ones((5, 5), np.uint8))
+    ti = np.clip(np.rint(uv[..., 1]), 0, h - 1).astype(int)
+    tj = np.clip(np.rint(uv[..., 0]), 0, w - 1).astype(int)
+    near_border = (uv[..., 0] < 0.5) | (uv[..., 0] > w - 1.5) | (uv[..., 1] < 0.5) | \
+        (uv[..., 1] > h - 1.5)
+    ambiguous = edge(seg) | (inside & edge(seg1)[ti, tj]) | near_border
+    return dict(flow=flow, covis=visible, ambiguous=ambiguous, seg0=seg, inside=inside)
+
+
+def write_kubric4d(root, scene: KubricScene, name="scn00042", views=2):
+  """Kubric's conventions: range depth TIFF, normalised sign-flipped K in a corner-origin frame,
+  OpenGL camera-to-world quaternions (w first), palette segmentation PNG."""
+  from ufm_jax.data.sources.kubric4d import write_index_png
+  h, w = scene.hw
+  palette = np.array([[0, 0, 0], [200, 30, 90]] + [[k, k, k] for k in range(2, 256)], np.uint8)
+  for v in range(views):
+    d = _mkdir(root, name, f"frames_p0_v{v}")
+    K = scene.K[v]
+    Kn = [[-K[0, 0] / w, 0, -(K[0, 2] + 0.5) / w], [0, -K[1, 1] / h, -(K[1, 2] + 0.5) / h],
+          [0, 0, -1]]
+    R_gl = scene.c2w[v][:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    q = rotmat_to_qvec(R_gl)
+    inst = dict(positions=[scene.obj_pose(t)[:3, 3].tolist() for t in range(scene.num_frames)],
+                quaternions=[rotmat_to_qvec(scene.obj_pose(t)[:3, :3]).tolist()
+                             for t in range(scene.num_frames)], asset_id="cube")
+    meta = dict(scene=dict(resolution=[w, h], num_frames=scene.num_frames),
+                camera=dict(K=Kn, positions=[scene.c2w[v][:3, 3].tolist()] * scene.num_frames,
+                            quaternions=[q.tolist()] * scene.num_frames),
+                instances=[inst])
+    with open(os.path.join(root, name, f"{name}_p0_v{v}.json"), "w") as f:
+      json.dump(meta, f)
+    for t in range(scene.num_frames):
+      img, dist, seg = scene.render(v, t)
+      rgba = np.concatenate([img, np.full(img.shape[:2] + (1,), 255, np.uint8)], -1)
+      assert cv2.imwrite(os.path.join(d, f"rgba_{t:05d}.png"), rgba[..., [2, 1, 0, 3]])
+      assert cv2.imwrite(os.path.join(d, f"depth_{t:05d}.tiff"), dist.astype(np.float32))
+      write_index_png(os.path.join(d, f"segmentation_{t:05d}.png"), seg, palette)
+  return name
+
+
 def timing_scenes():
   """(dataset, writer, PlaneScene at the dataset's native size) for the load-time report."""
   return []
