@@ -17,6 +17,7 @@ arithmetic); the forward pass is jitted once per model and traced once per infer
 from __future__ import annotations
 
 import functools
+import time
 from typing import Any, Sequence
 
 import numpy as np
@@ -197,11 +198,14 @@ def inference_resolutions(model) -> list[tuple[int, int]]:
   return res
 
 
-_FORWARDS: dict[int, tuple[Any, Any]] = {}
+_FORWARDS: dict[int, tuple[Any, Any, set]] = {}
 
 
 def _forward_fn(model):
-  """One jitted forward per model object (jax re-traces per input shape and caches it)."""
+  """(jitted forward, set of input shapes already compiled) for a model object.
+
+  One jax.jit per model object; jax re-traces per input shape and caches the executable.
+  """
   import jax
 
   entry = _FORWARDS.get(id(model))
@@ -209,9 +213,9 @@ def _forward_fn(model):
     def fwd(params, source, target):
       out = model.apply({"params": params}, source, target)
       return {"flow": out["flow"], "covisibility": out["covisibility"]}
-    entry = (model, jax.jit(fwd))
+    entry = (model, jax.jit(fwd), set())
     _FORWARDS[id(model)] = entry
-  return entry[1]
+  return entry[1], entry[2]
 
 
 def _check_image(x, what: str) -> np.ndarray:
@@ -245,7 +249,8 @@ def unmap_prediction(flow, covisibility, book) -> dict[str, np.ndarray]:
   }
 
 
-def predict(model, params, source, target, *, batch_size: int = 8, resolutions=None):
+def predict(model, params, source, target, *, batch_size: int = 8, resolutions=None,
+            timings: list | None = None):
   """Official high-level inference (`predict_correspondences_batched`).
 
   Args:
@@ -254,18 +259,19 @@ def predict(model, params, source, target, *, batch_size: int = 8, resolutions=N
       lists of such images, or two [B, H, W, 3] arrays.
     batch_size: pairs per forward call (pairs are grouped by inference resolution).
     resolutions: (H, W) inference resolutions overriding the model config's.
+    timings: if a list, gets one (seconds, n_pairs) entry per forward call that did not compile
+      (device time of the jitted forward only: no resize, unmap or I/O).
   Returns:
     {"flow": [H, W, 2] float32 px, "covisibility": [H, W] float32} at the SOURCE size for a single
     pair; a list of such dicts for lists; stacked [B, ...] arrays for [B, H, W, 3] inputs.
   """
-  if isinstance(source, np.ndarray) and source.ndim == 4 or (
-      hasattr(source, "ndim") and not isinstance(source, (list, tuple)) and source.ndim == 4):
+  if getattr(source, "ndim", None) == 4:
     source, target = np.asarray(source), np.asarray(target)
     if target.ndim != 4 or len(target) != len(source):
       raise ValueError(f"batched predict: source {source.shape} and target {target.shape} must "
                        "both be [B, H, W, 3] with the same B")
     outs = predict(model, params, list(source), list(target), batch_size=batch_size,
-                   resolutions=resolutions)
+                   resolutions=resolutions, timings=timings)
     return {k: np.stack([o[k] for o in outs]) for k in ("flow", "covisibility")}
   single = not isinstance(source, (list, tuple))
   sources = [source] if single else list(source)
@@ -275,7 +281,9 @@ def predict(model, params, source, target, *, batch_size: int = 8, resolutions=N
   sources = [_check_image(s, f"source[{i}]") for i, s in enumerate(sources)]
   targets = [_check_image(t, f"target[{i}]") for i, t in enumerate(targets)]
   resolutions = [tuple(r) for r in resolutions] if resolutions else inference_resolutions(model)
-  fwd = _forward_fn(model)
+  fwd, compiled_shapes = _forward_fn(model)
+
+  import jax
 
   prepared = [prepare_pair(s, t, resolutions) for s, t in zip(sources, targets)]
   results: list[dict | None] = [None] * len(prepared)
@@ -287,7 +295,11 @@ def predict(model, params, source, target, *, batch_size: int = 8, resolutions=N
       chunk = idx[start:start + batch_size]
       src = denormalize(np.stack([prepared[i][0] for i in chunk]))
       tgt = denormalize(np.stack([prepared[i][1] for i in chunk]))
-      out = fwd(params, src, tgt)
+      t0 = time.perf_counter()
+      out = jax.block_until_ready(fwd(params, src, tgt))
+      if timings is not None and src.shape in compiled_shapes:
+        timings.append((time.perf_counter() - t0, len(chunk)))
+      compiled_shapes.add(src.shape)
       flow, covis = np.asarray(out["flow"], np.float32), np.asarray(out["covisibility"], np.float32)
       for j, i in enumerate(chunk):
         results[i] = unmap_prediction(flow[j], covis[j], prepared[i][2])
