@@ -127,6 +127,9 @@ def test_source_registered():
     np.testing.assert_allclose(corr["flow"], s["flow"], atol=2e-3)
   bwd = src.backward(2)
   np.testing.assert_array_equal(bwd["image0"], s["image1"])
+  f, b = src.both(2)
+  np.testing.assert_array_equal(f["flow"], s["flow"])
+  np.testing.assert_array_equal(b["flow"], bwd["flow"])
   with pytest.raises(IndexError):
     src[3]
   with pytest.raises(ValueError, match="split"):

@@ -273,14 +273,15 @@ def _surface(prim: Primitive, pose, origin, dirs, t):
 
 
 def _shade(prim: Primitive, p, normal):
-  phase = 2 * np.pi * (p @ prim.freqs.T) + prim.phases
-  color = prim.base + np.sin(phase) @ prim.amps
-  # float32 is plenty for a colour and halves the cost of the [N, blobs] exponentials.
-  p32, c = p.astype(np.float32), prim.blob_centers.astype(np.float32)
-  d2 = (p32 * p32).sum(1)[:, None] - 2 * p32 @ c.T + (c * c).sum(1)[None]
-  scale = (-0.5 / prim.blob_sigmas ** 2).astype(np.float32)
-  color += np.exp(np.minimum(d2, 1e4) * scale) @ prim.blob_colors.astype(np.float32)
-  lambert = np.clip(normal @ prim.light, 0, 1)
+  # float32 is plenty for a colour and halves the cost of the [N, waves] and [N, blobs] maps.
+  f32 = lambda a: np.asarray(a, np.float32)
+  p = f32(p)
+  phase = f32(2 * np.pi) * (p @ f32(prim.freqs).T) + f32(prim.phases)
+  color = f32(prim.base) + np.sin(phase) @ f32(prim.amps)
+  c = f32(prim.blob_centers)
+  d2 = (p * p).sum(1)[:, None] - 2 * p @ c.T + (c * c).sum(1)[None]
+  color += np.exp(np.minimum(d2, 1e4) * f32(-0.5 / prim.blob_sigmas ** 2)) @ f32(prim.blob_colors)
+  lambert = np.clip(f32(normal) @ f32(prim.light), 0, 1)
   return color * (0.6 + 0.4 * lambert)[:, None]
 
 
@@ -346,13 +347,13 @@ def _direction(scene, views, src, tau, search):
   return dict(image0=img_s, image1=img_d, **labels, meta=meta)
 
 
-def generate_pair(seed, config: SyntheticConfig = SyntheticConfig()):
-  """-> (forward, backward) sample dicts (view 0 -> 1 and view 1 -> 0) of the pair drawn by seed."""
+def generate_pair(seed, config: SyntheticConfig = SyntheticConfig(), directions=(0, 1)):
+  """Renders the pair drawn by `seed` -> one sample dict per entry of `directions`
+  (0: view 0 -> view 1, the forward pair; 1: view 1 -> view 0, the backward pair)."""
   scene = make_scene(seed, config)
   views = [render(scene, 0), render(scene, 1)]
   tau = geo.COVIS_THRESHOLDS["synthetic"]
-  search = config.subpixel_search
-  return _direction(scene, views, 0, tau, search), _direction(scene, views, 1, tau, search)
+  return tuple(_direction(scene, views, d, tau, config.subpixel_search) for d in directions)
 
 
 def pair_seed(seed: int, split: str, index: int) -> np.random.SeedSequence:

@@ -44,16 +44,20 @@ class SyntheticSource:
       raise IndexError(f"synthetic[{self.split}]: index {index} out of range ({self.num_pairs})")
     return index % self.num_pairs
 
-  def both(self, index):
+  def _generate(self, index, directions):
     index = self._check(index)
-    fwd, bwd = synthetic.generate_pair(synthetic.pair_seed(self.seed, self.split, index),
-                                       self.config)
-    for sample in (fwd, bwd):
+    samples = synthetic.generate_pair(synthetic.pair_seed(self.seed, self.split, index),
+                                      self.config, directions)
+    for sample in samples:
       sample["meta"].update(scene=f"{self.split}_{self.seed}_{index:06d}", index=index)
-    return fwd, bwd
+    return samples
 
   def __getitem__(self, index):
-    return self.both(index)[0]
+    return self._generate(index, (0,))[0]
 
   def backward(self, index):
-    return self.both(index)[1]
+    return self._generate(index, (1,))[0]
+
+  def both(self, index):
+    """(forward, backward) from a single rendering."""
+    return self._generate(index, (0, 1))
