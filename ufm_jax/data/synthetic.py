@@ -294,11 +294,20 @@ def render(scene: Scene, view: int):
   origin = c2w[:3, 3]
   best = np.full(h * w, np.inf)
   which = np.zeros(h * w, np.int64)
+  unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
   for i, prim in enumerate(scene.primitives):
-    t = _intersect(prim, prim.pose0 if view == 0 else prim.pose1, origin, dirs)
-    closer = t < best
-    best = np.where(closer, t, best)
-    which = np.where(closer, i, which)
+    pose = prim.pose0 if view == 0 else prim.pose1
+    rows = slice(None)
+    if prim.kind != "room":  # only rays inside the cone of the bounding sphere can hit
+      to_centre = pose[:3, 3] - origin
+      dist, radius = np.linalg.norm(to_centre), _bounding_radius(prim)
+      if dist > radius:
+        cos_max = np.sqrt(1 - (radius / dist) ** 2)
+        rows = np.flatnonzero(unit @ (to_centre / dist) >= cos_max - 1e-9)
+    t = _intersect(prim, pose, origin, dirs[rows])
+    closer = t < best[rows]
+    best[rows] = np.where(closer, t, best[rows])
+    which[rows] = np.where(closer, i, which[rows])
   rgb = np.zeros((h * w, 3))
   obj = np.zeros(h * w, np.int32)
   for i, prim in enumerate(scene.primitives):
