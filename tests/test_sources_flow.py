@@ -252,6 +252,31 @@ def test_spring_half_resolution_gt_and_matchmap(tmp_path):
   assert full["meta"]["flow_full"].shape == (8, 12, 2)
 
 
+def test_spring_right_camera_pose_and_depth(tmp_path):
+  _spring_tree(tmp_path)
+  seq = tmp_path / "train/0001"
+  for k in (1, 2):
+    io.write_image(_mk(f"{seq}/frame_right/frame_right_{k:04d}.png"), _img(4, 6, k))
+    io.write_flo5(_mk(f"{seq}/flow_FW_right/flow_FW_right_{k:04d}.flo5"),
+                  np.zeros((8, 12, 2), np.float32))
+    io.write_image(_mk(f"{seq}/maps/matchmap_flow_FW_right/matchmap_flow_FW_right_{k:04d}.png"),
+                   np.zeros((8, 12, 3), np.uint8))
+    disp = np.full((8, 12), 13.0, np.float32)
+    disp[0, 0] = np.nan
+    disp[2, 2] = 0.0
+    io.write_dsp5(_mk(f"{seq}/disp1_right/disp1_right_{k:04d}.dsp5"), disp)
+  src = data.get_source("spring", tmp_path, cameras=("right",), with_depth=True)
+  assert len(src) == 1
+  m = src[0]["meta"]
+  # Right camera: world-to-camera is the left one shifted by -0.065 in x, so its centre is at
+  # x = +0.065 for the identity left pose of frame 1.
+  np.testing.assert_allclose(m["cam2world0"], [[1, 0, 0, 0.065], [0, 1, 0, 0], [0, 0, 1, 0],
+                                               [0, 0, 0, 1]])
+  np.testing.assert_allclose(m["depth0"][1, 0], 1000 * 0.065 / 13.0, rtol=1e-6)
+  np.testing.assert_allclose(m["depth1"][0, 1], 1100 * 0.065 / 13.0, rtol=1e-6)
+  assert m["depth0"][0, 0] == 0 and m["depth0"][1, 1] == 0
+
+
 def test_spring_errors(tmp_path):
   with pytest.raises(FileNotFoundError, match="train.*frame_<cam>"):
     data.get_source("spring", tmp_path)
