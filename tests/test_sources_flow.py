@@ -160,6 +160,13 @@ def test_flyingthings_sceneflow_covisibility(tmp_path):
   np.testing.assert_array_equal(both[1]["flow"], r["flow"])
   assert both[1]["meta"]["direction"] == "backward" and both.reverse(1)["meta"]["frame0"] == "0006"
   assert both[4]["meta"]["dstype"] == "final"
+  fwd, bwd = src.both(0)  # what the pipeline calls to symmetrise batches
+  np.testing.assert_array_equal(fwd["covisibility"], s["covisibility"])
+  np.testing.assert_array_equal(bwd["covisibility"], r["covisibility"])
+  np.testing.assert_array_equal(bwd["image0"], r["image0"])
+  np.testing.assert_array_equal(bwd["image1"], r["image1"])
+  b1, f1 = both.both(1)
+  assert b1["meta"]["direction"] == "backward" and f1["meta"]["direction"] == "forward"
 
 
 def test_flyingthings_errors(tmp_path):
@@ -248,6 +255,10 @@ def test_spring_half_resolution_gt_and_matchmap(tmp_path):
   assert r["meta"]["gt_relpath"] == "0001/flow_BW_left/flow_BW_left_0002.flo5"
   np.testing.assert_array_equal(r["flow"][0, 0], [-1.0, -0.5])
   np.testing.assert_array_equal(r["image0"], _img(4, 6, 2))
+  f2, r2 = src.both(0)
+  np.testing.assert_array_equal(r2["flow"], r["flow"])
+  np.testing.assert_array_equal(r2["image1"], s["image0"])
+  assert f2["meta"]["gt_relpath"] == s["meta"]["gt_relpath"]
   full = data.get_source("spring", tmp_path, cameras=("left",), full_gt=True)[0]
   assert full["meta"]["flow_full"].shape == (8, 12, 2)
 
@@ -437,3 +448,25 @@ def test_kitti2015(tmp_path):
     src[1]
   with pytest.raises(FileNotFoundError, match="testing/image_2"):
     data.get_source("kitti2015", tmp_path, split="testing")
+
+
+# -- the training pipeline's view of these sources ------------------------------------------------
+
+def test_pipeline_interface(tmp_path):
+  from ufm_jax.data import pipeline
+  _chairs_tree(tmp_path / "chairs")
+  _sceneflow_tree(tmp_path / "things", "TRAIN/A/0000", (6, 7, 8))
+  _spring_tree(tmp_path / "spring")
+  _sintel_tree(tmp_path / "sintel")
+  srcs = {"flyingchairs": data.get_source("flyingchairs", tmp_path / "chairs", split="all"),
+          "flyingthings": data.get_source("flyingthings", tmp_path / "things"),
+          "spring": data.get_source("spring", tmp_path / "spring", cameras=("left",)),
+          "sintel_clean": data.get_source("sintel_clean", tmp_path / "sintel")}
+  modes = {n: pipeline.reverse_mode(s, n) for n, s in srcs.items()}
+  assert modes == {"flyingchairs": "unsupervised", "flyingthings": "both", "spring": "both",
+                   "sintel_clean": "unsupervised"}
+  for name, src in srcs.items():
+    pipeline.check_sample(src[0], name)
+    if modes[name] == "both":
+      for s in src.both(0):
+        pipeline.check_sample(s, name)

@@ -116,7 +116,14 @@ class SceneFlowSource:
       return self._load(index // 2, reverse=not index % 2)
     return self._load(index, reverse=True)
 
-  def _load(self, k: int, reverse: bool) -> dict:
+  def both(self, index: int) -> tuple[dict, dict]:
+    """(`self[index]`, `self.reverse(index)`) reading each image once (for symmetrised batches)."""
+    k, rev = (index // 2, bool(index % 2)) if self.directions == "both" else (index, False)
+    first = self._load(k, reverse=rev)
+    second = self._load(k, reverse=not rev, images=(first["image1"], first["image0"]))
+    return first, second
+
+  def _load(self, k: int, reverse: bool, images=None) -> dict:
     dpass, scene, cam, a, b = self.pairs[k]
     src, dst = (b, a) if reverse else (a, b)
     direction = "backward" if reverse else "forward"
@@ -124,8 +131,10 @@ class SceneFlowSource:
     lr = "L" if cam == "left" else "R"
     r = self.root
     gt_relpath = f"{scene}/{into}/{cam}/OpticalFlowInto{word}_{src:04d}_{lr}.pfm"
-    image0 = io.read_image(os.path.join(r, f"frames_{dpass}pass", scene, cam, f"{src:04d}.png"))
-    image1 = io.read_image(os.path.join(r, f"frames_{dpass}pass", scene, cam, f"{dst:04d}.png"))
+    if images is None:
+      images = [io.read_image(os.path.join(r, f"frames_{dpass}pass", scene, cam, f"{f:04d}.png"))
+                for f in (src, dst)]
+    image0, image1 = images
     flow_path = os.path.join(r, "optical_flow", gt_relpath)
     flow = io.read_pfm(flow_path)
     if flow.ndim != 3:

@@ -133,13 +133,22 @@ class Spring:
         w2c[0, 3] -= BASELINE
       meta["cam2world" + suffix] = np.linalg.inv(w2c)
 
-  def _load(self, k: int, reverse: bool) -> dict:
+  def both(self, index: int) -> tuple[dict, dict]:
+    """(`self[index]`, `self.reverse(index)`) reading each image once (for symmetrised batches)."""
+    k, rev = (index // 2, bool(index % 2)) if self.directions == "both" else (index, False)
+    first = self._load(k, reverse=rev)
+    second = self._load(k, reverse=not rev, images=(first["image1"], first["image0"]))
+    return first, second
+
+  def _load(self, k: int, reverse: bool, images=None) -> dict:
     seq, cam, a, b = self.pairs[k]
     src, dst = (b, a) if reverse else (a, b)
     fb = "BW" if reverse else "FW"
     base = os.path.join(self.split_dir, seq)
-    image0 = io.read_image(os.path.join(base, f"frame_{cam}", f"frame_{cam}_{src:04d}.png"))
-    image1 = io.read_image(os.path.join(base, f"frame_{cam}", f"frame_{cam}_{dst:04d}.png"))
+    if images is None:
+      images = [io.read_image(os.path.join(base, f"frame_{cam}", f"frame_{cam}_{f:04d}.png"))
+                for f in (src, dst)]
+    image0, image1 = images
     h, w = image0.shape[:2]
     gt_relpath = f"{seq}/flow_{fb}_{cam}/flow_{fb}_{cam}_{src:04d}.flo5"
     meta = dict(dataset="spring", scene=seq, camera=cam, frame0=f"{src:04d}", frame1=f"{dst:04d}",
