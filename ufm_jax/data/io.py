@@ -132,7 +132,7 @@ def read_pfm(path: str | os.PathLike) -> np.ndarray:
   with open(path, "rb") as f:
     data = f.read()
   # Three whitespace-terminated header tokens after the type line; parse them from the raw bytes.
-  m = re.match(rb"(P[Ff])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s", data)
+  m = re.match(rb"(P[Ff])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)(?:\r\n|\s)", data)
   if m is None:
     raise ValueError(f"{path}: not a PFM file (expected header 'PF'|'Pf', 'W H', scale)")
   channels = 3 if m.group(1) == b"PF" else 1
