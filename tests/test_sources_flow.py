@@ -182,6 +182,9 @@ def test_flyingthings_errors(tmp_path):
   (tmp_path / "disparity/TRAIN/A/0000/left/0007.pfm").write_bytes(b"Pf\n3 3\n-1\n")
   with pytest.raises(ValueError, match="0007.pfm"):
     src[1]
+  io.write_pfm(tmp_path / "disparity/TRAIN/A/0000/left/0007.pfm", np.ones((3, 3), np.float32))
+  with pytest.raises(ValueError, match="disparity/TRAIN/A/0000/left/0007.pfm: shape \\(3, 3\\)"):
+    src[1]
 
 
 def test_monkaa_layout_and_invalid_flow(tmp_path):

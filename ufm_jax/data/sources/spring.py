@@ -137,7 +137,8 @@ class Spring:
     """(`self[index]`, `self.reverse(index)`) reading each image once (for symmetrised batches)."""
     k, rev = (index // 2, bool(index % 2)) if self.directions == "both" else (index, False)
     first = self._load(k, reverse=rev)
-    second = self._load(k, reverse=not rev, images=(first["image1"], first["image0"]))
+    second = self._load(k, reverse=not rev,
+                        images=(first["image1"].copy(), first["image0"].copy()))
     return first, second
 
   def _load(self, k: int, reverse: bool, images=None) -> dict:
