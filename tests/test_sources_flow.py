@@ -443,7 +443,8 @@ def test_kitti2015(tmp_path):
   np.testing.assert_array_equal(s["covis_valid"], occ)
   np.testing.assert_array_equal(s["meta"]["foreground"], obj > 0)
   assert s["meta"]["gt_relpath"] == "flow/000000_10.png"
-  assert "obj_map" not in src[1]["meta"]
+  assert "obj_map" not in src[1]["meta"] and "foreground" not in src[1]["meta"]
+  np.testing.assert_array_equal(s["meta"]["obj_map"], obj)
   s_noc = data.get_source("kitti2015", tmp_path, gt="noc")[0]
   np.testing.assert_array_equal(s_noc["flow_valid"], noc)
   os.remove(f"{t}/flow_noc/000001_10.png")
