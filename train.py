@@ -69,6 +69,33 @@ def build_loss(config):
   return functools.partial(losses.ufm_loss, **kwargs)
 
 
+def make_train_step(model, loss_fn, tx, labels, apply_kwargs):
+  """train_step(state, batch) -> (state, metrics): one optimizer update.
+
+  Gradients are taken w.r.t. the trainable params only (frozen ones enter through stop_gradient,
+  so e.g. the refine stage runs no backward pass through the base model).
+  """
+  import jax
+  import jax.numpy as jnp
+  import optax
+  from ufm_jax import optim
+
+  def loss_and_aux(trainable, frozen, batch):
+    params = optim.merge_params(trainable, jax.lax.stop_gradient(frozen))
+    out = model.apply({"params": params}, batch["image0"], batch["image1"], **apply_kwargs)
+    return loss_fn(out, batch)
+
+  def train_step(state, batch):
+    trainable, frozen = optim.split_trainable(state.params, labels)
+    (loss, aux), g = jax.value_and_grad(loss_and_aux, has_aux=True)(trainable, frozen, batch)
+    grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
+    new_state, ok = optim.apply_gradients(state, grads, loss, tx)
+    metrics = dict(aux, loss=loss, grad_norm=optax.global_norm(g), update_ok=ok)
+    return new_state, metrics
+
+  return train_step
+
+
 class EvalResult:
   def __init__(self, scalars, images=None):
     self.scalars, self.images = scalars, images or {}
@@ -297,21 +324,7 @@ def main(argv):
   sharding.log_shardings(param_sh, abstract_params)
 
   # ---------------------------------------------------------------------------------- step
-  def loss_and_aux(trainable, frozen, batch):
-    params = optim.merge_params(trainable, jax.lax.stop_gradient(frozen))
-    out = model.apply({"params": params}, batch["image0"], batch["image1"], **apply_kwargs)
-    return loss_fn_outer(out, batch)
-
-  def train_step(state, batch):
-    trainable, frozen = optim.split_trainable(state.params, labels)
-    (loss, aux), g = jax.value_and_grad(loss_and_aux, has_aux=True)(trainable, frozen, batch)
-    grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
-    new_state, ok = optim.apply_gradients(state, grads, loss, tx)
-    metrics = dict(aux, loss=loss, grad_norm=optax_global_norm(g), update_ok=ok)
-    return new_state, metrics
-
-  import optax
-  optax_global_norm = optax.global_norm
+  train_step = make_train_step(model, loss_fn_outer, tx, labels, apply_kwargs)
   p_train_step = jax.jit(train_step, in_shardings=(state_sh, batch_sh),
                          out_shardings=(state_sh, repl), donate_argnums=(0,))
 
