@@ -312,7 +312,7 @@ def test_worker_processes_same_batches_and_resume(tmp_path):
   it = iter(pipeline.create(cfg_mp, seed=2, num_epochs=2, process_index=0, process_count=1))
   try:
     got = batches(it, 5)
-    state = it.get_state()
+    state = json.loads(json.dumps(it.get_state()))   # what grain's orbax handler stores
     assert it.skipped > 0
   finally:
     it.close()
