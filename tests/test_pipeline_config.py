@@ -75,3 +75,16 @@ def test_parse_arg():
   assert common.parse_arg(None, data="both").data == "both"
   with pytest.raises(KeyError, match="unknown config arg 'x'"):
     common.parse_arg("x=1", data="both")
+
+
+def test_synthetic_mixture_through_train_entry_point():
+  cfg = common.input_config(common.synthetic_mixture(num_pairs=6, size=(28, 42)), batch_size=4,
+                            longest_side=28, num_workers=0)
+  it, info = pipeline.make_train_iterator(cfg, process_batch=4, seed=0)
+  assert info["pairs_per_epoch"] == 12 and info["unique_pairs_per_epoch"] == 6
+  assert info["datasets"] == {"synthetic": 6} and info["image_shape"] in ((14, 28), (28, 28))
+  b = next(it)
+  assert b["image0"].shape[0] == 4 and b["image0"].shape[1:3] in info["shapes"]
+  assert b["flow_valid"].any() and b["covis_valid"].any()
+  with pytest.raises(ValueError, match="expects 2 pairs per process"):
+    pipeline.make_train_iterator(cfg, process_batch=2, seed=0)

@@ -385,6 +385,7 @@ class Pipeline:
   num_steps: int                # batches this iterator yields before it ends
   batch_size: int               # pairs per host batch
   shapes: tuple[tuple[int, int], ...]
+  symmetrize: bool
 
   def __iter__(self):
     return iter(self.dataset)
@@ -427,6 +428,25 @@ def _open_sources(datasets: Mapping[str, Mapping[str, Any]], split: str | None,
   if not present:
     raise FileNotFoundError(f"no dataset of the mixture is available; absent: {'; '.join(dropped)}")
   return present, tuple(d.split(" ")[0] for d in dropped)
+
+
+def make_train_iterator(config: Mapping[str, Any], *, process_batch: int | None = None,
+                        seed: int = 0, num_epochs: int | None = None):
+  """(checkpointable grain iterator of host batches, info) for train.py.
+
+  info: pairs_per_epoch (batch rows per epoch: both directions counted when symmetrized, so
+  steps per epoch = pairs_per_epoch / input.batch_size), unique_pairs_per_epoch, image_shape
+  (the first training shape), shapes, datasets {name: quota}, dropped.
+  """
+  pipe = create(config, seed=seed, num_epochs=num_epochs)
+  if process_batch is not None and int(process_batch) != pipe.batch_size:
+    raise ValueError(f"train.py expects {process_batch} pairs per process, the pipeline makes "
+                     f"{pipe.batch_size} (input.batch_size / process count)")
+  rows = pipe.epoch_size * (2 if pipe.symmetrize else 1)
+  info = {"pairs_per_epoch": rows, "unique_pairs_per_epoch": pipe.epoch_size,
+          "image_shape": tuple(pipe.shapes[0]), "shapes": [tuple(x) for x in pipe.shapes],
+          "datasets": dict(zip(pipe.names, pipe.quotas)), "dropped": list(pipe.dropped)}
+  return iter(pipe), info
 
 
 def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None = None,
@@ -496,4 +516,5 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   return Pipeline(dataset=ds, names=names, quotas=quotas, sizes=sizes, dropped=dropped,
                   epoch_size=layout.epoch_size,
                   steps_per_epoch=layout.epoch_size / layout.unique_per_step,
-                  num_steps=layout.num_steps, batch_size=per_host, shapes=shapes)
+                  num_steps=layout.num_steps, batch_size=per_host, shapes=shapes,
+                  symmetrize=symmetrize)
