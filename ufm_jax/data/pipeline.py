@@ -16,7 +16,7 @@ Batches are dicts of numpy arrays with a leading batch axis of the per-host batc
 image0, image1 [B,H,W,3] uint8; flow [B,H,W,2] float32; covisibility, flow_valid, covis_valid
 [B,H,W] bool; dataset_id [B] int32 (index into `Pipeline.names`); epoch [B] int32. With
 symmetrize, rows (2i, 2i+1) are (a, b) and (b, a): backward labels come from the source (its
-`both(i)`, `backward(i)` or `reverse(i)`), else from depth + poses in meta (ufm_jax.geometry), else
+`both(i)`, `backward(i)` or `reverse(i)`), else for static scenes from depth + poses in meta, else
 (reverse_fallback='unsupervised', e.g. FlyingChairs, HD1K) the (b, a) row has all masks False, so
 the loss must tolerate rows without supervised pixels (FlyingChairs' covis_valid is all False too).
 
@@ -193,17 +193,22 @@ def check_sample(sample: Mapping[str, Any], where: str) -> dict:
   return out
 
 
-def _thresholds_known(meta) -> bool:
-  from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
-  return str(meta.get("dataset", "")).lower() in geometry.COVIS_THRESHOLDS
+# Static scenes (paper Table 1, above the dashed line): their backward labels follow from depth and
+# poses alone. Dynamic sets (Kubric4D's moving objects, scene flow) must come from the source.
+STATIC_DATASETS = ("blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat", "staticthings")
 
 
-def geometry_reverse(sample: Mapping[str, Any]) -> dict:
-  """Backward labels (image1 -> image0) from depth + poses in meta (static scenes), with the
-  dataset's Table S1 thresholds and the same label rules the sources use."""
+def _geometry_possible(meta) -> bool:
+  return (all(k in meta for k in _GEOMETRY_META)
+          and str(meta.get("dataset", "")).lower() in STATIC_DATASETS)
+
+
+def geometry_reverse(sample: Mapping[str, Any], thresholds=None) -> dict:
+  """Backward labels (image1 -> image0) of a static-scene pair from depth + poses in meta, with the
+  source's thresholds (else Table S1's) and the label rules the sources use."""
   from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
   meta = sample["meta"]
-  tau_d, tau_r = geometry.COVIS_THRESHOLDS[str(meta["dataset"]).lower()]
+  tau_d, tau_r = thresholds or geometry.COVIS_THRESHOLDS[str(meta["dataset"]).lower()]
   corr = geometry.correspondence_from_depth(meta["depth1"], meta["K1"], meta["cam2world1"],
                                             meta["depth0"], meta["K0"], meta["cam2world0"],
                                             tau_d, tau_r)
@@ -238,15 +243,19 @@ def reverse_mode(source, name: str, fallback: str = "unsupervised") -> str:
   attr, _ = _source_backward(source)
   if attr:
     return attr
-  meta = source[0].get("meta", {})
-  if all(k in meta for k in _GEOMETRY_META) and _thresholds_known(meta):
+  try:
+    meta = source[0].get("meta", {})
+  except Exception as e:  # pylint: disable=broad-except  # a corrupt first sample is skipped later
+    log.warning("%s[0] unreadable while probing for backward labels: %s", name, e)
+    meta = {}
+  if _geometry_possible(meta):
     return "geometry"
   if fallback == "unsupervised":
     return "unsupervised"
   raise ValueError(
       f"dataset {name!r} cannot be symmetrized: its source has no `both`/`backward`/`reverse` "
-      f"method and its samples' meta lack {[k for k in _GEOMETRY_META if k not in meta]} to "
-      "compute backward labels; set input.symmetrize=False, input.reverse_fallback='unsupervised'"
+      f"method and its samples are not static-scene pairs ({', '.join(STATIC_DATASETS)}) with "
+      f"{', '.join(_GEOMETRY_META)} in meta to compute backward labels from; set input.symmetrize=False, input.reverse_fallback='unsupervised'"
       " or drop it from the mixture")
 
 
@@ -275,10 +284,9 @@ class LoadPair:
     sample = check_sample(sample, where)
     if mode == "per_sample":
       meta = sample.get("meta", {})
-      mode = ("geometry" if all(k in meta for k in _GEOMETRY_META) and _thresholds_known(meta)
-              else "unsupervised")
+      mode = "geometry" if _geometry_possible(meta) else "unsupervised"
     if mode == "geometry":
-      reverse = geometry_reverse(sample)
+      reverse = geometry_reverse(sample, getattr(src, "thresholds", None))
     elif mode == "unsupervised":
       reverse = unsupervised_reverse(sample)
     if reverse is not None:
