@@ -181,4 +181,4 @@ def test_synthetic_pairs_stay_consistent_after_augmentation():
     for out in augment.augment(fwd, np.random.default_rng(i), (42, 84), cfg, reverse=bwd):
       good.append(_photo_error(out, 0.1)[0])
       bad.append(_photo_error(dict(out, flow=out["flow"] + np.float32([2, 0])), 0.1)[0])
-  assert max(good) < 8.0 and np.mean(good) < 0.4 * np.mean(bad), (good, bad)
+  assert np.median(good) < 4.0 and np.mean(good) < 0.4 * np.mean(bad), (good, bad)
