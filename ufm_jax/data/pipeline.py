@@ -174,7 +174,7 @@ def check_sample(sample: Mapping[str, Any], where: str) -> dict:
   out = dict(sample)
   for k in ("image0", "image1"):
     a = np.asarray(sample[k])
-    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8 or min(a.shape[:2]) < 2:
       raise ValueError(f"{where}: {k} must be HxWx3 uint8, got {a.shape} {a.dtype}")
     out[k] = a
   hw = out["image0"].shape[:2]
@@ -467,7 +467,8 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   skip_check_min_samples, reverse_fallback, split. process_index/count default to jax's (grain ShardByJaxProcess).
   """
   cfg = dict(config.to_dict() if hasattr(config, "to_dict") else config)
-  if process_index is None or process_count is None:
+  jax_processes = process_index is None or process_count is None
+  if jax_processes:
     shard = grain.sharding.ShardByJaxProcess(drop_remainder=True)
     process_index, process_count = shard.shard_index, shard.shard_count
   symmetrize = bool(cfg.get("symmetrize", True))
@@ -498,6 +499,14 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   shapes = augment_lib.training_shapes(int(cfg.get("longest_side", 560)),
                                        tuple(cfg.get("aspect_ratios",
                                                      augment_lib.DEFAULT_ASPECT_RATIOS)))
+  if jax_processes and process_count > 1:
+    # Every host derives the same plans only if it sees the same datasets with the same sizes.
+    from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
+    multihost_utils.assert_equal(
+        # int32: jax without x64 would wrap an int64 differently on each side of the comparison.
+        np.array([zlib.crc32(repr((names, sizes, quotas)).encode()) & 0x7FFFFFFF], np.int32),
+        f"hosts disagree on the mixture (names, sizes, quotas); this host: "
+        f"{list(zip(names, sizes, quotas))}")
   layout = MixtureLayout(names, sizes, quotas, int(seed), unique_per_host, int(process_index),
                          int(process_count), num_epochs)
   if layout.num_steps == 0:
