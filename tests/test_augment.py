@@ -182,3 +182,20 @@ def test_synthetic_pairs_stay_consistent_after_augmentation():
       good.append(_photo_error(out, 0.1)[0])
       bad.append(_photo_error(dict(out, flow=out["flow"] + np.float32([2, 0])), 0.1)[0])
   assert np.median(good) < 4.0 and np.mean(good) < 0.4 * np.mean(bad), (good, bad)
+
+
+def test_color_jitter_matches_sequential_definition():
+  """One fused blend == brightness, then contrast around the mean grey, then saturation around each
+  pixel's grey (torchvision order), computed step by step in float here."""
+  rng = np.random.default_rng(0)
+  img = rng.integers(0, 256, (20, 30, 3)).astype(np.uint8)
+  w = np.array([0.299, 0.587, 0.114])
+  for b, c, s in [(1.2, 0.8, 1.1), (0.85, 1.15, 0.8), (1.0, 1.0, 0.0)]:
+    x = img.astype(np.float64) * b
+    m = (x @ w).mean()
+    x = (x - m) * c + m
+    g = x @ w
+    x = (x - g[..., None]) * s + g[..., None]
+    want = np.clip(np.round(x), 0, 255)
+    got = augment.color_jitter(img, (b, c, s, 0.0)).astype(np.float64)
+    assert np.abs(got - want).max() <= 2.0, (b, c, s)
