@@ -284,7 +284,7 @@ NED_FROM_OPENCV = np.array([[0.0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0
 
 def tartanair_scene(hw=(40, 40), **kw):
   h, w = hw
-  K = K_of(w / 2, h / 2, w / 2, h / 2)
+  K = K_of(w / 2, h / 2, (w - 1) / 2, (h - 1) / 2)
   return PlaneScene(hw0=hw, K0=K, K1=K, **kw)
 
 
