@@ -102,3 +102,62 @@ def test_eth3d_prepare_missing_raw_names_path(tmp_path):
   tool = _tool("data/eth3d/prepare.py")
   with pytest.raises(FileNotFoundError, match="nope"):
     tool.main(["--raw", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--no_progress"])
+
+
+@pytest.mark.parametrize("grouped", [False, True])
+def test_tawb_prepare_from_release_shards(tmp_path, grouped):
+  dl, out = tmp_path / "dl", tmp_path / "out"
+  (dl / "test").mkdir(parents=True)
+  (dl / "test_camera_data").mkdir()
+  scenes = [trees.tartanair_scene(), trees.tartanair_scene(
+      c2w1=trees.look_at((-0.8, 0.3, 1.0), (0.1, 0.0, 5.0)))]
+  depth_sky = []
+  for s in scenes:
+    d1 = s.z_depth(1).copy()
+    d1[-3:] = 500.0  # sky: beyond the 200 m default cut
+    depth_sky.append(d1)
+  with h5py.File(dl / "test" / "shard_000.h5", "w") as f:
+    if grouped:
+      for i, s in enumerate(scenes):
+        g = f.create_group(str(i))
+        g["img0"], g["img1"] = s.image(0), s.image(1)
+        g["depth0"], g["depth1"] = s.z_depth(0), depth_sky[i]
+    else:
+      f["img0"] = np.stack([s.image(0) for s in scenes]).astype(np.float32)
+      f["img1"] = np.stack([s.image(1) for s in scenes]).astype(np.float32)
+      f["depth0"] = np.stack([s.z_depth(0) for s in scenes])
+      f["depth1"] = np.stack(depth_sky)
+  # pairs 5 and 9 of the release live at indices 0 and 1 of the shard
+  (dl / "test" / "index_000.json").write_text(json.dumps(
+      {"5": ["shard_000.h5", 0], "9": {"file_name": "shard_000.h5", "file_index": 1}}))
+  (dl / "test" / "stats.json").write_text(json.dumps({"forward_match_errors": [1.0]}))
+  n = 10
+  for cam, k in (("cam1", 0), ("cam2", 1)):
+    ext = np.tile(np.eye(4), (n, 1, 1))
+    intr = np.tile(np.eye(3), (n, 1, 1))
+    for pair, s in zip((5, 9), scenes):
+      ext[pair], intr[pair] = s.c2w[k], s.K[k]
+    np.savez(dl / "test_camera_data" / f"{cam}_extrinsics.npz", ext)
+    np.savez(dl / "test_camera_data" / f"{cam}_intrinsics.npz", intr)
+  envs = ["x"] * n
+  envs[5], envs[9] = "SewerageWinter", "Sewerage"
+  (dl / "test_camera_data" / "metadata.json").write_text(json.dumps(
+      {"columns": ["img1_env", "img2_env"], "index": list(range(n)),
+       "data": [[e, e] for e in envs]}))
+  tool = _tool("data/tawb/prepare.py")
+  assert tool.main(["--download", str(dl), "--out", str(out), "--no_progress"]) == 2
+  src = data.get_source("tawb", str(out))
+  assert [tuple(p) for p in src.pairs] == [("Sewerage", "00000005_0", "00000005_1"),
+                                           ("Sewerage", "00000009_0", "00000009_1")]
+  for i, s in enumerate(scenes):
+    sample = src[i]
+    assert (sample["meta"]["depth1"][-3:] == 0).all()  # sky masked
+    s.invalid[1][-3:] = True  # the masked rows now behave as holes of view 1
+    trees.check_plane_sample(sample, s)
+
+
+def test_tawb_prepare_missing_camera_data(tmp_path):
+  (tmp_path / "test").mkdir()
+  tool = _tool("data/tawb/prepare.py")
+  with pytest.raises(FileNotFoundError, match="test_camera_data"):
+    tool.main(["--download", str(tmp_path), "--out", str(tmp_path / "o"), "--no_progress"])
