@@ -161,3 +161,38 @@ def test_tawb_prepare_missing_camera_data(tmp_path):
   tool = _tool("data/tawb/prepare.py")
   with pytest.raises(FileNotFoundError, match="test_camera_data"):
     tool.main(["--download", str(tmp_path), "--out", str(tmp_path / "o"), "--no_progress"])
+
+
+def test_dtu_prepare_mines_covisible_pairs(tmp_path):
+  scene = trees.PlaneScene()
+  trees.write_dtu(str(tmp_path), scene, views=(0, 1))
+  trees.write_dtu(str(tmp_path), trees.PlaneScene(
+      c2w1=trees.look_at((0, 0, 0), (0, 0, -5.0))), scan="scan4", views=(2, 3))  # shared Cameras/
+  out = _tool("data/dtu/prepare.py").main(["--root", str(tmp_path), "--no_progress"])
+  lines = [l.split()[:3] for l in open(out) if not l.startswith("#")]
+  # scan4's second camera looks away from the plane: no covisible pair there
+  assert lines == [["scan1", "0", "1"]]
+  src = data.get_source("dtu", str(tmp_path))
+  assert [tuple(p) for p in src.pairs] == [("scan1", "0", "1")]
+
+
+def test_scannet1500_prepare_from_loftr(tmp_path):
+  K = np.array([[575.66, 0, 320.5], [0, 576.0, 242.4], [0, 0, 1]])
+  T = np.eye(4)
+  T[:3, :3] = trees._axis_rot((0.1, 1, 0), 0.3)
+  T[:3, 3] = (0.4, -0.1, 0.2)
+  np.savez(tmp_path / "test.npz", name=np.array([[707, 0, 15, 585]], np.uint16),
+           rel_pose=T[:3].reshape(1, 12).astype(np.float32))
+  np.savez(tmp_path / "intrinsics.npz", scene0707_00=K)
+  color = tmp_path / "root" / "scannet_test_1500" / "scene0707_00" / "color"
+  color.mkdir(parents=True)
+  for f in (15, 585):
+    trees.write_image(str(color / f"{f}.jpg"), np.zeros((48, 64, 3), np.uint8))
+  tool = _tool("data/scannet1500/prepare.py")
+  n, missing = tool.main(["--root", str(tmp_path / "root"), "--loftr_npz", str(tmp_path / "test.npz"),
+                          "--loftr_intrinsics", str(tmp_path / "intrinsics.npz")])
+  assert (n, missing) == (1, 0)
+  s = data.get_source("scannet1500", str(tmp_path / "root"))[0]
+  # images at 64x48 = 640x480 / 10: K follows
+  np.testing.assert_allclose(s["meta"]["K0"], K * np.array([[0.1], [0.1], [1]]), rtol=1e-5)
+  np.testing.assert_allclose(s["meta"]["T_0to1"], T, atol=1e-6)
