@@ -92,3 +92,11 @@ def test_malformed_files_name_path(tmp_path):
   os.remove(tmp_path / trees.BLENDED_SCENE / "cams" / "00000001_cam.txt")
   with pytest.raises(FileNotFoundError, match="00000001_cam.txt"):
     src[1]
+
+
+def test_every_reader_loads_at_the_training_shape():
+  """Each reader on its tree at 560x420; prints per-sample load times (not asserted: timing is
+  a figure, reported by `python tests/test_sources_wide_trees.py`)."""
+  times = trees.report_load_times((28, 42), repeats=1)
+  assert sorted(times) == sorted(["blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat",
+                                  "staticthings", "kubric4d", "eth3d", "dtu", "tawb"])

@@ -539,23 +539,54 @@ def write_kubric4d(root, scene: KubricScene, name="scn00042", views=2):
   return name
 
 
-def timing_scenes():
-  """(dataset, writer, PlaneScene at the dataset's native size) for the load-time report."""
-  return []
+def timing_trees(hw):
+  """(dataset, writer(root) -> None, get_source kwargs) for a load-time report at size hw."""
+  def pairs_file(root, pair, split="train"):
+    with open(os.path.join(root, f"pairs_{split}.txt"), "w") as f:
+      f.write(" ".join(pair) + "\n")
+
+  def plane(**kw):
+    return PlaneScene(hw0=hw, **kw)
+
+  def kub(root):
+    name = write_kubric4d(root, KubricScene(hw=hw, num_frames=2))
+    pairs_file(root, (name, "0/0", "1/1"))
+
+  return [
+      ("blendedmvs", lambda r: write_blendedmvs(r, plane()), {}),
+      ("megadepth", lambda r: pairs_file(r, write_megadepth(r, megadepth_scene(
+          hw=hw, pre_wh=((hw[1] * 2, hw[0] * 2),) * 2, f=(hw[1] * 1.8, hw[1] * 1.6)))), {}),
+      ("tartanair_v2", lambda r: write_tartanair_v2(r, tartanair_scene(hw)), {"strides": (1,)}),
+      ("scannetpp", lambda r: pairs_file(r, write_scannetpp(r, plane())), {}),
+      ("habitat", lambda r: write_habitat(r, plane()), {}),
+      ("staticthings", lambda r: write_staticthings(r, plane()), {}),
+      ("kubric4d", kub, {}),
+      ("eth3d", lambda r: pairs_file(r, write_eth3d_prepared(r, plane()), "test"), {}),
+      ("dtu", lambda r: write_dtu(r, plane()), {}),
+      ("tawb", lambda r: write_tawb(r, tartanair_scene(hw)), {}),
+  ]
 
 
-if __name__ == "__main__":
+def report_load_times(hw=(420, 560), repeats=5):
+  """Per-sample load time (ms, single process) of each reader on a tree at size hw."""
   import tempfile
   import time
   from ufm_jax import data
-  for name, writer, scene, kwargs in timing_scenes():
+  out = {}
+  for name, writer, kwargs in timing_trees(hw):
     with tempfile.TemporaryDirectory() as tmp:
-      writer(tmp, scene)
+      writer(tmp)
       src = data.get_source(name, tmp, **kwargs)
       src[0]
       t = time.perf_counter()
-      n = 5
-      for _ in range(n):
+      for _ in range(repeats):
         src[0]
-      print(f"{name:14s} {scene.hw[0][1]}x{scene.hw[0][0]}: {1e3 * (time.perf_counter() - t) / n:.1f} "
-            "ms/sample")
+      out[name] = 1e3 * (time.perf_counter() - t) / repeats
+  return out
+
+
+if __name__ == "__main__":
+  import sys
+  hw = tuple(int(x) for x in sys.argv[1:3]) if len(sys.argv) > 2 else (420, 560)
+  for name, ms in report_load_times(hw).items():
+    print(f"{name:14s} {hw[1]}x{hw[0]}: {ms:7.1f} ms/sample")
