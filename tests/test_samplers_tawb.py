@@ -6,7 +6,6 @@ import os
 
 import cv2
 import numpy as np
-import pytest
 
 from ufm_jax import data
 from ufm_jax.data.sources import _tawb_sampler as ts

@@ -3,7 +3,6 @@ test_sources_wide_trees.py for the plane scene whose flow is a closed-form homog
 
 import os
 
-import numpy as np
 import pytest
 
 from ufm_jax import data

@@ -3,10 +3,8 @@ TA-WB (Hugging Face shards -> extracted layout)."""
 
 import importlib.util
 import json
-import os
 import pathlib
 
-import cv2
 import h5py
 import numpy as np
 import pytest
