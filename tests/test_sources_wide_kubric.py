@@ -60,3 +60,11 @@ def test_kubric4d_without_pairs_names_sampler(kubric_tree):
   root, _, _ = kubric_tree
   with pytest.raises(FileNotFoundError, match="pairs_val.txt.*sample_pairs.py"):
     len(data.get_source("kubric4d", str(root), split="val"))
+
+
+def test_kubric4d_malformed_metadata_names_file(tmp_path):
+  name = trees.write_kubric4d(str(tmp_path), trees.KubricScene(num_frames=2))
+  (tmp_path / name / f"{name}_p0_v1.json").write_text('{"scene": {}}')
+  (tmp_path / "pairs_train.txt").write_text(f"{name} 0/0 1/1\n")
+  with pytest.raises(ValueError, match=f"{name}_p0_v1.json.*malformed Kubric metadata"):
+    data.get_source("kubric4d", str(tmp_path))[0]
