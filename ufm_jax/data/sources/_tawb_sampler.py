@@ -335,7 +335,9 @@ def sample_environment(source, scene: str, pose_indices, out_dir: str, total: in
       bar.update(1)
     bar.close()
   os.makedirs(out_dir, exist_ok=True)
-  with open(os.path.join(out_dir, "pairs_meta.jsonl"), "a") as f:
-    for r in records:
-      f.write(json.dumps(r) + "\n")
+  path = os.path.join(out_dir, "pairs_meta.jsonl")
+  previous = open(path).read() if os.path.isfile(path) else ""
+  with open(path + ".tmp", "w") as f:  # rewritten whole, then renamed: never half-written
+    f.write(previous + "".join(json.dumps(r) + "\n" for r in records))
+  os.replace(path + ".tmp", path)
   return records, rejected
