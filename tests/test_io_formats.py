@@ -145,6 +145,12 @@ def test_pfm_read_rows_bottom_to_top_and_endianness(tmp_path, endian, scale):
   np.testing.assert_array_equal(io.read_pfm(path1), gray)
 
 
+def test_pfm_crlf_header(tmp_path):
+  p = tmp_path / "crlf.pfm"
+  p.write_bytes(b"Pf\r\n2 1\r\n-1.0\r\n" + np.array([1.0, 2.0], "<f4").tobytes())
+  np.testing.assert_array_equal(io.read_pfm(p), [[1.0, 2.0]])
+
+
 def test_pfm_write_layout(tmp_path):
   img = np.array([[1.0, 2.0], [3.0, 4.0]], np.float32)
   path = tmp_path / "d.pfm"

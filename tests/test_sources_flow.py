@@ -160,6 +160,13 @@ def test_flyingthings_sceneflow_covisibility(tmp_path):
   np.testing.assert_array_equal(both[1]["flow"], r["flow"])
   assert both[1]["meta"]["direction"] == "backward" and both.reverse(1)["meta"]["frame0"] == "0006"
   assert both[4]["meta"]["dstype"] == "final"
+  fwd, bwd = src.both(0)  # what the pipeline calls to symmetrise batches
+  np.testing.assert_array_equal(fwd["covisibility"], s["covisibility"])
+  np.testing.assert_array_equal(bwd["covisibility"], r["covisibility"])
+  np.testing.assert_array_equal(bwd["image0"], r["image0"])
+  np.testing.assert_array_equal(bwd["image1"], r["image1"])
+  b1, f1 = both.both(1)
+  assert b1["meta"]["direction"] == "backward" and f1["meta"]["direction"] == "forward"
 
 
 def test_flyingthings_errors(tmp_path):
@@ -174,6 +181,9 @@ def test_flyingthings_errors(tmp_path):
     src[0]
   (tmp_path / "disparity/TRAIN/A/0000/left/0007.pfm").write_bytes(b"Pf\n3 3\n-1\n")
   with pytest.raises(ValueError, match="0007.pfm"):
+    src[1]
+  io.write_pfm(tmp_path / "disparity/TRAIN/A/0000/left/0007.pfm", np.ones((3, 3), np.float32))
+  with pytest.raises(ValueError, match="disparity/TRAIN/A/0000/left/0007.pfm: shape \\(3, 3\\)"):
     src[1]
 
 
@@ -248,8 +258,37 @@ def test_spring_half_resolution_gt_and_matchmap(tmp_path):
   assert r["meta"]["gt_relpath"] == "0001/flow_BW_left/flow_BW_left_0002.flo5"
   np.testing.assert_array_equal(r["flow"][0, 0], [-1.0, -0.5])
   np.testing.assert_array_equal(r["image0"], _img(4, 6, 2))
+  f2, r2 = src.both(0)
+  np.testing.assert_array_equal(r2["flow"], r["flow"])
+  np.testing.assert_array_equal(r2["image1"], s["image0"])
+  assert f2["meta"]["gt_relpath"] == s["meta"]["gt_relpath"]
   full = data.get_source("spring", tmp_path, cameras=("left",), full_gt=True)[0]
   assert full["meta"]["flow_full"].shape == (8, 12, 2)
+
+
+def test_spring_right_camera_pose_and_depth(tmp_path):
+  _spring_tree(tmp_path)
+  seq = tmp_path / "train/0001"
+  for k in (1, 2):
+    io.write_image(_mk(f"{seq}/frame_right/frame_right_{k:04d}.png"), _img(4, 6, k))
+    io.write_flo5(_mk(f"{seq}/flow_FW_right/flow_FW_right_{k:04d}.flo5"),
+                  np.zeros((8, 12, 2), np.float32))
+    io.write_image(_mk(f"{seq}/maps/matchmap_flow_FW_right/matchmap_flow_FW_right_{k:04d}.png"),
+                   np.zeros((8, 12, 3), np.uint8))
+    disp = np.full((8, 12), 13.0, np.float32)
+    disp[0, 0] = np.nan
+    disp[2, 2] = 0.0
+    io.write_dsp5(_mk(f"{seq}/disp1_right/disp1_right_{k:04d}.dsp5"), disp)
+  src = data.get_source("spring", tmp_path, cameras=("right",), with_depth=True)
+  assert len(src) == 1
+  m = src[0]["meta"]
+  # Right camera: world-to-camera is the left one shifted by -0.065 in x, so its centre is at
+  # x = +0.065 for the identity left pose of frame 1.
+  np.testing.assert_allclose(m["cam2world0"], [[1, 0, 0, 0.065], [0, 1, 0, 0], [0, 0, 1, 0],
+                                               [0, 0, 0, 1]])
+  np.testing.assert_allclose(m["depth0"][1, 0], 1000 * 0.065 / 13.0, rtol=1e-6)
+  np.testing.assert_allclose(m["depth1"][0, 1], 1100 * 0.065 / 13.0, rtol=1e-6)
+  assert m["depth0"][0, 0] == 0 and m["depth0"][1, 1] == 0
 
 
 def test_spring_errors(tmp_path):
@@ -404,7 +443,8 @@ def test_kitti2015(tmp_path):
   np.testing.assert_array_equal(s["covis_valid"], occ)
   np.testing.assert_array_equal(s["meta"]["foreground"], obj > 0)
   assert s["meta"]["gt_relpath"] == "flow/000000_10.png"
-  assert "obj_map" not in src[1]["meta"]
+  assert "obj_map" not in src[1]["meta"] and "foreground" not in src[1]["meta"]
+  np.testing.assert_array_equal(s["meta"]["obj_map"], obj)
   s_noc = data.get_source("kitti2015", tmp_path, gt="noc")[0]
   np.testing.assert_array_equal(s_noc["flow_valid"], noc)
   os.remove(f"{t}/flow_noc/000001_10.png")
@@ -412,3 +452,25 @@ def test_kitti2015(tmp_path):
     src[1]
   with pytest.raises(FileNotFoundError, match="testing/image_2"):
     data.get_source("kitti2015", tmp_path, split="testing")
+
+
+# -- the training pipeline's view of these sources ------------------------------------------------
+
+def test_pipeline_interface(tmp_path):
+  from ufm_jax.data import pipeline
+  _chairs_tree(tmp_path / "chairs")
+  _sceneflow_tree(tmp_path / "things", "TRAIN/A/0000", (6, 7, 8))
+  _spring_tree(tmp_path / "spring")
+  _sintel_tree(tmp_path / "sintel")
+  srcs = {"flyingchairs": data.get_source("flyingchairs", tmp_path / "chairs", split="all"),
+          "flyingthings": data.get_source("flyingthings", tmp_path / "things"),
+          "spring": data.get_source("spring", tmp_path / "spring", cameras=("left",)),
+          "sintel_clean": data.get_source("sintel_clean", tmp_path / "sintel")}
+  modes = {n: pipeline.reverse_mode(s, n) for n, s in srcs.items()}
+  assert modes == {"flyingchairs": "unsupervised", "flyingthings": "both", "spring": "both",
+                   "sintel_clean": "unsupervised"}
+  for name, src in srcs.items():
+    pipeline.check_sample(src[0], name)
+    if modes[name] == "both":
+      for s in src.both(0):
+        pipeline.check_sample(s, name)

@@ -33,15 +33,36 @@ def pairs():
   return out
 
 
+def near_depth_edge_in_target(sample):
+  """Source pixels whose target lands within a pixel of a depth discontinuity of image1, where
+  bilinear resampling legitimately mixes the colours of two surfaces."""
+  d = sample["meta"]["depth1"].astype(np.float64)
+  edge = np.zeros(d.shape, bool)
+  jump_x = np.abs(np.diff(d, axis=1)) > 0.05 * np.minimum(d[:, 1:], d[:, :-1])
+  jump_y = np.abs(np.diff(d, axis=0)) > 0.05 * np.minimum(d[1:], d[:-1])
+  edge[:, 1:] |= jump_x
+  edge[:, :-1] |= jump_x
+  edge[1:] |= jump_y
+  edge[:-1] |= jump_y
+  h, w = sample["flow"].shape[:2]
+  target = geo.pixel_grid(h, w) + sample["flow"]
+  near = np.zeros((h, w), bool)
+  for du in (-1, 0, 1):
+    for dv in (-1, 0, 1):
+      near |= geo.nearest_sample(edge, target + (du, dv))
+  return near
+
+
 def test_warping_image1_by_flow_reproduces_image0_on_covisible_pixels(pairs):
   for s in pairs:
     c = s["covisibility"]
     assert c.sum() > 200, s["meta"]
-    err = warp_error(s)[c]
+    err = warp_error(s)
+    smooth = c & ~near_depth_edge_in_target(s)
     # Solid textures with periods of >= ~3 px: bilinear resampling error only.
-    assert np.median(err) < 2.0 and err.mean() < 3.5, (s["meta"]["pair_type"], err.mean())
+    assert np.median(err[c]) < 2.0 and err[smooth].mean() < 3.0, (s["meta"], err[smooth].mean())
     # The check is sensitive: a 1-pixel flow error is clearly worse.
-    assert warp_error(s, shift=1.0)[c].mean() > 2 * err.mean()
+    assert warp_error(s, shift=1.0)[smooth].mean() > 2 * err[smooth].mean()
 
 
 def test_pair_types_and_moving_object(pairs):
@@ -106,21 +127,13 @@ def test_source_registered():
     np.testing.assert_allclose(corr["flow"], s["flow"], atol=2e-3)
   bwd = src.backward(2)
   np.testing.assert_array_equal(bwd["image0"], s["image1"])
+  f, b = src.both(2)
+  np.testing.assert_array_equal(f["flow"], s["flow"])
+  np.testing.assert_array_equal(b["flow"], bwd["flow"])
   with pytest.raises(IndexError):
     src[3]
   with pytest.raises(ValueError, match="split"):
     data.get_source("synthetic", None, split="nope")
-
-
-def test_speed_is_reasonable():
-  import time
-  cfg = S.SyntheticConfig(size=(112, 112))
-  S.generate_pair(S.pair_seed(0, "train", 0), cfg)
-  t = time.perf_counter()
-  for i in range(3):
-    S.generate_pair(S.pair_seed(0, "train", i), cfg)
-  # ~40 ms per pair (both directions) on a quiet core; generous bound for a shared machine.
-  assert (time.perf_counter() - t) / 3 < 0.5
 
 
 def test_every_ray_hits_and_no_camera_inside_an_object():

@@ -90,10 +90,11 @@ def read_kitti_flow(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
   if raw.dtype != np.uint16 or raw.ndim != 3 or raw.shape[2] != 3:
     raise ValueError(f"{path}: expected a 3-channel uint16 KITTI flow PNG, got dtype {raw.dtype} "
                      f"shape {raw.shape}")
-  rgb = raw[..., ::-1]
-  valid = rgb[..., 2] > 0
-  flow = (rgb[..., :2].astype(np.float32) - KITTI_FLOW_OFFSET) / KITTI_FLOW_SCALE
-  flow[~valid] = 0.0
+  valid = raw[..., 0] > 0  # BGR order: index 0 = valid, 1 = v, 2 = u
+  flow = raw[..., 2:0:-1].astype(np.float32)
+  flow -= np.float32(KITTI_FLOW_OFFSET)
+  flow *= np.float32(1.0 / KITTI_FLOW_SCALE)
+  flow *= valid[..., None]
   return flow, valid
 
 
@@ -131,7 +132,7 @@ def read_pfm(path: str | os.PathLike) -> np.ndarray:
   with open(path, "rb") as f:
     data = f.read()
   # Three whitespace-terminated header tokens after the type line; parse them from the raw bytes.
-  m = re.match(rb"(P[Ff])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s", data)
+  m = re.match(rb"(P[Ff])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)(?:\r\n|\s)", data)
   if m is None:
     raise ValueError(f"{path}: not a PFM file (expected header 'PF'|'Pf', 'W H', scale)")
   channels = 3 if m.group(1) == b"PF" else 1

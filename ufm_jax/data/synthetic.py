@@ -44,6 +44,9 @@ class SyntheticConfig:
   max_view_angle_deg: float = 90.0        # wide pairs: view change drawn in [10, this]
   min_view_angle_deg: float = 10.0
   num_objects: tuple[int, int] = (3, 6)   # inclusive range
+  # 0 = the paper's covisibility rule; 0.5 removes most of its silhouette/grazing-angle false
+  # negatives (see ufm_jax.geometry.covisibility_from_points).
+  subpixel_search: float = 0.0
 
   def __post_init__(self):
     if self.pair_type not in PAIR_TYPES:
@@ -80,6 +83,9 @@ class Primitive:
   amps: np.ndarray          # [n, 3] per colour channel
   base: np.ndarray          # [3]
   light: np.ndarray         # [3] unit light direction in the object frame (baked shading)
+  blob_centers: np.ndarray  # [m, 3] on the surface: aperiodic landmarks for wide baselines
+  blob_sigmas: np.ndarray   # [m]
+  blob_colors: np.ndarray   # [m, 3]
   object_id: int            # 0 = static, 1 = the moving object
 
 
@@ -100,7 +106,19 @@ def _rotation(rng, max_angle):
   return geo.axis_angle_to_rotation(axis, rng.uniform(-max_angle, max_angle))
 
 
-def _texture(rng, scale):
+def _surface_points(rng, kind, extent, m):
+  if kind == "sphere":
+    d = rng.normal(size=(m, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True) * extent[0]
+  p = rng.uniform(-1, 1, (m, 3)) * extent
+  axis = rng.integers(0, 3, m)
+  p[np.arange(m), axis] = rng.choice([-1.0, 1.0], m) * extent[axis]
+  return p
+
+
+def _texture(rng, scale, kind, extent, n_blobs):
+  """Smooth solid texture: random 3D sinusoids (fine detail) + Gaussian colour blobs on the
+  surface (aperiodic landmarks, so repeated sinusoid patterns are not ambiguous)."""
   n = 10
   direction = rng.normal(size=(n, 3))
   direction /= np.linalg.norm(direction, axis=1, keepdims=True)
@@ -109,7 +127,10 @@ def _texture(rng, scale):
   amps += rng.uniform(-1, 1, size=(n, 1)) * 40 / np.sqrt(n)  # shared: luminance texture
   light = rng.normal(size=3)
   return dict(freqs=freqs, phases=rng.uniform(0, 2 * np.pi, n), amps=amps,
-              base=rng.uniform(60, 200, 3), light=light / np.linalg.norm(light))
+              base=rng.uniform(60, 200, 3), light=light / np.linalg.norm(light),
+              blob_centers=_surface_points(rng, kind, extent, n_blobs),
+              blob_sigmas=scale * rng.uniform(0.3, 0.9, n_blobs),
+              blob_colors=rng.uniform(-90, 90, (n_blobs, 3)))
 
 
 def _camera_K(rng, h, w):
@@ -174,18 +195,16 @@ def make_scene(seed, config: SyntheticConfig = SyntheticConfig()) -> Scene:
   h, w = config.size
   half_room = rng.uniform(9, 12, 3)
   prims = [Primitive("room", np.eye(4), np.eye(4), half_room, object_id=0,
-                     **_texture(rng, scale=2.0))]
+                     **_texture(rng, 2.0, "room", half_room, 32))]
   n_obj = int(rng.integers(config.num_objects[0], config.num_objects[1] + 1))
   for _ in range(n_obj):
     pos = rng.uniform(-1, 1, 3)
     pos *= rng.uniform(0, 2.0) / max(np.linalg.norm(pos), _EPS)
     pose = geo.pose_from_rt(_rotation(rng, np.pi), pos)
-    if rng.uniform() < 0.6:
-      prims.append(Primitive("box", pose, pose, rng.uniform(0.3, 0.9, 3), object_id=0,
-                             **_texture(rng, scale=0.6)))
-    else:
-      prims.append(Primitive("sphere", pose, pose, np.array([rng.uniform(0.3, 0.9)]),
-                             object_id=0, **_texture(rng, scale=0.5)))
+    kind = "box" if rng.uniform() < 0.6 else "sphere"
+    extent = rng.uniform(0.3, 0.9, 3 if kind == "box" else 1)
+    prims.append(Primitive(kind, pose, pose, extent, object_id=0,
+                           **_texture(rng, 0.6 if kind == "box" else 0.5, kind, extent, 6)))
   pair_type = config.pair_type
   if pair_type == "mixed":
     pair_type = "wide" if rng.uniform() < 0.5 else "flow"
@@ -254,9 +273,15 @@ def _surface(prim: Primitive, pose, origin, dirs, t):
 
 
 def _shade(prim: Primitive, p, normal):
-  phase = 2 * np.pi * (p @ prim.freqs.T) + prim.phases
-  color = prim.base + np.sin(phase) @ prim.amps
-  lambert = np.clip(normal @ prim.light, 0, 1)
+  # float32 is plenty for a colour and halves the cost of the [N, waves] and [N, blobs] maps.
+  f32 = lambda a: np.asarray(a, np.float32)
+  p = f32(p)
+  phase = f32(2 * np.pi) * (p @ f32(prim.freqs).T) + f32(prim.phases)
+  color = f32(prim.base) + np.sin(phase) @ f32(prim.amps)
+  c = f32(prim.blob_centers)
+  d2 = (p * p).sum(1)[:, None] - 2 * p @ c.T + (c * c).sum(1)[None]
+  color += np.exp(np.minimum(d2, 1e4) * f32(-0.5 / prim.blob_sigmas ** 2)) @ f32(prim.blob_colors)
+  lambert = np.clip(f32(normal) @ f32(prim.light), 0, 1)
   return color * (0.6 + 0.4 * lambert)[:, None]
 
 
@@ -269,11 +294,20 @@ def render(scene: Scene, view: int):
   origin = c2w[:3, 3]
   best = np.full(h * w, np.inf)
   which = np.zeros(h * w, np.int64)
+  unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
   for i, prim in enumerate(scene.primitives):
-    t = _intersect(prim, prim.pose0 if view == 0 else prim.pose1, origin, dirs)
-    closer = t < best
-    best = np.where(closer, t, best)
-    which = np.where(closer, i, which)
+    pose = prim.pose0 if view == 0 else prim.pose1
+    rows = slice(None)
+    if prim.kind != "room":  # only rays inside the cone of the bounding sphere can hit
+      to_centre = pose[:3, 3] - origin
+      dist, radius = np.linalg.norm(to_centre), _bounding_radius(prim)
+      if dist > radius:
+        cos_max = np.sqrt(1 - (radius / dist) ** 2)
+        rows = np.flatnonzero(unit @ (to_centre / dist) >= cos_max - 1e-9)
+    t = _intersect(prim, pose, origin, dirs[rows])
+    closer = t < best[rows]
+    best[rows] = np.where(closer, t, best[rows])
+    which[rows] = np.where(closer, i, which[rows])
   rgb = np.zeros((h * w, 3))
   obj = np.zeros(h * w, np.int32)
   for i, prim in enumerate(scene.primitives):
@@ -299,7 +333,7 @@ def _object_poses(scene: Scene, time: int) -> dict:
   return poses
 
 
-def _direction(scene, views, src, tau):
+def _direction(scene, views, src, tau, search):
   """Sample dict for view `src` -> view 1 - src."""
   dst = 1 - src
   (img_s, depth_s, seg_s), (img_d, depth_d, _) = views[src], views[dst]
@@ -308,10 +342,10 @@ def _direction(scene, views, src, tau):
   if scene.moving:
     corr = geo.correspondence_from_rigid_objects(
         depth_s, K[src], c2w[src], seg_s, _object_poses(scene, src),
-        depth_d, K[dst], c2w[dst], _object_poses(scene, dst), *tau)
+        depth_d, K[dst], c2w[dst], _object_poses(scene, dst), *tau, subpixel_search=search)
   else:
     corr = geo.correspondence_from_depth(depth_s, K[src], c2w[src], depth_d, K[dst], c2w[dst],
-                                         *tau)
+                                         *tau, subpixel_search=search)
   labels = geo.labels_from_correspondence(corr)
   rel = c2w[src][:3, :3].T @ c2w[dst][:3, :3]
   meta = dict(dataset="synthetic", pair_type=scene.pair_type, moving_object=scene.moving,
@@ -322,12 +356,13 @@ def _direction(scene, views, src, tau):
   return dict(image0=img_s, image1=img_d, **labels, meta=meta)
 
 
-def generate_pair(seed, config: SyntheticConfig = SyntheticConfig()):
-  """-> (forward, backward) sample dicts (view 0 -> 1 and view 1 -> 0) of the pair drawn by seed."""
+def generate_pair(seed, config: SyntheticConfig = SyntheticConfig(), directions=(0, 1)):
+  """Renders the pair drawn by `seed` -> one sample dict per entry of `directions`
+  (0: view 0 -> view 1, the forward pair; 1: view 1 -> view 0, the backward pair)."""
   scene = make_scene(seed, config)
   views = [render(scene, 0), render(scene, 1)]
   tau = geo.COVIS_THRESHOLDS["synthetic"]
-  return _direction(scene, views, 0, tau), _direction(scene, views, 1, tau)
+  return tuple(_direction(scene, views, d, tau, config.subpixel_search) for d in directions)
 
 
 def pair_seed(seed: int, split: str, index: int) -> np.random.SeedSequence:

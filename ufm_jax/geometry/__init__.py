@@ -2,7 +2,7 @@
 
 Conventions: OpenCV camera axes (x right, y down, z forward), camera-to-world 4x4 poses, pixel
 (u, v) = (column, row) with pixel centres at integer coordinates, z-depth, invalid depth = 0/inf/nan.
-Scene flow (FlyingThings3D / Monkaa) lives in `ufm_jax.geometry.sceneflow`.
+Scene flow (FlyingThings3D / Monkaa): `sceneflow_covisibility`, from `ufm_jax.geometry.sceneflow`.
 """
 
 from ufm_jax.geometry.camera import (OPENGL_TO_OPENCV, axis_angle_to_rotation, intrinsics,
@@ -16,6 +16,7 @@ from ufm_jax.geometry.masks import (covis_supervision_mask, flyingchairs_labels,
                                     fov_mask_from_flow, labels_from_correspondence,
                                     other_view_validity)
 from ufm_jax.geometry.rigid import correspondence_from_rigid_objects, object_motions
+from ufm_jax.geometry.sceneflow import sceneflow_covisibility
 from ufm_jax.geometry.thresholds import COVIS_THRESHOLDS, covis_thresholds
 
 __all__ = [
@@ -25,6 +26,6 @@ __all__ = [
     "inside_image", "intrinsics", "invert_pose", "labels_from_correspondence", "look_at",
     "nearest_sample", "ned_to_opencv", "object_motions", "opengl_to_opencv", "other_view_validity",
     "pixel_grid", "pose_from_rt", "project", "quaternion_to_rotation", "range_to_z", "ray_norms",
-    "rays", "rotation_angle", "transform", "unproject", "valid_depth", "world2cam_to_cam2world",
-    "z_to_range",
+    "rays", "rotation_angle", "sceneflow_covisibility", "transform", "unproject", "valid_depth",
+    "world2cam_to_cam2world", "z_to_range",
 ]

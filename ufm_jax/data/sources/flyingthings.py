@@ -116,7 +116,15 @@ class SceneFlowSource:
       return self._load(index // 2, reverse=not index % 2)
     return self._load(index, reverse=True)
 
-  def _load(self, k: int, reverse: bool) -> dict:
+  def both(self, index: int) -> tuple[dict, dict]:
+    """(`self[index]`, `self.reverse(index)`) reading each image once (for symmetrised batches)."""
+    k, rev = (index // 2, bool(index % 2)) if self.directions == "both" else (index, False)
+    first = self._load(k, reverse=rev)
+    second = self._load(k, reverse=not rev,
+                        images=(first["image1"].copy(), first["image0"].copy()))
+    return first, second
+
+  def _load(self, k: int, reverse: bool, images=None) -> dict:
     dpass, scene, cam, a, b = self.pairs[k]
     src, dst = (b, a) if reverse else (a, b)
     direction = "backward" if reverse else "forward"
@@ -124,23 +132,25 @@ class SceneFlowSource:
     lr = "L" if cam == "left" else "R"
     r = self.root
     gt_relpath = f"{scene}/{into}/{cam}/OpticalFlowInto{word}_{src:04d}_{lr}.pfm"
-    image0 = io.read_image(os.path.join(r, f"frames_{dpass}pass", scene, cam, f"{src:04d}.png"))
-    image1 = io.read_image(os.path.join(r, f"frames_{dpass}pass", scene, cam, f"{dst:04d}.png"))
+    if images is None:
+      images = [io.read_image(os.path.join(r, f"frames_{dpass}pass", scene, cam, f"{f:04d}.png"))
+                for f in (src, dst)]
+    image0, image1 = images
     flow_path = os.path.join(r, "optical_flow", gt_relpath)
     flow = io.read_pfm(flow_path)
     if flow.ndim != 3:
       raise ValueError(f"{flow_path}: expected a 3-channel PFM (PF) flow file, got shape {flow.shape}")
     flow = flow[..., :2]
-    disp0 = io.read_pfm(os.path.join(r, "disparity", scene, cam, f"{src:04d}.pfm"))
-    disp1 = io.read_pfm(os.path.join(r, "disparity", scene, cam, f"{dst:04d}.pfm"))
-    change_path = os.path.join(r, "disparity_change", scene, into, cam, f"{src:04d}.pfm")
-    change = io.read_pfm(change_path)
+    paths = (os.path.join(r, "disparity", scene, cam, f"{src:04d}.pfm"),
+             os.path.join(r, "disparity", scene, cam, f"{dst:04d}.pfm"),
+             os.path.join(r, "disparity_change", scene, into, cam, f"{src:04d}.pfm"))
+    disp0, disp1, change = (io.read_pfm(p) for p in paths)
     h, w = image0.shape[:2]
-    for name, arr in (("flow", flow), ("disparity", disp0), ("disparity", disp1),
-                      ("disparity_change", change)):
-      if arr.shape[:2] != (h, w) or arr.ndim != (3 if name == "flow" else 2):
-        raise ValueError(f"{flow_path if name == 'flow' else change_path}: {name} shape "
-                         f"{arr.shape} does not match the {h}x{w} images of {scene}/{cam}")
+    for path, arr, ndim in ((flow_path, flow, 3), (paths[0], disp0, 2), (paths[1], disp1, 2),
+                            (paths[2], change, 2)):
+      if arr.shape[:2] != (h, w) or arr.ndim != ndim:
+        raise ValueError(f"{path}: shape {arr.shape} does not match the {h}x{w} images of "
+                         f"{scene}/{cam} (expected {'(H, W, 2)' if ndim == 3 else '(H, W)'})")
     with np.errstate(invalid="ignore"):
       flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)  # NaN fails
     flow = np.where(flow_valid[..., None], flow, 0.0).astype(np.float32)

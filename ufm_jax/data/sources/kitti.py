@@ -83,9 +83,12 @@ class Kitti2015:
     if os.path.isfile(obj_path):
       import cv2
       obj = cv2.imread(obj_path, cv2.IMREAD_UNCHANGED)
-      if obj is None or obj.ndim != 2 or obj.shape != (h, w):
-        raise ValueError(f"{obj_path}: expected a single-channel {h}x{w} object map PNG")
-      meta.update(obj_map=obj.astype(np.uint8), foreground=obj > 0)
+      if obj is None or obj.shape[:2] != (h, w):
+        raise ValueError(f"{obj_path}: expected a {h}x{w} object map PNG (0 = background)")
+      if obj.ndim == 2:
+        meta.update(obj_map=obj.astype(np.uint8), foreground=obj > 0)
+      else:  # a colour-expanded palette image: ids are lost, background is black
+        meta.update(foreground=obj.any(-1))
     flow, flow_valid = (flow_occ, occ_valid) if self.gt == "occ" else (flow_noc, noc_valid)
     meta.update(noc_valid=noc_valid, occ_valid=occ_valid)
     return dict(image0=image0, image1=image1, flow=flow, covisibility=noc_valid & flow_valid,

@@ -4,6 +4,7 @@ Layout under `root` (see data/spring/README.md): `{train,test}/<seq %04d>/`
   frame_{left,right}/frame_{cam}_{%04d}.png                       (frames 1-based)
   flow_{FW,BW}_{cam}/flow_{FW,BW}_{cam}_{%04d}.flo5               (train only)
   maps/matchmap_flow_{FW,BW}_{cam}/matchmap_flow_{FW,BW}_{cam}_{%04d}.png   (train only)
+  disp1_{cam}/disp1_{cam}_{%04d}.dsp5                              (train only; with_depth=True)
   cam_data/intrinsics.txt (fx fy cx cy per frame), cam_data/extrinsics.txt (16 numbers per frame,
   world-to-camera of the left camera; train only)
 
@@ -20,6 +21,8 @@ both must be 0), the flow landing inside image1, and valid flow; covis_valid = f
 meta: K0/K1 from intrinsics.txt; cam2world0/1 (4x4, inverted extrinsics; the right camera's
 world-to-camera is the left one with x translation decreased by the 0.065 m baseline) when
 extrinsics.txt exists. Their axis convention is taken as OpenCV (map-anything's reading; unverified).
+with_depth=True adds depth0/depth1 = fx * 0.065 / disparity (disp1 files subsampled [::2, ::2];
+0 where the disparity is missing or not positive), in metres.
 """
 
 from __future__ import annotations
@@ -60,12 +63,13 @@ class Spring:
     cameras: tuple of 'left' / 'right' (default both, as the paper's 9.9k pairs).
     directions: 'forward' or 'both'.
     full_gt: also return the 2x-resolution flow in meta["flow_full"].
+    with_depth: also return z-depth maps meta["depth0"], meta["depth1"] (two more HDF5 reads).
   """
 
   has_reverse = True
 
   def __init__(self, root, split: str = "train", cameras=("left", "right"),
-               directions: str = "forward", full_gt: bool = False):
+               directions: str = "forward", full_gt: bool = False, with_depth: bool = False):
     if root is None:
       raise ValueError(f"spring: root is required; expected {LAYOUT}")
     if split not in ("train", "test"):
@@ -75,6 +79,7 @@ class Spring:
     self.root = os.fspath(root)
     self.split_dir = io.check_dir(os.path.join(self.root, split), LAYOUT)
     self.split, self.directions, self.full_gt = split, directions, full_gt
+    self.with_depth = with_depth
     self.has_gt = split == "train"
     self.pairs = []  # (seq, cam, k, k + 1)
     for seq in sorted(os.listdir(self.split_dir)):
@@ -128,13 +133,23 @@ class Spring:
         w2c[0, 3] -= BASELINE
       meta["cam2world" + suffix] = np.linalg.inv(w2c)
 
-  def _load(self, k: int, reverse: bool) -> dict:
+  def both(self, index: int) -> tuple[dict, dict]:
+    """(`self[index]`, `self.reverse(index)`) reading each image once (for symmetrised batches)."""
+    k, rev = (index // 2, bool(index % 2)) if self.directions == "both" else (index, False)
+    first = self._load(k, reverse=rev)
+    second = self._load(k, reverse=not rev,
+                        images=(first["image1"].copy(), first["image0"].copy()))
+    return first, second
+
+  def _load(self, k: int, reverse: bool, images=None) -> dict:
     seq, cam, a, b = self.pairs[k]
     src, dst = (b, a) if reverse else (a, b)
     fb = "BW" if reverse else "FW"
     base = os.path.join(self.split_dir, seq)
-    image0 = io.read_image(os.path.join(base, f"frame_{cam}", f"frame_{cam}_{src:04d}.png"))
-    image1 = io.read_image(os.path.join(base, f"frame_{cam}", f"frame_{cam}_{dst:04d}.png"))
+    if images is None:
+      images = [io.read_image(os.path.join(base, f"frame_{cam}", f"frame_{cam}_{f:04d}.png"))
+                for f in (src, dst)]
+    image0, image1 = images
     h, w = image0.shape[:2]
     gt_relpath = f"{seq}/flow_{fb}_{cam}/flow_{fb}_{cam}_{src:04d}.flo5"
     meta = dict(dataset="spring", scene=seq, camera=cam, frame0=f"{src:04d}", frame1=f"{dst:04d}",
@@ -160,8 +175,25 @@ class Spring:
     covisibility = matched & sceneflow.fov_mask(flow) & flow_valid
     if self.full_gt:
       meta["flow_full"] = full
+    if self.with_depth:
+      for suffix, frame in (("0", src), ("1", dst)):
+        meta["depth" + suffix] = self._depth(base, cam, frame, h, w, meta.get("K" + suffix))
     return dict(image0=image0, image1=image1, flow=flow, covisibility=covisibility,
                 flow_valid=flow_valid, covis_valid=flow_valid.copy(), meta=meta)
+
+  @staticmethod
+  def _depth(base: str, cam: str, frame: int, h: int, w: int, K) -> np.ndarray:
+    path = os.path.join(base, f"disp1_{cam}", f"disp1_{cam}_{frame:04d}.dsp5")
+    if K is None:
+      raise FileNotFoundError(f"{os.path.join(base, 'cam_data', 'intrinsics.txt')}: needed to turn "
+                              "disparity into depth (with_depth=True)")
+    disp = io.read_dsp5(path)
+    if disp.shape != (2 * h, 2 * w):
+      raise ValueError(f"{path}: disparity is {disp.shape}, expected the 2x resolution {(2 * h, 2 * w)}")
+    disp = disp[::2, ::2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+      ok = np.isfinite(disp) & (disp > 0)
+      return np.where(ok, np.float32(K[0, 0] * BASELINE) / disp, np.float32(0)).astype(np.float32)
 
   @staticmethod
   def _matched(path: str, h: int, w: int) -> np.ndarray:

@@ -22,7 +22,7 @@ class SyntheticSource:
 
   def __init__(self, root=None, split: str = "train", num_pairs: int | None = None, seed: int = 0,
                size=(112, 112), pair_type: str = "mixed", moving_object_prob: float = 0.5,
-               max_view_angle_deg: float = 90.0):
+               max_view_angle_deg: float = 90.0, subpixel_search: float = 0.0):
     del root  # generated, not read
     if num_pairs is None:
       num_pairs = 10000 if split == "train" else 200
@@ -32,7 +32,8 @@ class SyntheticSource:
     self.split, self.seed, self.num_pairs = split, int(seed), int(num_pairs)
     self.config = synthetic.SyntheticConfig(
         size=synthetic.parse_size(size), pair_type=pair_type,
-        moving_object_prob=moving_object_prob, max_view_angle_deg=max_view_angle_deg)
+        moving_object_prob=moving_object_prob, max_view_angle_deg=max_view_angle_deg,
+        subpixel_search=subpixel_search)
 
   def __len__(self):
     return self.num_pairs
@@ -43,16 +44,20 @@ class SyntheticSource:
       raise IndexError(f"synthetic[{self.split}]: index {index} out of range ({self.num_pairs})")
     return index % self.num_pairs
 
-  def both(self, index):
+  def _generate(self, index, directions):
     index = self._check(index)
-    fwd, bwd = synthetic.generate_pair(synthetic.pair_seed(self.seed, self.split, index),
-                                       self.config)
-    for sample in (fwd, bwd):
+    samples = synthetic.generate_pair(synthetic.pair_seed(self.seed, self.split, index),
+                                      self.config, directions)
+    for sample in samples:
       sample["meta"].update(scene=f"{self.split}_{self.seed}_{index:06d}", index=index)
-    return fwd, bwd
+    return samples
 
   def __getitem__(self, index):
-    return self.both(index)[0]
+    return self._generate(index, (0,))[0]
 
   def backward(self, index):
-    return self.both(index)[1]
+    return self._generate(index, (1,))[0]
+
+  def both(self, index):
+    """(forward, backward) from a single rendering."""
+    return self._generate(index, (0, 1))
