@@ -1,6 +1,6 @@
 """Inference speed of the UFM forward pass, next to a matmul peak measured on the same machine.
 
-  python benchmarks/inference.py --config fixture_base --size 98x154 --batch 2
+  python benchmarks/inference.py --config fixture_small --size 168x224 --batch 1
   python benchmarks/inference.py --config ufm_base --size 420x560 --batch 1 --runs 3
 
 Prints: latency (median of --runs timed calls after --warmup untimed ones), pairs/s, the model's
@@ -61,9 +61,9 @@ def cost_flops(compiled) -> float:
 
 
 def build_model(config_name: str):
-  """A model from configs/models.py by name."""
-  from configs import models
-  return models.get_model(config_name)
+  """A model from configs/models.py by name (e.g. fixture_small, ufm_base)."""
+  from ufm_jax.cli import model_from_name
+  return model_from_name(config_name)
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -76,7 +76,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def main(argv=None) -> dict:
   ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-  ap.add_argument("--config", default="fixture_base", help="model config name in configs/models.py")
+  ap.add_argument("--config", default="fixture_small", help="model config name in configs/models.py")
   ap.add_argument("--snapshot", default=None, help="official HF snapshot instead of a config")
   ap.add_argument("--size", type=parse_size, default=None, help="HxW (multiples of 14)")
   ap.add_argument("--batch", type=int, default=1)

@@ -125,6 +125,7 @@ def test_bench_all_on_tiny_trees(snapshot, tmp_path_factory, capsys):
   assert len(list((preds / "sintel" / "panels").glob("*.png"))) == 1
 
 
+@pytest.mark.slow
 def test_bench_all_skips_missing_data(snapshot, tmp_path, capsys):
   rc = evaluate.main(["--bench", "all", "--snapshot", snapshot, "--data_root", str(tmp_path),
                       "--max_pairs", "1", "--out", str(tmp_path / "o"), "--no_progress"])

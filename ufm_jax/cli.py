@@ -31,6 +31,22 @@ def is_snapshot(path: str | os.PathLike) -> bool:
   return (p / "config.json").is_file() and (p / "model.safetensors").is_file()
 
 
+def model_from_name(name: str):
+  """A model (random weights not included) from a variant name of configs/models.py."""
+  try:
+    from ufm_jax.models import build_model
+  except ImportError:
+    build_model = None
+  if build_model is not None:
+    return build_model(name)
+  from configs import models
+  from ufm_jax.models import ufm
+  fn = getattr(models, name, None)
+  if not callable(fn):
+    raise ValueError(f"unknown model config {name!r} in configs/models.py")
+  return ufm.model_from_config(fn())
+
+
 def is_workdir(path: str | os.PathLike) -> bool:
   """A train.py workdir: its config.json plus orbax steps under checkpoints/."""
   p = pathlib.Path(path)
