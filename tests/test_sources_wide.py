@@ -3,7 +3,6 @@ test_sources_wide_trees.py for the plane scene whose flow is a closed-form homog
 
 import os
 
-import numpy as np
 import pytest
 
 from ufm_jax import data
@@ -92,3 +91,33 @@ def test_malformed_files_name_path(tmp_path):
   os.remove(tmp_path / trees.BLENDED_SCENE / "cams" / "00000001_cam.txt")
   with pytest.raises(FileNotFoundError, match="00000001_cam.txt"):
     src[1]
+
+
+def test_every_reader_loads_at_the_training_shape():
+  """Each reader on its tree at 560x420; prints per-sample load times (not asserted: timing is
+  a figure, reported by `python tests/test_sources_wide_trees.py`)."""
+  times = trees.report_load_times((28, 42), repeats=1)
+  assert sorted(times) == sorted(["blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat",
+                                  "staticthings", "kubric4d", "eth3d", "dtu", "tawb"])
+
+
+def test_malformed_depth_formats_name_the_file(tmp_path):
+  import cv2
+  import numpy as np
+  scene = trees.PlaneScene()
+  name, f0, _ = trees.write_scannetpp(str(tmp_path / "spp"), scene)
+  (tmp_path / "spp" / "pairs_train.txt").write_text(f"{name} {f0} DSC00001\n")
+  exr = tmp_path / "spp" / name / "rendered_depth" / f"{f0}.exr"
+  exr.write_bytes(b"not an exr file")
+  with pytest.raises(ValueError, match=f"{f0}.exr.*not an OpenEXR"):
+    data.get_source("scannetpp", str(tmp_path / "spp"))[0]
+  scene_id, t0, _ = trees.write_tartanair_v2(str(tmp_path / "ta"), trees.tartanair_scene())
+  cam, idx = t0.split("/")
+  png = tmp_path / "ta" / scene_id / f"depth_{cam}" / f"{idx}_{cam}_depth.png"
+  cv2.imwrite(str(png), np.zeros((4, 4, 3), np.uint8))
+  with pytest.raises(ValueError, match=f"{idx}_{cam}_depth.png.*4-channel"):
+    data.get_source("tartanair_v2", str(tmp_path / "ta"), strides=(1,))[0]
+  trees.write_tartanair_v2(str(tmp_path / "ta2"), trees.tartanair_scene())
+  (tmp_path / "ta2" / scene_id / f"pose_{cam}.txt").write_text("1 2 3\n")
+  with pytest.raises(ValueError, match=f"pose_{cam}.txt.*7 numbers"):
+    data.get_source("tartanair_v2", str(tmp_path / "ta2"), strides=(1,))[0]

@@ -36,6 +36,18 @@ def test_kubric4d_moving_object_across_view_and_time(kubric_tree):
     assert (s["meta"]["time0"], s["meta"]["time1"]) == (t0, t1)
 
 
+def test_kubric4d_backward_is_the_reversed_dynamic_pair(kubric_tree):
+  root, scene, name = kubric_tree
+  (root / "pairs_test.txt").write_text(f"{name} 0/1 1/4\n")
+  src = data.get_source("kubric4d", str(root), split="all", pairs=str(root / "pairs_test.txt"))
+  b = src.backward(0)
+  e = scene.expected(1, 4, 0, 1)
+  m = e["inside"] & ~e["ambiguous"]
+  assert np.abs(b["flow"] - e["flow"]).max(-1)[m].max() < 0.02
+  assert ((b["covisibility"] != e["covis"]) & ~e["ambiguous"]).sum() == 0
+  assert (b["meta"]["time0"], b["meta"]["time1"]) == (4, 1)
+
+
 def test_kubric4d_palette_segmentation_roundtrip(tmp_path):
   from ufm_jax.data.sources.kubric4d import read_index_png, write_index_png
   ids = np.arange(12, dtype=np.uint8).reshape(3, 4) % 5
@@ -48,3 +60,11 @@ def test_kubric4d_without_pairs_names_sampler(kubric_tree):
   root, _, _ = kubric_tree
   with pytest.raises(FileNotFoundError, match="pairs_val.txt.*sample_pairs.py"):
     len(data.get_source("kubric4d", str(root), split="val"))
+
+
+def test_kubric4d_malformed_metadata_names_file(tmp_path):
+  name = trees.write_kubric4d(str(tmp_path), trees.KubricScene(num_frames=2))
+  (tmp_path / name / f"{name}_p0_v1.json").write_text('{"scene": {}}')
+  (tmp_path / "pairs_train.txt").write_text(f"{name} 0/0 1/1\n")
+  with pytest.raises(ValueError, match=f"{name}_p0_v1.json.*malformed Kubric metadata"):
+    data.get_source("kubric4d", str(tmp_path))[0]

@@ -359,3 +359,53 @@ class PosedPairSource:
     v1 = check_view(self.load_view(scene, f1), f"{self.name}:{scene}/{f1}")
     thresholds = self.thresholds or covis_thresholds(self.name)
     return pair_sample(self.name, scene, (f0, f1), v0, v1, thresholds)
+
+
+# ----------------------------------------------------------------------------------- pair mining
+
+def subsample_view(v: View, stride: int) -> View:
+  """Every `stride`-th pixel (no averaging, so depth stays exact); K follows the pixel centres."""
+  if stride <= 1:
+    return v
+  K = v.K.copy()
+  K[:2] /= stride
+  K[2, 2] = 1.0
+  return View(v.image[::stride, ::stride], v.depth[::stride, ::stride], K, v.cam2world)
+
+
+def mutual_covisibility(v0: View, v1: View, thresholds) -> tuple[float, float]:
+  """Fractions of all pixels of view 0 (resp. 1) that are covisible in the other view."""
+  from ufm_jax import geometry
+  f = geometry.correspondence_from_depth(v0.depth, v0.K, v0.cam2world, v1.depth, v1.K,
+                                         v1.cam2world, *thresholds)
+  b = geometry.correspondence_from_depth(v1.depth, v1.K, v1.cam2world, v0.depth, v0.K,
+                                         v0.cam2world, *thresholds)
+  return float(f["covisibility"].mean()), float(b["covisibility"].mean())
+
+
+def mine_pairs(source: "PosedPairSource", scenes=None, min_covis: float = 0.25,
+               max_side: int = 128, max_frames: int | None = None, progress: bool = True):
+  """All frame pairs of each scene whose mutual covisibility (min of both directions, fraction of
+  all pixels, at `max_side` resolution) exceeds `min_covis`. -> [(scene, f0, f1, score)].
+  Unreadable views are skipped and reported."""
+  import itertools
+  import tqdm
+  thresholds = source.thresholds or covis_thresholds(source.name)
+  out, skipped = [], []
+  for scene in tqdm.tqdm(scenes if scenes is not None else source.scenes(), desc="scenes",
+                         disable=not progress):
+    views = {}
+    for f in source.frames(scene)[:max_frames]:
+      try:
+        v = source.load_view(scene, f)
+      except (OSError, ValueError, KeyError) as e:
+        skipped.append(f"{scene}/{f}: {e}")
+        continue
+      stride = max(1, -(-max(v.depth.shape) // max_side))
+      views[f] = subsample_view(v, stride)
+    pairs = list(itertools.combinations(sorted(views), 2))
+    for a, b in tqdm.tqdm(pairs, desc=scene, leave=False, disable=not progress):
+      score = min(mutual_covisibility(views[a], views[b], thresholds))
+      if score > min_covis:
+        out.append((scene, a, b, round(score, 4)))
+  return out, skipped

@@ -224,8 +224,17 @@ class Kubric4D(_posed.PosedPairSource):
     return self._view(scene, frame)[0]
 
   def __getitem__(self, i):
-    from ufm_jax import geometry
     scene, f0, f1 = self.pairs[i]
+    return self._pair(scene, f0, f1)
+
+  def backward(self, i):
+    """The pair reversed (view 1 at time 1 -> view 0 at time 0), with its own rigid-object labels;
+    the pipeline's static-scene reversal from meta would be wrong here (objects move)."""
+    scene, f0, f1 = self.pairs[i]
+    return self._pair(scene, f1, f0)
+
+  def _pair(self, scene, f0, f1):
+    from ufm_jax import geometry
     v0, seg0, m0, t0 = self._view(scene, f0)
     v1, _, m1, t1 = self._view(scene, f1)
     for v, f in ((v0, f0), (v1, f1)):

@@ -8,8 +8,11 @@ data/tartanair_v2/README.md):
   <Env>/Data_<diff>/P<nnn>/pose_<cam>.txt                       `tx ty tz qx qy qz qw` per frame,
                                                                 camera-to-world in NED camera axes
 with <cam> one of lcam_/rcam_ + front/back/left/right/top/bottom. Intrinsics are fixed by the
-renderer: 90 degree FoV, fx = fy = W/2, cx = W/2, cy = H/2 (320 for the 640x640 release), as in
-tartanairpy. Scene id = `<Env>/Data_<diff>/P<nnn>`, frame id = `<cam>/<index:06d>`.
+renderer: 90 degree FoV, fx = fy = W/2 and the principal point at the image centre. The docs
+and tartanairpy write cx = cy = 320 for 640x640; with pixel centres at integers (our convention)
+the centre is (W-1)/2 = 319.5, the only value for which six 90-degree faces tile the cube
+without gap or overlap (the TA-WB sampler renders across face seams and relies on it), so we read
+320 as the corner-origin value. Scene id = `<Env>/Data_<diff>/P<nnn>`, frame id = `<cam>/<index:06d>`.
 Pairs: `<root>/pairs_<split>.txt` (e.g. from data/mine_pairs.py), else for every trajectory and
 every camera in `cameras` the frames (i, i + s) for s in `strides`.
 Sky: TartanAir renders sky as very far depth; `max_depth` (default None) zeroes depth beyond it.
@@ -32,7 +35,8 @@ NED_FROM_OPENCV = np.array([[0.0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0
 
 
 def tartanair_K(height: int, width: int) -> np.ndarray:
-  return np.array([[width / 2, 0, width / 2], [0, height / 2, height / 2], [0, 0, 1.0]])
+  return np.array([[width / 2, 0, (width - 1) / 2], [0, height / 2, (height - 1) / 2],
+                   [0, 0, 1.0]])
 
 
 def read_depth_png(path: str) -> np.ndarray:
