@@ -269,6 +269,58 @@ def ufm_buffers(cfg: ufm.UFMConfig) -> Dict[str, np.ndarray]:
   }
 
 
+def official_config_dict(cfg: ufm.UFMConfig) -> dict:
+  """The official constructor kwargs (config.json) describing cfg; inverse of
+  ufm_config_from_official (used to export and to test the loader on unseen structures)."""
+  e, s, fa = cfg.encoder, cfg.info_sharing, cfg.flow_adaptor
+  size = {v[0]: k for k, v in dinov2.SIZES.items()}.get(e.embed_dim)
+  if size is None or dinov2.SIZES[size][2] != e.num_heads:
+    raise ValueError(f"encoder width {e.embed_dim} / {e.num_heads} heads is not a DINOv2 hub size")
+  full_depth = dinov2.SIZES[size][1]
+
+  def head(d: dpt.DPTConfig):
+    proc = {"input_feature_dim": d.feature_dim, "output_dim": d.output_dim}
+    if d.hidden_dims:
+      proc["hidden_dims"] = list(d.hidden_dims)
+    return {"dpt_feature": {"feature_dim": d.feature_dim, "hooks": list(d.hooks),
+                            "input_feature_dims": list(d.input_feature_dims),
+                            "layer_dims": list(d.layer_dims), "output_width_ratio": 1,
+                            "patch_size": e.patch_size, "use_bn": False},
+            "dpt_processor": proc}
+
+  enc = {"data_norm_type": "dinov2", "name": f"dinov2_{size}", "norm_intermediate":
+         e.norm_intermediate, "patch_size": e.patch_size, "pretrained_checkpoint_path": None,
+         "size": size, "with_registers": bool(e.num_register_tokens),
+         "indices": e.indices if isinstance(e.indices, int) else list(e.indices)}
+  if e.depth != full_depth:
+    enc["keep_first_n_layers"] = e.depth
+  return {
+      "adaptors_kwargs": {"flow": {"class": "FlowAdaptor", "kwargs": {
+          "base_shape": list(fa.base_shape), "flow_mean": list(fa.flow_mean),
+          "flow_std": list(fa.flow_std), "name": "flow",
+          "output_normalized_coordinate": fa.output_normalized_coordinate,
+          "scale_strategy": fa.scale_strategy}}},
+      "detach_uncertainty_head": cfg.detach_uncertainty_head,
+      "encoder_kwargs": enc, "encoder_str": "dinov2",
+      "feature_head_kwargs": head(cfg.flow_head), "head_type": "dpt",
+      "inference_resolution": [cfg.inference_resolution[1], cfg.inference_resolution[0]],
+      "info_sharing_and_head_structure": "dual+single",
+      "info_sharing_kwargs": {
+          "attn_drop": 0.0, "custom_positional_encoding": None, "depth": s.depth, "dim": s.dim,
+          "drop_path": 0.0, "indices": list(s.indices), "init_values": s.init_values,
+          "input_embed_dim": s.input_embed_dim, "max_num_views": s.max_num_views,
+          "mlp_ratio": s.mlp_ratio, "name": "info_sharing",
+          "norm_intermediate": s.norm_intermediate, "num_heads": s.num_heads,
+          "pretrained_checkpoint_path": None, "proj_drop": 0.0, "qk_norm": s.qk_norm,
+          "qkv_bias": s.qkv_bias, "use_rand_idx_pe_for_non_reference_views": False},
+      "info_sharing_str": "global_attention",
+      "pretrained_backbone_checkpoint_path": None, "pretrained_checkpoint_path": None,
+      "uncertainty_adaptors_kwargs": {"non_occluded_mask": {
+          "class": "MaskAdaptor", "kwargs": {"name": "non_occluded_mask"}}},
+      "uncertainty_head_kwargs": head(cfg.covisibility_head), "uncertainty_head_type": "dpt",
+  }
+
+
 def _is_base(cj: dict) -> bool:
   return "uncertainty_head_kwargs" in cj and "refinement_range" not in cj
 

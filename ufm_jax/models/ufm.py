@@ -205,7 +205,7 @@ def init_params(model: UFM, rng=None, image_hw: Optional[Tuple[int, int]] = None
   hw = image_hw or (2 * p, 2 * p)
   x = jnp.zeros((1,) + tuple(hw) + (3,), jnp.uint8)
   rng = jax.random.PRNGKey(0) if rng is None else rng
-  return model.init(rng, x, x)["params"]
+  return jax.jit(model.init)(rng, x, x)["params"]
 
 
 def param_shapes(model: UFM):
