@@ -6,6 +6,11 @@ Pairs are rendered on the fly (ufm_jax.data.synthetic, small camera motion by de
 held-out eval renders the synthetic `val` split (scenes never seen in training) and reports EPE
 before training (step 0), every 100 steps and at the end.
 
+Measured (2 shared CPU cores): held-out covisible EPE 4.23 -> 3.11 px at size=56 after 300 steps
+(~3 min on a quiet machine), 8.7 -> 7.2 px (flow-valid pixels) at 112. Both plateau at about the
+zero-flow EPE (3.0 px at 56); 1500 steps at 56 reach 3.08. The tiny model learns the flow
+statistics and covisibility quickly but not yet matching: the 2x EPE goal is NOT reached.
+
 Args (`configs/synthetic.py:steps=100,size=56`): pairs=flow|wide|mixed (pair types), steps,
 batch (global pairs per step, both directions of 4 unique pairs by default), size (square images,
 a multiple of 14), eval (the held-out evaluation on/off).
@@ -18,7 +23,7 @@ from configs import ufm560
 
 
 def get_config(arg=None):
-  arg = cc.parse_arg(arg, pairs="flow", steps=300, batch=8, size=112, eval=True)
+  arg = cc.parse_arg(arg, pairs="flow", steps=300, batch=8, size=56, eval=True)
   hw = (arg.size, arg.size)
   c = ufm560.common(ml_collections.ConfigDict())
   c.seed = 0
