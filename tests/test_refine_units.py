@@ -1,5 +1,6 @@
 """Unit tests of the refiner's pieces against independent numpy reimplementations of torch ops."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -95,8 +96,8 @@ def test_local_refinement_matches_numpy_reference(radius, chunk):
   flow[0, :2] = np.round(flow[0, :2])
   bias = rng.normal(size=(2 * radius + 1) ** 2)
   ref_res, ref_lp = np_local_refinement(f1, f2, flow, bias, 0.7, radius)
-  res, lp = refine.local_refinement(*(jnp.asarray(a, jnp.float32) for a in (f1, f2, flow, bias)),
-                                    temperature=0.7, radius=radius, chunk=chunk)
+  fn = jax.jit(lambda *a: refine.local_refinement(*a, temperature=0.7, radius=radius, chunk=chunk))
+  res, lp = fn(*(jnp.asarray(a, jnp.float32) for a in (f1, f2, flow, bias)))
   assert lp.shape == (n, h, w, 2 * radius + 1, 2 * radius + 1)
   np.testing.assert_allclose(np.asarray(lp), ref_lp, atol=2e-4)
   np.testing.assert_allclose(np.asarray(res), ref_res, atol=2e-5)
@@ -107,9 +108,9 @@ def test_offset_convention_from_bias():
   n, h, w, c, r = 1, 4, 5, 3, 3
   bias = np.zeros(49, np.float32)
   bias[0 * 7 + 5] = 60.0
-  res, lp = refine.local_refinement(jnp.zeros((n, h, w, c)), jnp.ones((n, h, w, c)),
-                                    jnp.zeros((n, h, w, 2)), jnp.asarray(bias), temperature=4.0,
-                                    radius=r)
+  fn = jax.jit(lambda *a: refine.local_refinement(*a, temperature=4.0, radius=r))
+  res, lp = fn(jnp.zeros((n, h, w, c)), jnp.ones((n, h, w, c)), jnp.zeros((n, h, w, 2)),
+               jnp.asarray(bias))
   np.testing.assert_allclose(np.asarray(res)[..., 0], 2.0, atol=1e-5)
   np.testing.assert_allclose(np.asarray(res)[..., 1], -3.0, atol=1e-5)
   assert np.all(np.asarray(lp)[..., 0, 5] > -1e-5)
@@ -153,10 +154,9 @@ def test_legacy_nearest_resize():
 
 def test_unet_handles_odd_sizes():
   m = refine.UNet(features=(2, 3), out_channels=4)
-  x = jnp.ones((1, 11, 13, 3))
-  import jax
-  params = m.init(jax.random.PRNGKey(0), x)["params"]
-  assert m.apply({"params": params}, x).shape == (1, 11, 13, 4)
+  x = jax.ShapeDtypeStruct((1, 11, 13, 3), jnp.float32)
+  params = jax.eval_shape(lambda x: m.init(jax.random.PRNGKey(0), x), x)["params"]
+  assert jax.eval_shape(lambda p, x: m.apply({"params": p}, x), params, x).shape == (1, 11, 13, 4)
   assert set(params) == {"downs_0", "downs_1", "bottleneck", "ups_0", "ups_1", "ups_2", "ups_3",
                          "final_conv"}
   assert set(params["downs_0"]) == {"conv_0", "conv_2"}
