@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ufm_jax import convert
 from ufm_jax.models import refine
 
 A = -0.75
@@ -140,7 +141,7 @@ def test_up_conv_matches_conv_transpose_definition():
       for a in range(2):
         for bb in range(2):
           expected[0, 2 * i + a, 2 * j + bb] += x[0, i, j] @ w_torch[:, :, a, bb]
-  params = {"kernel": refine.convert_tensor(w_torch, "conv_transpose"), "bias": b}
+  params = {"kernel": convert.torch_to_flax_array("unet_feature.ups.2.weight", w_torch), "bias": b}
   out = refine.UpConv2x2(5).apply({"params": params}, jnp.asarray(x))
   np.testing.assert_allclose(np.asarray(out), expected, atol=1e-5)
 
@@ -163,11 +164,31 @@ def test_unet_handles_odd_sizes():
 
 
 def test_torch_key_mapping():
-  assert refine.torch_key_to_path("unet_feature.downs.3.conv.2.weight") == (
-      ("unet_feature", "downs_3", "conv_2", "kernel"), "auto")
-  assert refine.torch_key_to_path("unet_feature.ups.4.weight") == (
-      ("unet_feature", "ups_4", "kernel"), "conv_transpose")
-  assert refine.torch_key_to_path("unet_feature.ups.5.conv.0.weight")[1] == "auto"
-  assert refine.torch_key_to_path("classification_head.mlp.fc1.bias") == (
-      ("classification_head", "mlp", "fc1", "bias"), "copy")
-  assert refine.torch_key_to_path("classification_bias") == (("classification_bias",), "copy")
+  assert convert.torch_key_to_path("unet_feature.downs.3.conv.2.weight", 4) == (
+      "unet_feature", "downs_3", "conv_2", "kernel")
+  assert convert.torch_key_to_path("unet_feature.ups.4.weight", 4) == (
+      "unet_feature", "ups_4", "kernel")
+  assert convert.torch_key_to_path("classification_head.mlp.fc1.bias", 1) == (
+      "classification_head", "mlp", "fc1", "bias")
+  assert convert.torch_key_to_path("classification_bias", 1) == ("classification_bias",)
+  w = np.arange(2 * 3 * 2 * 2, dtype=np.float32).reshape(2, 3, 2, 2)
+  # ConvTranspose2d (even `ups` entries) [in, out, kh, kw]; the DoubleConvs are Conv2d [out, in, ...]
+  assert convert.torch_to_flax_array("unet_feature.ups.6.weight", w).shape == (2, 2, 2, 3)
+  assert convert.torch_to_flax_array("unet_feature.ups.7.conv.0.weight", w).shape == (2, 2, 3, 2)
+  assert convert.torch_to_flax_array("unet_feature.ups.10.weight", w).shape == (2, 2, 2, 3)
+
+
+def test_windows_far_outside_read_zeros():
+  # Every tap outside the target map reads 0 (zero padding), so only the bias remains, even for
+  # flows far beyond int32-safe pixel indices.
+  rng = np.random.default_rng(5)
+  f1 = rng.normal(size=(1, 3, 4, 6)).astype(np.float32)
+  f2 = rng.normal(size=(1, 3, 4, 6)).astype(np.float32)
+  flow = np.array([1e9, -1e9, 40.0, -3e10], np.float32)[[0, 1, 2, 3, 0, 1]].reshape(1, 3, 2, 1)
+  flow = np.concatenate([np.broadcast_to(flow, (1, 3, 2, 2))] * 2, 2)    # [1, 3, 4, 2]
+  bias = rng.normal(size=49).astype(np.float32)
+  fn = jax.jit(lambda *a: refine.local_refinement(*a, temperature=4.0, radius=3))
+  _, lp = fn(f1, f2, flow, bias)
+  want = bias - np.log(np.exp(bias.astype(np.float64)).sum())
+  np.testing.assert_allclose(np.asarray(lp).reshape(-1, 49), np.broadcast_to(want, (12, 49)),
+                             atol=1e-5)
