@@ -157,14 +157,25 @@ def test_predict_high_level_pairs(fx, full, pair):
   np.testing.assert_allclose(out["covisibility"], io[f"{pair}_covisibility"][0], atol=5e-5)
 
 
-def test_save_load_roundtrip(fx, full, tmp_path):
+def test_convert_save_load_and_infer_cli(fx, full, tmp_path):
+  """The converted checkpoint reloads as UFMRefine with equal params, and the infer CLI on it
+  reproduces the official high-level output of pair hl1 (target smaller than the source)."""
+  import cv2
+  from ufm_jax import cli
   from ufm_jax.convert import load, save
-  model, params, out = full
+  model, params, _ = full
   save(tmp_path / "ckpt", model, params)
   model2, params2 = load(tmp_path / "ckpt")
   assert type(model2) is type(model) and model2.config == model.config
   for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(params2)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  io = fx["io"]
+  cv2.imwrite(str(tmp_path / "src.png"), io["hl1_src_uint8"][..., ::-1])
+  cv2.imwrite(str(tmp_path / "tgt.png"), io["hl1_tgt_uint8"][..., ::-1])
+  assert cli.main(["infer", str(tmp_path / "src.png"), str(tmp_path / "tgt.png"),
+                   "--checkpoint", str(tmp_path / "ckpt"), "--out", str(tmp_path / "out")]) == 0
+  flow = np.load(tmp_path / "out" / "forward_flow.npy")
+  np.testing.assert_allclose(flow, nhwc(io["hl1_flow"])[0], atol=5e-3)
 
 
 def test_loader_rejects_wrong_refiner_weights(fx, tmp_path):
