@@ -382,6 +382,10 @@ class UFMRefineConfig(ufm.UFMConfig):
   # Source rows per refinement step (lax.map): bounds the refinement's memory at 980 px.
   refine_chunk: Optional[int] = None
 
+  def build_model(self, **kw) -> "UFMRefine":
+    """ufm.model_from_config dispatches here, so train.py / the CLI build the refine model."""
+    return UFMRefine(self, **kw)
+
 
 def refine_config_from_dict(d):
   """Inverse of dataclasses.asdict(UFMRefineConfig) (JSON lists become tuples)."""
