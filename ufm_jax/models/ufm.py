@@ -199,13 +199,59 @@ def model_from_config(cfg: UFMConfig, **kw) -> UFM:
   return UFM(cfg, **kw)
 
 
-def init_params(model: UFM, rng=None, image_hw: Optional[Tuple[int, int]] = None):
-  """Random parameters (float32). The parameter shapes do not depend on the image size."""
-  p = model.config.encoder.patch_size
-  hw = image_hw or (2 * p, 2 * p)
-  x = jnp.zeros((1,) + tuple(hw) + (3,), jnp.uint8)
-  rng = jax.random.PRNGKey(0) if rng is None else rng
-  return jax.jit(model.init)(rng, x, x)["params"]
+def init_params(model: UFM, seed: int = 0):
+  """Random float32 parameters, drawn on the host with numpy (no XLA compile: compiling
+  `model.init` for a many-module tree takes minutes on CPU).
+
+  The PyTorch defaults: Linear xavier-uniform / zero bias (UniCeption), Conv kaiming-uniform
+  with a=sqrt(5) and uniform bias (torch), LayerNorm ones/zeros, LayerScale `init_values`,
+  pos_embed trunc-normal(0.02), cls/register tokens normal(1e-6). Released models start from
+  pretrained weights instead (`ufm_jax.load_official`).
+  """
+  rng = np.random.default_rng(seed)
+  flat = {}
+  for path, leaf in _flat_items(param_shapes(model)):
+    shape, name = tuple(leaf.shape), path[-1]
+    if name == "kernel" and len(shape) == 2:
+      bound = np.sqrt(6.0 / (shape[0] + shape[1]))
+      v = rng.uniform(-bound, bound, shape)
+    elif name == "kernel":
+      fan_in = int(np.prod(shape[:-1]))
+      v = rng.uniform(-1, 1, shape) / np.sqrt(fan_in)
+    elif name == "bias" and any(p.startswith(("head1", "uncertainty_head")) for p in path):
+      v = rng.uniform(-0.1, 0.1, shape)
+    elif name == "bias":
+      v = np.zeros(shape)
+    elif name == "scale":
+      v = np.ones(shape)
+    elif name == "gamma":
+      v = np.full(shape, _layerscale_init(model, path))
+    elif name == "pos_embed":
+      v = np.clip(rng.normal(0, 0.02, shape), -0.04, 0.04)
+    else:  # cls_token, register_tokens
+      v = rng.normal(0, 1e-6, shape)
+    flat[path] = jnp.asarray(v, jnp.float32)
+  tree: Dict[str, Any] = {}
+  for path, v in flat.items():
+    node = tree
+    for p in path[:-1]:
+      node = node.setdefault(p, {})
+    node[path[-1]] = v
+  return tree
+
+
+def _layerscale_init(model: UFM, path) -> float:
+  cfg = model.config
+  v = cfg.encoder.init_values if path[0] == "encoder" else cfg.info_sharing.init_values
+  return float(v or 1.0)
+
+
+def _flat_items(tree, prefix=()):
+  for k, v in tree.items():
+    if hasattr(v, "items"):
+      yield from _flat_items(v, prefix + (k,))
+    else:
+      yield prefix + (k,), v
 
 
 def param_shapes(model: UFM):
