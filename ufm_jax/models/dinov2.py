@@ -219,6 +219,7 @@ class DinoV2(nn.Module):
     for i in take:
       y = norm(outs[i]) if cfg.norm_intermediate else outs[i]
       result.append(y[:, skip:].reshape(b, h, w, c))
+      self.sow("intermediates", f"out{len(result) - 1}", result[-1])
     # Parameters of blocks that are never run still exist in the checkpoint: create them so the
     # tree has the checkpoint's structure (init only; apply never touches them).
     if self.is_initializing():

@@ -88,4 +88,8 @@ class InfoSharing(nn.Module):
       t = t.reshape(b, 2, h, w, cfg.dim)
       return t[:, 0], t[:, 1]
 
-    return split(norm(x)), [split(t) for t in inters]
+    final, inters = split(norm(x)), [split(t) for t in inters]
+    self.sow("intermediates", "final", final)
+    for k, t in enumerate(inters):
+      self.sow("intermediates", f"inter{k}", t)
+    return final, inters
