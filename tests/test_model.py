@@ -89,7 +89,8 @@ def test_remat_same_values_and_gradients():
   rng = np.random.default_rng(0)
   f1, f2 = (rng.standard_normal((1, 2, 3, 32)).astype(np.float32) for _ in range(2))
   plain, rem = info_sharing.InfoSharing(cfg), info_sharing.InfoSharing(cfg, remat=True)
-  params = plain.init(jax.random.PRNGKey(0), f1, f2)["params"]
+  shapes = jax.eval_shape(lambda a, b: plain.init(jax.random.PRNGKey(0), a, b), f1, f2)["params"]
+  params = jax.tree.map(lambda s: rng.standard_normal(s.shape).astype(np.float32) * 0.2, shapes)
 
   def loss(m):
     def f(p):

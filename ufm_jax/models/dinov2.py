@@ -173,6 +173,7 @@ class DinoV2(nn.Module):
   dtype: Optional[jnp.dtype] = None  # compute dtype (bf16 option); params stay float32
   remat: bool = False
   activation_sharding: layers.ActivationHook = None
+  attention_impl: Optional[str] = None
 
   @nn.compact
   def __call__(self, images: jax.Array) -> Sequence[jax.Array]:
@@ -209,7 +210,7 @@ class DinoV2(nn.Module):
     # Blocks after the last returned index cannot change any output, so they are not run.
     for i in range(max(take) + 1):
       x = block(cfg.num_heads, cfg.mlp_ratio, True, False, cfg.init_values, cfg.ffn, self.dtype,
-                name=f"blocks_{i}")(x)
+                self.attention_impl, name=f"blocks_{i}")(x)
       x = constrain(x)
       self.sow("intermediates", f"block{i}_out", x)
       if i in take:
@@ -225,5 +226,5 @@ class DinoV2(nn.Module):
     if self.is_initializing():
       for i in range(max(take) + 1, cfg.depth):
         block(cfg.num_heads, cfg.mlp_ratio, True, False, cfg.init_values, cfg.ffn, self.dtype,
-              name=f"blocks_{i}")(x)
+              self.attention_impl, name=f"blocks_{i}")(x)
     return result

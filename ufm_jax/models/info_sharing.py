@@ -54,6 +54,7 @@ class InfoSharing(nn.Module):
   dtype: Optional[jnp.dtype] = None
   remat: bool = False
   activation_sharding: layers.ActivationHook = None
+  attention_impl: Optional[str] = None
 
   @nn.compact
   def __call__(self, feat1: jax.Array, feat2: jax.Array):
@@ -78,7 +79,7 @@ class InfoSharing(nn.Module):
     inters = []
     for i in range(cfg.depth):
       x = block(cfg.num_heads, cfg.mlp_ratio, cfg.qkv_bias, cfg.qk_norm, cfg.init_values, "mlp",
-                self.dtype, name=f"self_attention_blocks_{i}")(x)
+                self.dtype, self.attention_impl, name=f"self_attention_blocks_{i}")(x)
       x = constrain(x)
       self.sow("intermediates", f"block{i}_out", x)
       if i in take:

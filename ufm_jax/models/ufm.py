@@ -40,6 +40,7 @@ class UFMConfig:
   # official autocast does), or "float64" (everything; needs jax_enable_x64, for testing).
   dtype: str = "float32"
   remat: bool = False  # gradient checkpointing per transformer block
+  attention_impl: Optional[str] = None  # None/"xla", or "cudnn" (fused flash attention on GPU)
 
   def __post_init__(self):
     if self.dtype not in DTYPES:
@@ -153,9 +154,10 @@ class UFM(nn.Module):
     cfg = self.config
     compute = DTYPES[cfg.dtype]
     bb_dtype = None if cfg.dtype == "float32" else compute
-    self.encoder = dinov2.DinoV2(cfg.encoder, bb_dtype, cfg.remat, self.activation_sharding)
+    self.encoder = dinov2.DinoV2(cfg.encoder, bb_dtype, cfg.remat, self.activation_sharding,
+                                 cfg.attention_impl)
     self.info_sharing = info_sharing_lib.InfoSharing(cfg.info_sharing, bb_dtype, cfg.remat,
-                                                 self.activation_sharding)
+                                                     self.activation_sharding, cfg.attention_impl)
     # torch: head1 = Sequential(Sequential(DPTFeature, DPTRegressionProcessor), AdaptorMap).
     self.head1_0_0 = dpt.DPTFeature(cfg.flow_head)
     self.head1_0_1 = dpt.DPTRegressionProcessor(cfg.flow_head)
@@ -172,27 +174,39 @@ class UFM(nn.Module):
     feats = self.encoder(jnp.concatenate([source, target], axis=0))[-1]
     return tuple(jnp.split(feats, 2, axis=0))
 
-  def __call__(self, source, target, symmetrized: bool = False) -> Dict[str, jax.Array]:
+  def backbone(self, source, target, symmetrized: bool = False) -> Dict[str, Any]:
+    """Checks and normalises the images, runs encoder + info sharing.
+
+    Returns {"encoder": (view1, view2) last encoder maps, "info_sharing": (view1, view2) final
+    fusion maps, "head_features": the 4 view-1 maps the DPT heads take (float32), "hw": (H, W)}.
+    Subclasses (the refinement model) reuse it.
+    """
     cfg = self.config
     check_images(source, target, cfg.encoder.patch_size, symmetrized)
-    _, h, w, _ = source.shape
     head_dtype = jnp.float64 if cfg.dtype == "float64" else jnp.float32
     src, tgt = normalize(source), normalize(target)
     if cfg.dtype == "float64":
       src, tgt = src.astype(jnp.float64), tgt.astype(jnp.float64)
-
     f1, f2 = self.encode(src, tgt, symmetrized)
     (fin1, fin2), inters = self.info_sharing(f1, f2)
     # Heads see view 1 only: [encoder last, intermediate 0, intermediate 1, final], in float32.
     feats = [t.astype(head_dtype) for t in (f1, inters[0][0], inters[1][0], fin1)]
+    return {"encoder": (f1, f2), "info_sharing": (fin1, fin2), "head_features": feats,
+            "hw": tuple(source.shape[1:3])}
 
-    flow_norm = self.head1_0_1(self.head1_0_0(feats), (h, w))
+  def heads(self, feats, hw) -> Dict[str, jax.Array]:
+    """DPT flow head + adaptor and the (gradient-stopped) covisibility head."""
+    cfg = self.config
+    flow_norm = self.head1_0_1(self.head1_0_0(feats), hw)
     self.sow("intermediates", "flow_decoded_channels", flow_norm)
     flow = dpt.flow_adaptor(flow_norm, cfg.flow_adaptor)
-
     cov_feats = [jax.lax.stop_gradient(t) for t in feats] if cfg.detach_uncertainty_head else feats
-    logits = self.uncertainty_head_0_1(self.uncertainty_head_0_0(cov_feats), (h, w))[..., 0]
+    logits = self.uncertainty_head_0_1(self.uncertainty_head_0_0(cov_feats), hw)[..., 0]
     return {"flow": flow, "covisibility": jax.nn.sigmoid(logits), "covisibility_logits": logits}
+
+  def __call__(self, source, target, symmetrized: bool = False) -> Dict[str, jax.Array]:
+    b = self.backbone(source, target, symmetrized)
+    return self.heads(b["head_features"], b["hw"])
 
 
 def model_from_config(cfg: UFMConfig, **kw) -> UFM:
