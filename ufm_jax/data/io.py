@@ -1,19 +1,49 @@
 """File formats: decoders (and writers for what the project writes itself).
 
-Every reader raises `ValueError` naming the path and what was expected when a file is malformed.
+Byte-level layouts follow ../shared/docs/datasets.md section 1. Every reader raises `ValueError`
+naming the path and what was expected when a file is malformed, and `FileNotFoundError` naming the
+path when it is missing. Writers are atomic (temp file + rename): a crash never leaves half a file.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 
+import cv2
 import numpy as np
 
 FLO_MAGIC = 202021.25  # Middlebury .flo tag ("PIEH" as little-endian float32)
+KITTI_FLOW_SCALE = 64.0  # KITTI / HD1K PNG: flow = (value - 2**15) / 64
+KITTI_FLOW_OFFSET = 2.0**15
+
+
+def _require_file(path) -> None:
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f"{path}: file not found")
+
+
+@contextlib.contextmanager
+def _atomic(path, suffix: str = ""):
+  """Yields a temp path next to `path`; renames it over `path` only if the block succeeds."""
+  path = os.fspath(path)
+  tmp = f"{path}.tmp{os.getpid()}{suffix}"
+  try:
+    yield tmp
+    os.replace(tmp, path)
+  finally:
+    if os.path.exists(tmp):
+      os.remove(tmp)
+
+
+# ------------------------------------------------------------------------------------------------
+# Middlebury .flo (Sintel, FlyingChairs)
 
 
 def read_flo(path: str | os.PathLike) -> np.ndarray:
-  """Middlebury .flo -> [H, W, 2] float32 (u, v)."""
+  """Middlebury .flo -> [H, W, 2] float32 (u, v). Unknown-flow markers (>1e9) are kept as is."""
+  _require_file(path)
   with open(path, "rb") as f:
     header = f.read(12)
     if len(header) < 12:
@@ -22,8 +52,8 @@ def read_flo(path: str | os.PathLike) -> np.ndarray:
     if magic != FLO_MAGIC:
       raise ValueError(f"{path}: not a Middlebury .flo file (tag {magic!r}, expected {FLO_MAGIC})")
     w, h = (int(x) for x in np.frombuffer(header[4:], "<i4"))
-    if not (0 < w < 1 << 16 and 0 < h < 1 << 16):
-      raise ValueError(f"{path}: implausible .flo size width={w} height={h}")
+    if not (0 < w < 100000 and 0 < h < 100000):
+      raise ValueError(f"{path}: implausible .flo size width={w} height={h} (expected 1..99999)")
     data = np.frombuffer(f.read(), "<f4")
   if data.size != h * w * 2:
     raise ValueError(f"{path}: .flo payload has {data.size} floats, expected {h}*{w}*2={h * w * 2}")
@@ -36,9 +66,299 @@ def write_flo(path: str | os.PathLike, flow: np.ndarray) -> None:
   if flow.ndim != 3 or flow.shape[2] != 2:
     raise ValueError(f"write_flo({path}): flow must be [H, W, 2], got shape {flow.shape}")
   h, w = flow.shape[:2]
-  tmp = f"{path}.tmp{os.getpid()}"
-  with open(tmp, "wb") as f:
-    f.write(np.array([FLO_MAGIC], "<f4").tobytes())
-    f.write(np.array([w, h], "<i4").tobytes())
-    f.write(flow.astype("<f4").tobytes())
-  os.replace(tmp, path)
+  with _atomic(path) as tmp:
+    with open(tmp, "wb") as f:
+      f.write(np.array([FLO_MAGIC], "<f4").tobytes())
+      f.write(np.array([w, h], "<i4").tobytes())
+      f.write(flow.astype("<f4").tobytes())
+
+
+# ------------------------------------------------------------------------------------------------
+# KITTI / HD1K 16-bit PNG flow
+
+
+def read_kitti_flow(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+  """KITTI 16-bit PNG -> (flow [H, W, 2] float32, valid [H, W] bool).
+
+  File channels (RGB order) are u, v, valid; `flow = (value - 2**15) / 64`. OpenCV returns BGR, so
+  the channel axis is reversed here. Invalid pixels get flow 0.
+  """
+  _require_file(path)
+  raw = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  if raw is None:
+    raise ValueError(f"{path}: not a readable PNG (expected a KITTI 3-channel uint16 flow PNG)")
+  if raw.dtype != np.uint16 or raw.ndim != 3 or raw.shape[2] != 3:
+    raise ValueError(f"{path}: expected a 3-channel uint16 KITTI flow PNG, got dtype {raw.dtype} "
+                     f"shape {raw.shape}")
+  valid = raw[..., 0] > 0  # BGR order: index 0 = valid, 1 = v, 2 = u
+  flow = raw[..., 2:0:-1].astype(np.float32)
+  flow -= np.float32(KITTI_FLOW_OFFSET)
+  flow *= np.float32(1.0 / KITTI_FLOW_SCALE)
+  flow *= valid[..., None]
+  return flow, valid
+
+
+def write_kitti_flow(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarray | None = None):
+  """[H, W, 2] flow (+ optional valid mask) -> KITTI 16-bit PNG (rounded to 1/64 px, clipped).
+
+  Non-finite flow is written as invalid. Used for KITTI submissions (evaluate.py --save_predictions).
+  """
+  flow = np.asarray(flow, np.float64)
+  if flow.ndim != 3 or flow.shape[2] != 2:
+    raise ValueError(f"write_kitti_flow({path}): flow must be [H, W, 2], got shape {flow.shape}")
+  ok = np.isfinite(flow).all(-1)
+  if valid is not None:
+    valid = np.asarray(valid, bool)
+    if valid.shape != flow.shape[:2]:
+      raise ValueError(f"write_kitti_flow({path}): valid shape {valid.shape} != {flow.shape[:2]}")
+    ok &= valid
+  enc = np.clip(np.round(np.nan_to_num(flow) * KITTI_FLOW_SCALE + KITTI_FLOW_OFFSET), 0, 65535)
+  rgb = np.concatenate([enc, ok[..., None].astype(np.float64)], -1).astype(np.uint16)
+  with _atomic(path, ".png") as tmp:
+    if not cv2.imwrite(tmp, rgb[..., ::-1]):
+      raise OSError(f"{path}: cv2.imwrite failed")
+
+
+# ------------------------------------------------------------------------------------------------
+# PFM (FlyingThings3D, Monkaa)
+
+
+def read_pfm(path: str | os.PathLike) -> np.ndarray:
+  """PFM -> [H, W] (Pf) or [H, W, 3] (PF) float32, top row first.
+
+  Header: `PF`/`Pf`, `W H`, scale (negative = little-endian); rows are stored bottom-to-top.
+  """
+  _require_file(path)
+  with open(path, "rb") as f:
+    data = f.read()
+  # Three whitespace-terminated header tokens after the type line; parse them from the raw bytes.
+  m = re.match(rb"(P[Ff])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)(?:\r\n|\s)", data)
+  if m is None:
+    raise ValueError(f"{path}: not a PFM file (expected header 'PF'|'Pf', 'W H', scale)")
+  channels = 3 if m.group(1) == b"PF" else 1
+  w, h = int(m.group(2)), int(m.group(3))
+  try:
+    scale = float(m.group(4))
+  except ValueError:
+    raise ValueError(f"{path}: PFM scale {m.group(4)!r} is not a number") from None
+  if scale == 0:
+    raise ValueError(f"{path}: PFM scale is 0 (expected a signed non-zero number)")
+  dtype = "<f4" if scale < 0 else ">f4"
+  body = data[m.end():]
+  n = w * h * channels
+  if len(body) != 4 * n:
+    raise ValueError(f"{path}: PFM payload has {len(body)} bytes, expected {w}*{h}*{channels}*4 "
+                     f"= {4 * n}")
+  arr = np.frombuffer(body, dtype).reshape((h, w, channels) if channels == 3 else (h, w))
+  return arr[::-1].astype(np.float32, order="C")
+
+
+def write_pfm(path: str | os.PathLike, array: np.ndarray, little_endian: bool = True) -> None:
+  """[H, W] or [H, W, 3] float -> PFM (scale -1 little-endian or +1 big-endian), atomically."""
+  array = np.asarray(array, np.float32)
+  if not (array.ndim == 2 or (array.ndim == 3 and array.shape[2] == 3)):
+    raise ValueError(f"write_pfm({path}): expected [H, W] or [H, W, 3], got {array.shape}")
+  h, w = array.shape[:2]
+  kind = b"PF" if array.ndim == 3 else b"Pf"
+  header = kind + b"\n" + f"{w} {h}\n".encode() + (b"-1\n" if little_endian else b"1\n")
+  body = array[::-1].astype("<f4" if little_endian else ">f4").tobytes()
+  with _atomic(path) as tmp:
+    with open(tmp, "wb") as f:
+      f.write(header + body)
+
+
+# ------------------------------------------------------------------------------------------------
+# Spring .flo5 / .dsp5 (HDF5)
+
+
+def _read_h5(path, key: str, ndim: int, what: str) -> np.ndarray:
+  import h5py  # optional dependency, only needed for Spring
+  _require_file(path)
+  try:
+    with h5py.File(path, "r") as f:
+      if key not in f:
+        raise ValueError(f"{path}: HDF5 file has no dataset {key!r} (keys {list(f.keys())}); "
+                         f"expected a Spring {what}")
+      arr = np.asarray(f[key][()], np.float32)
+  except OSError as e:
+    raise ValueError(f"{path}: not a readable HDF5 file (expected a Spring {what}): {e}") from None
+  if arr.ndim != ndim or (ndim == 3 and arr.shape[2] != 2):
+    raise ValueError(f"{path}: dataset {key!r} has shape {arr.shape}, expected "
+                     f"{'(H, W, 2)' if ndim == 3 else '(H, W)'}")
+  return arr
+
+
+def read_flo5(path: str | os.PathLike) -> np.ndarray:
+  """Spring `.flo5` -> [H, W, 2] float32, NaN where there is no GT.
+
+  Spring GT is stored at twice the image resolution (3840x2160 for 1920x1080 frames) while the
+  values are in image-resolution pixels; `[::2, ::2]` gives the GT for the frames (official
+  spring_utils do the same).
+  """
+  return _read_h5(path, "flow", 3, ".flo5 flow file (dataset 'flow', shape (H, W, 2))")
+
+
+def read_dsp5(path: str | os.PathLike) -> np.ndarray:
+  """Spring `.dsp5` -> [H, W] float32 disparity (2x resolution like .flo5), NaN = no GT."""
+  return _read_h5(path, "disparity", 2, ".dsp5 disparity file (dataset 'disparity', shape (H, W))")
+
+
+def _write_h5(path, key: str, arr: np.ndarray) -> None:
+  import h5py
+  with _atomic(path) as tmp:
+    with h5py.File(tmp, "w") as f:
+      f.create_dataset(key, data=arr, compression="gzip", compression_opts=5)
+
+
+def write_flo5(path: str | os.PathLike, flow: np.ndarray) -> None:
+  """[H, W, 2] flow -> Spring `.flo5` (dataset 'flow', gzip 5, as the Spring writer), atomically."""
+  flow = np.asarray(flow, np.float32)
+  if flow.ndim != 3 or flow.shape[2] != 2:
+    raise ValueError(f"write_flo5({path}): flow must be [H, W, 2], got shape {flow.shape}")
+  _write_h5(path, "flow", flow)
+
+
+def write_dsp5(path: str | os.PathLike, disparity: np.ndarray) -> None:
+  """[H, W] disparity -> Spring `.dsp5` (dataset 'disparity'), atomically."""
+  disparity = np.asarray(disparity, np.float32)
+  if disparity.ndim != 2:
+    raise ValueError(f"write_dsp5({path}): disparity must be [H, W], got shape {disparity.shape}")
+  _write_h5(path, "disparity", disparity)
+
+
+# ------------------------------------------------------------------------------------------------
+# LMB .float3 (StaticThings3D as distributed by robustmvd)
+
+
+def read_float3(path: str | os.PathLike) -> np.ndarray:
+  """LMB `.float3` -> float32 array.
+
+  Layout: `float\\n`, number of dims N, N dim sizes (fastest-varying first, one per line), then raw
+  little-endian float32. The dims are reversed into numpy order (W, H -> (H, W)).
+  """
+  _require_file(path)
+  with open(path, "rb") as f:
+    data = f.read()
+  m = re.match(rb"float\n(\d+)\n", data)
+  if m is None:
+    raise ValueError(f"{path}: not an LMB .float3 file (expected 'float' then the number of dims)")
+  ndim = int(m.group(1))
+  if not 1 <= ndim <= 8:
+    raise ValueError(f"{path}: .float3 declares {ndim} dims (expected 1..8)")
+  pos, dims = m.end(), []
+  for _ in range(ndim):
+    end = data.find(b"\n", pos)
+    token = data[pos:end] if end >= 0 else b""
+    if not token.strip().isdigit():
+      raise ValueError(f"{path}: .float3 dim line {len(dims) + 1} is {token[:20]!r}, expected an "
+                       "integer")
+    dims.append(int(token))
+    pos = end + 1
+  shape = tuple(reversed(dims))
+  n = int(np.prod(shape))
+  if len(data) - pos != 4 * n:
+    raise ValueError(f"{path}: .float3 payload has {len(data) - pos} bytes, expected {shape} "
+                     f"float32 = {4 * n}")
+  return np.frombuffer(data[pos:], "<f4").reshape(shape).astype(np.float32)
+
+
+def write_float3(path: str | os.PathLike, array: np.ndarray) -> None:
+  """float array -> LMB `.float3`, atomically."""
+  array = np.asarray(array, np.float32)
+  header = b"float\n" + f"{array.ndim}\n".encode()
+  header += b"".join(f"{d}\n".encode() for d in reversed(array.shape))
+  with _atomic(path) as tmp:
+    with open(tmp, "wb") as f:
+      f.write(header + array.astype("<f4").tobytes())
+
+
+# ------------------------------------------------------------------------------------------------
+# Images, masks and 16-bit PNG depth
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+  """Any OpenCV-readable image (PNG, JPEG, PPM, ...) -> [H, W, 3] uint8 RGB.
+
+  Gray images are repeated to 3 channels, alpha is dropped, 16-bit images are scaled to 8 bits.
+  """
+  _require_file(path)
+  img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  if img is None:
+    raise ValueError(f"{path}: not a readable image (expected PNG/JPEG/PPM)")
+  if img.dtype == np.uint16:
+    img = (img >> 8).astype(np.uint8)
+  elif img.dtype != np.uint8:
+    raise ValueError(f"{path}: expected an 8- or 16-bit image, got dtype {img.dtype}")
+  if img.ndim == 2:
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+  if img.shape[2] == 4:
+    return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+  if img.shape[2] != 3:
+    raise ValueError(f"{path}: expected 1, 3 or 4 channels, got {img.shape[2]}")
+  return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
+  """[H, W, 3] uint8 RGB -> image file (format from the extension), atomically."""
+  image = np.asarray(image)
+  if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+    raise ValueError(f"write_image({path}): expected [H, W, 3] uint8 RGB, got {image.dtype} "
+                     f"{image.shape}")
+  ext = os.path.splitext(os.fspath(path))[1] or ".png"
+  with _atomic(path, ext) as tmp:
+    if not cv2.imwrite(tmp, np.ascontiguousarray(image[..., ::-1])):
+      raise OSError(f"{path}: cv2.imwrite failed")
+
+
+def read_mask(path: str | os.PathLike) -> np.ndarray:
+  """Binary mask image (0/1 or 0/255; any channel set counts) -> [H, W] bool."""
+  _require_file(path)
+  img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  if img is None:
+    raise ValueError(f"{path}: not a readable mask image (expected a PNG)")
+  return img.any(-1) if img.ndim == 3 else img > 0
+
+
+def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:
+  """[H, W] bool -> 8-bit PNG with values 0 / 255, atomically."""
+  mask = np.asarray(mask)
+  if mask.ndim != 2:
+    raise ValueError(f"write_mask({path}): expected [H, W], got {mask.shape}")
+  with _atomic(path, ".png") as tmp:
+    if not cv2.imwrite(tmp, np.where(mask.astype(bool), 255, 0).astype(np.uint8)):
+      raise OSError(f"{path}: cv2.imwrite failed")
+
+
+def read_png_depth16(path: str | os.PathLike, scale: float) -> np.ndarray:
+  """Single-channel uint16 PNG depth -> [H, W] float32 `value / scale` (0 stays 0 = invalid).
+
+  E.g. scale=1000 for millimetre PNGs (ScanNet), 256 for KITTI disparity PNGs.
+  """
+  _require_file(path)
+  raw = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  if raw is None:
+    raise ValueError(f"{path}: not a readable PNG (expected a single-channel uint16 depth PNG)")
+  if raw.dtype != np.uint16 or raw.ndim != 2:
+    raise ValueError(f"{path}: expected a single-channel uint16 depth PNG, got dtype {raw.dtype} "
+                     f"shape {raw.shape}")
+  return raw.astype(np.float32) / np.float32(scale)
+
+
+def write_png_depth16(path: str | os.PathLike, depth: np.ndarray, scale: float) -> None:
+  """[H, W] depth -> uint16 PNG `round(depth * scale)`; non-finite/negative/overflow -> 0 (invalid)."""
+  depth = np.asarray(depth, np.float64)
+  if depth.ndim != 2:
+    raise ValueError(f"write_png_depth16({path}): expected [H, W], got {depth.shape}")
+  enc = np.round(np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0) * scale)
+  enc[(enc < 0) | (enc > 65535)] = 0
+  with _atomic(path, ".png") as tmp:
+    if not cv2.imwrite(tmp, enc.astype(np.uint16)):
+      raise OSError(f"{path}: cv2.imwrite failed")
+
+
+def check_dir(path: str | os.PathLike, layout: str) -> str:
+  """Returns `path` if it is a directory, else raises naming it and the layout expected there."""
+  path = os.fspath(path)
+  if not os.path.isdir(path):
+    raise FileNotFoundError(f"{path}: directory not found; expected {layout}")
+  return path

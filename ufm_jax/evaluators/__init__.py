@@ -1,1 +1,118 @@
-"""Evaluators, one per benchmark family, chosen by name from config or `evaluate.py --bench`."""
+"""Evaluators, one per benchmark family, chosen by bench name (`evaluate.py --bench NAME`).
+
+  family  benches                              metrics (see each module's docstring)
+  flow    sintel (clean, final), kitti         epe_all, epe_covis, px1/3/5 (+ breakdowns), fl_all
+  dense   eth3d, dtu, tawb, synthetic          epe (covisible), px1/2/5, epe_all
+  pose    eth3d_pose, scannet1500, tawb_pose   auc@{5,10,15} (TA-WB: 10/20/30), acc@T
+
+`run_bench(name, runner, data_root)` returns the flat metric dict keyed `<bench>[_<split>]/<metric>`.
+"""
+
+from __future__ import annotations
+
+import os
+
+from ufm_jax.evaluators.base import (Bench, MissingDataError, PredictionWriter, Runner, Split,
+                                     evaluate_source, resolution_for)
+from ufm_jax.evaluators.dense import DenseMetrics
+from ufm_jax.evaluators.flow import FlowMetrics
+from ufm_jax.evaluators.pose import PoseMetrics
+
+_WB = "<scene>/... as written by the widebase readers"
+BENCHES: dict[str, Bench] = {b.name: b for b in (
+    Bench("synthetic", "dense", (Split("synthetic", "synthetic", (("split", "test"),)),),
+          data_subdir="", layout="none (generated on the fly)", tool="ufm_jax.data.synthetic"),
+    Bench("sintel", "flow", (Split("sintel_clean", "sintel_clean"), Split("sintel_final", "sintel_final")),
+          data_subdir="sintel",
+          layout="MPI-Sintel-complete: training/{clean,final,flow,occlusions,invalid}/<scene>/frame_%04d.*",
+          tool="data/sintel/", options=(("kind", "sintel"),)),
+    Bench("kitti", "flow", (Split("kitti", "kitti2015"),), data_subdir="kitti2015",
+          layout="training/image_2/%06d_{10,11}.png, training/flow_occ/%06d_10.png, training/flow_noc/",
+          tool="data/kitti2015/", options=(("kind", "kitti"),)),
+    Bench("eth3d", "dense", (Split("eth3d", "eth3d"),), data_subdir="eth3d",
+          layout="<scene>/images/dslr_images_undistorted, dslr_calibration_undistorted, ground_truth_depth",
+          tool="data/eth3d/"),
+    Bench("dtu", "dense", (Split("dtu", "dtu"),), data_subdir="dtu",
+          layout="Rectified/scan<N>/, Cameras/, Depths/ (MVSNet layout)", tool="data/dtu/"),
+    Bench("tawb", "dense", (Split("tawb", "tawb"),), data_subdir="tawb",
+          layout="TA-WB-MapAnything test/ and test_camera_data/", tool="data/tawb/"),
+    Bench("eth3d_pose", "pose", (Split("eth3d_pose", "eth3d"),), data_subdir="eth3d",
+          layout="<scene>/images/dslr_images_undistorted, dslr_calibration_undistorted, ground_truth_depth",
+          tool="data/eth3d/", options=(("auc_thresholds", (5, 10, 15)),)),
+    Bench("scannet1500", "pose", (Split("scannet1500", "scannet1500"),), data_subdir="scannet1500",
+          layout="scans_test/<scene>/{color,depth,pose,intrinsic}/ + the SuperGlue/LoFTR pair list",
+          tool="data/scannet1500/", options=(("auc_thresholds", (5, 10, 15)),)),
+    Bench("tawb_pose", "pose", (Split("tawb_pose", "tawb"),), data_subdir="tawb",
+          layout="TA-WB-MapAnything test/ and test_camera_data/", tool="data/tawb/",
+          options=(("auc_thresholds", (10, 20, 30)),)),
+)}
+
+
+def make_metrics(bench: Bench, seed: int = 0):
+  if bench.family == "flow":
+    return FlowMetrics(kind=bench.option("kind", "sintel"))
+  if bench.family == "dense":
+    return DenseMetrics()
+  if bench.family == "pose":
+    return PoseMetrics(thresholds=bench.option("auc_thresholds", (5, 10, 15)), seed=seed)
+  raise ValueError(f"bench {bench.name}: unknown family {bench.family!r}")
+
+
+def bench_root(bench: Bench, data_root: str | None) -> str | None:
+  """`<data_root>/<subdir>` when it exists, else `data_root` itself (a single dataset's folder)."""
+  if not bench.data_subdir:
+    return data_root
+  if data_root is None:
+    return None
+  sub = os.path.join(data_root, bench.data_subdir)
+  return sub if os.path.isdir(sub) else data_root
+
+
+def open_source(bench: Bench, split: Split, data_root: str | None, **options):
+  """The split's dataset source, or MissingDataError naming the layout and the data/ tool."""
+  from ufm_jax.data import get_source
+
+  root = bench_root(bench, data_root)
+  hint = (f"expected layout under {root or '--data_root'}: {bench.layout}; prepare it with "
+          f"{bench.tool} (see its README.md)")
+  if bench.data_subdir and root is None:
+    raise MissingDataError(f"bench {bench.name}: --data_root is required; {hint}")
+  try:
+    source = get_source(split.source, root, **dict(split.options), **options)
+    n = len(source)  # some readers list their pairs lazily: surface missing files here
+  except KeyError as e:
+    raise MissingDataError(f"bench {bench.name}: no reader registered for dataset "
+                           f"{split.source!r} ({e}); {hint}") from None
+  except (FileNotFoundError, NotADirectoryError, ValueError) as e:
+    raise MissingDataError(f"bench {bench.name}: no usable data for {split.source} at {root}: "
+                           f"{e}; {hint}") from None
+  if n == 0:
+    raise MissingDataError(f"bench {bench.name}: {split.source} at {root} has no pairs; {hint}")
+  return source
+
+
+def run_bench(name: str, runner: Runner, data_root: str | None = None, max_pairs=None,
+              writer: PredictionWriter | None = None, progress: bool = True, sources=None,
+              seed: int = 0):
+  """Evaluates bench `name`; returns (metrics, n_pairs) with metrics keyed `<label>/<metric>`.
+
+  `sources` ({split label: sequence of samples}) bypasses the dataset readers (tests, notebooks).
+  """
+  if name not in BENCHES:
+    raise KeyError(f"unknown bench {name!r}; known: {', '.join(BENCHES)}")
+  bench = BENCHES[name]
+  opened = {s.label: (sources or {}).get(s.label) for s in bench.splits}
+  for s in bench.splits:  # open everything first: fail fast before any model work
+    if opened[s.label] is None:
+      opened[s.label] = open_source(bench, s, data_root)
+  results, counts = {}, {}
+  for s in bench.splits:
+    acc = make_metrics(bench, seed)
+    n, _ = evaluate_source(bench, s.label, opened[s.label], runner, acc, max_pairs, writer, progress)
+    counts[s.label] = n
+    results.update({f"{s.label}/{k}": v for k, v in acc.result().items()})
+  return results, counts
+
+
+__all__ = ["BENCHES", "Bench", "MissingDataError", "PredictionWriter", "Runner", "Split",
+           "bench_root", "make_metrics", "open_source", "resolution_for", "run_bench"]

@@ -1,0 +1,200 @@
+"""Evaluates UFM on the paper's benchmarks and writes results.json.
+
+  python evaluate.py                                    # --bench synthetic on the embedded data
+  python evaluate.py --bench sintel --checkpoint DIR --data_root /data
+  python evaluate.py --bench all --snapshot UFM-Base/ --data_root /data --out results/
+  python evaluate.py --bench kitti --checkpoint DIR --data_root /data/kitti2015 \
+      --resolution native --save_predictions preds/
+
+--checkpoint: a converted checkpoint (`python -m ufm_jax convert`), a training workdir, or an
+official snapshot folder; --snapshot forces the latter. Without either, the synthetic training
+workdir (workdirs/synthetic) is used when present, else a randomly initialised small model (the
+numbers are then meaningless, but the whole path runs). --data_root holds one folder per dataset
+(sintel/, kitti2015/, eth3d/, dtu/, tawb/, scannet1500/; see data/*/README.md) or, for a single
+bench, the dataset folder itself. --resolution: 560 / 980 (longest side, source aspect kept, sides
+multiples of 14), `native` (source size rounded to multiples of 14), or unset (the model config's
+inference resolution, as the official predict). Metrics are computed at the dataset's native
+resolution. Runtime = median forward time per pair after warm-up, excluding I/O, resize and unmap.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import os
+import pathlib
+import sys
+import time
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+
+from ufm_jax import evaluators  # noqa: E402
+from ufm_jax.evaluators import base  # noqa: E402
+
+DEFAULT_WORKDIR = "workdirs/synthetic"
+RANDOM_MODEL = "tiny"  # configs/models.py variant used when there is no checkpoint at all
+TABLE_COLUMNS = {  # the paper's column order per family (metric suffixes)
+    "flow": ["epe_covis", "epe_all", "px1", "px3", "px5", "fl_all", "fl_bg", "fl_fg",
+             "epe_matched", "epe_unmatched", "epe_s0-10", "epe_s10-40", "epe_s40+",
+             "epe_d0-10", "epe_d10-60", "epe_d60-140"],
+    "dense": ["epe", "px1", "px2", "px5", "epe_all"],
+    "pose": ["auc5", "auc10", "auc15", "auc20", "auc30", "acc5", "acc10", "acc15", "acc20", "acc30"],
+}
+
+
+def parse_args(argv=None):
+  ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                               formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+  ap.add_argument("--bench", default="synthetic",
+                  help=f"one of {', '.join(evaluators.BENCHES)}, a comma list, or 'all'")
+  ap.add_argument("--checkpoint", default=None, help="converted checkpoint, training workdir or snapshot")
+  ap.add_argument("--snapshot", default=None, help="official Hugging Face snapshot folder")
+  ap.add_argument("--data_root", default=os.environ.get("UFM_DATA"), help="datasets folder ($UFM_DATA)")
+  ap.add_argument("--resolution", default=None, help="560 | 980 | native (default: model config)")
+  ap.add_argument("--max_pairs", type=int, default=None, help="evaluate at most N pairs per split")
+  ap.add_argument("--save_predictions", default=None, help="write .flo + covisibility PNG per pair here")
+  ap.add_argument("--num_panels", type=int, default=8, help="panel PNGs for the first N pairs")
+  ap.add_argument("--out", default="results", help="results.json goes here")
+  ap.add_argument("--seed", type=int, default=0, help="pose RANSAC/sampling seed")
+  ap.add_argument("--no_progress", action="store_true")
+  args = ap.parse_args(argv)
+  if args.resolution is not None and args.resolution != "native":
+    try:
+      args.resolution = int(args.resolution)
+    except ValueError:
+      ap.error(f"--resolution must be an integer (560, 980) or 'native', got {args.resolution!r}")
+  return args
+
+
+def load_model(args):
+  """(model, params, description) following the --checkpoint / --snapshot rules above."""
+  from ufm_jax import cli
+  if args.snapshot:
+    return (*cli.load_model(args.snapshot, snapshot=True), os.path.abspath(args.snapshot))
+  if args.checkpoint:
+    return (*cli.load_model(args.checkpoint), os.path.abspath(args.checkpoint))
+  if os.path.isdir(DEFAULT_WORKDIR):
+    return (*cli.load_model(DEFAULT_WORKDIR), os.path.abspath(DEFAULT_WORKDIR))
+  return (*random_model(), f"random-init:{RANDOM_MODEL}")
+
+
+def random_model(name: str = None):
+  """A randomly initialised small model (no checkpoint on a fresh machine)."""
+  import jax
+  import jax.numpy as jnp
+
+  from ufm_jax.cli import model_from_name
+  name = name or RANDOM_MODEL
+  print(f"warning: no checkpoint given and no {DEFAULT_WORKDIR}/: evaluating a randomly "
+        f"initialised {name!r} model (numbers are meaningless)", file=sys.stderr)
+  model = model_from_name(name)
+  x = jnp.zeros((1, 28, 28, 3), jnp.uint8)
+  return model, jax.jit(model.init)(jax.random.PRNGKey(0), x, x)["params"]
+
+
+def markdown_table(results: dict[str, float], benches: list[str], runtime: dict[str, float]) -> str:
+  lines = []
+  for family in ("flow", "dense", "pose"):
+    names = [b for b in benches if evaluators.BENCHES[b].family == family]
+    rows = {}
+    for b in names:
+      for s in evaluators.BENCHES[b].splits:
+        vals = {k.split("/", 1)[1]: v for k, v in results.items() if k.startswith(s.label + "/")}
+        if vals:
+          rows[s.label] = (vals, runtime.get(b, float("nan")))
+    if not rows:
+      continue
+    cols = [c for c in TABLE_COLUMNS[family] if any(c in v for v, _ in rows.values())]
+    lines.append("| split | " + " | ".join(cols) + " | ms/pair |")
+    lines.append("|---" * (len(cols) + 2) + "|")
+    for label, (vals, ms) in rows.items():
+      cells = [_fmt(vals.get(c)) for c in cols]
+      lines.append(f"| {label} | " + " | ".join(cells) + f" | {_fmt(ms, 1)} |")
+    lines.append("")
+  return "\n".join(lines)
+
+
+def _fmt(v, digits=2):
+  if v is None:
+    return "-"
+  return "nan" if isinstance(v, float) and math.isnan(v) else f"{v:.{digits}f}"
+
+
+def write_json_atomic(path: pathlib.Path, payload: dict) -> None:
+  path.parent.mkdir(parents=True, exist_ok=True)
+  tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+  tmp.write_text(json.dumps(payload, indent=1, sort_keys=False, default=_jsonable))
+  os.replace(tmp, path)
+
+
+def _jsonable(x):
+  try:
+    return float(x)
+  except (TypeError, ValueError):
+    return str(x)
+
+
+def main(argv=None) -> int:
+  args = parse_args(argv)
+  if args.bench == "all":
+    names, explicit = list(evaluators.BENCHES), False
+  else:
+    names, explicit = [b.strip() for b in args.bench.split(",") if b.strip()], True
+    unknown = [b for b in names if b not in evaluators.BENCHES]
+    if unknown:
+      print(f"error: unknown bench {unknown}; known: {', '.join(evaluators.BENCHES)}, all", file=sys.stderr)
+      return 2
+  # Check data first (cheap), so a missing dataset fails before any model is loaded.
+  skipped, sources = {}, {}
+  for name in names:
+    bench = evaluators.BENCHES[name]
+    try:
+      sources[name] = {s.label: evaluators.open_source(bench, s, args.data_root) for s in bench.splits}
+    except evaluators.MissingDataError as e:
+      if explicit:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+      skipped[name] = str(e)
+  if not sources:
+    print("error: no bench has data; skipped:\n  " + "\n  ".join(f"{k}: {v}" for k, v in skipped.items()),
+          file=sys.stderr)
+    return 2
+
+  try:
+    model, params, ckpt = load_model(args)
+  except (FileNotFoundError, ValueError) as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+  writer = base.PredictionWriter(args.save_predictions, args.num_panels) if args.save_predictions else None
+  results, counts, runtime = {}, {}, {}
+  t0 = time.time()
+  for name, srcs in sources.items():
+    runner = base.Runner(model, params, args.resolution)
+    res, n = evaluators.run_bench(name, runner, args.data_root, args.max_pairs, writer,
+                                  progress=not args.no_progress, sources=srcs, seed=args.seed)
+    results.update(res)
+    counts.update(n)
+    runtime[name] = runner.ms_per_pair()
+  payload = {
+      "bench": args.bench if args.bench == "all" else ",".join(names),
+      "benches_run": list(sources), "skipped": skipped,
+      "checkpoint": ckpt, "resolution": args.resolution if args.resolution is not None else "model",
+      "n_pairs": counts, "max_pairs": args.max_pairs,
+      "runtime_ms_per_pair": runtime, "wall_time_s": round(time.time() - t0, 1),
+      "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+      "versions": base.summary_versions(),
+      "metrics": results,
+  }
+  out = pathlib.Path(args.out) / "results.json"
+  write_json_atomic(out, payload)
+  print(markdown_table(results, list(sources), runtime))
+  for name, why in skipped.items():
+    print(f"skipped {name}: {why}")
+  print(f"wrote {out}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -1,0 +1,118 @@
+"""configs/common.py: the Table 1 quotas and the input block the pipeline reads."""
+
+import logging
+
+import ml_collections
+import numpy as np
+import pytest
+
+from configs import common
+from ufm_jax.data import pipeline, register
+
+
+class _Tiny:
+  def __init__(self, root, n=12, split=None):
+    self.n, self.split = n, split
+
+  def __len__(self):
+    return self.n
+
+  def _pair(self, i, sign):
+    ones = np.ones((16, 24), bool)
+    return {"image0": np.full((16, 24, 3), i, np.uint8), "image1": np.zeros((16, 24, 3), np.uint8),
+            "flow": np.full((16, 24, 2), sign, np.float32), "covisibility": ones,
+            "flow_valid": ones, "covis_valid": ones, "meta": {}}
+
+  def __getitem__(self, i):
+    return self._pair(i, 1.0)
+
+  def reverse(self, i):
+    return self._pair(i, -1.0)
+
+
+register("_tpc_a", "_tpc_b")(_Tiny)
+
+
+def test_quota_table_is_paper_table1():
+  # Paper Table 1, "Pairs in Epoch" column, in the table's order.
+  assert list(common.QUOTAS.items()) == [
+      ("blendedmvs", 100_000), ("megadepth", 100_000), ("tartanair_v2", 100_000),
+      ("scannetpp", 100_000), ("habitat", 25_000), ("staticthings", 10_000),
+      ("kubric4d", 50_000), ("flyingthings", 50_000), ("flyingchairs", 25_000),
+      ("spring", 25_000), ("monkaa", 5_000), ("hd1k", 5_000)]
+  assert sum(common.QUOTAS.values()) == 595_000
+  assert set(common.WIDE_BASELINE) | set(common.OPTICAL_FLOW) == set(common.ALL)
+  assert not set(common.WIDE_BASELINE) & set(common.OPTICAL_FLOW)
+
+
+def test_input_block_drives_the_pipeline(tmp_path, caplog):
+  (tmp_path / "_tpc_a").mkdir()
+  (tmp_path / "_tpc_b").mkdir()
+  names = ("_tpc_a", "_tpc_b", "blendedmvs")   # blendedmvs absent under tmp_path
+  ds = common.mixture(names, quotas={"_tpc_a": 10, "_tpc_b": 6})
+  cfg = common.input_config(ds, batch_size=4, longest_side=28, data_root=str(tmp_path),
+                            num_workers=0, augment={"color_prob": 0.0})
+  assert isinstance(cfg, ml_collections.ConfigDict) and cfg.datasets.blendedmvs.quota == 100_000
+  with caplog.at_level(logging.WARNING):
+    pipe = pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)
+  assert "blendedmvs" in caplog.text
+  assert pipe.names == ("_tpc_a", "_tpc_b") and pipe.quotas == (10, 6) and pipe.num_steps == 8
+  counts = np.zeros(2, int)
+  for b in pipe:
+    counts += np.bincount(b["dataset_id"][::2], minlength=2)
+  assert counts.tolist() == [10, 6]
+
+
+def test_all_absent_lists_them(tmp_path):
+  cfg = common.input_config(common.mixture(), data_root=str(tmp_path / "empty"))
+  with pytest.raises(FileNotFoundError, match="hd1k"):
+    pipeline.create(cfg, seed=0, process_index=0, process_count=1)
+
+
+def test_parse_arg():
+  c = common.parse_arg("data=of,res=980,sym=false", data="both", res=560, sym=True)
+  assert (c.data, c.res, c.sym) == ("of", 980, False)
+  assert common.parse_arg(None, data="both").data == "both"
+  with pytest.raises(KeyError, match="unknown config arg 'x'"):
+    common.parse_arg("x=1", data="both")
+
+
+def test_synthetic_mixture_through_train_entry_point():
+  cfg = common.input_config(common.synthetic_mixture(num_pairs=6, size=(28, 42)), batch_size=4,
+                            longest_side=28, num_workers=0)
+  it, info = pipeline.make_train_iterator(cfg, process_batch=4, seed=0)
+  assert info["pairs_per_epoch"] == 12 and info["unique_pairs_per_epoch"] == 6
+  assert info["datasets"] == {"synthetic": 6} and info["image_shape"] in ((14, 28), (28, 28))
+  b = next(it)
+  assert b["image0"].shape[0] == 4 and b["image0"].shape[1:3] in info["shapes"]
+  assert b["flow_valid"].any() and b["covis_valid"].any()
+  with pytest.raises(ValueError, match="expects 2 pairs per process"):
+    pipeline.make_train_iterator(cfg, process_batch=2, seed=0)
+
+
+def test_pairs_folder_on_disk_with_a_truncated_png(tmp_path, caplog):
+  """A real reader in the mixture: synthetic pairs written in the pairs_folder format, one with its
+  image0.png truncated (skipped, logged with its path), one without reverse/ labels."""
+  import shutil
+  from ufm_jax.data import get_source, synthetic
+  root = tmp_path / "pairs"
+  src = get_source("synthetic", None, split="val", num_pairs=6, size=(28, 42))
+  for i in range(6):
+    fwd, bwd = src.both(i)
+    synthetic.write_pair(str(root / f"{i:03d}"), fwd, bwd)
+  shutil.rmtree(root / "004" / "reverse")
+  png = root / "002" / "image0.png"
+  png.write_bytes(png.read_bytes()[:40])
+  ds = {"pairs_folder": {"quota": 6, "root": str(root), "options": {}}}
+  cfg = common.input_config(ds, batch_size=4, longest_side=28, num_workers=0,
+                            max_skip_fraction=0.5, augment={"color_prob": 0.0})
+  pipe = pipeline.create(cfg, seed=1, num_epochs=1, process_index=0, process_count=1)
+  it = iter(pipe)
+  with caplog.at_level(logging.WARNING):
+    batches = list(it)
+  assert len(batches) == 3 and it.skipped >= 1
+  assert f"{png}: missing or unreadable image" in caplog.text
+  # Rows without supervision: only the backward row of pair 004 (no reverse/, no static geometry).
+  unsupervised = sum(int(not b["flow_valid"][r].any()) for b in batches for r in range(4))
+  assert 1 <= unsupervised <= 2 and all(b["flow_valid"][::2].any(axis=(1, 2)).all()
+                                        for b in batches)

@@ -1,0 +1,7 @@
+"""`python -m ufm_jax infer|convert ...`: see ufm_jax/cli.py."""
+
+import sys
+
+from ufm_jax.cli import main
+
+sys.exit(main())

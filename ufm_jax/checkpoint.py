@@ -1,0 +1,388 @@
+"""Checkpoints: the orbax manager (train state + data iterator), `model_init`, preemption.
+
+Layout of a workdir:
+  checkpoints/<step>/state   the TrainState (orbax, sharded arrays, written asynchronously)
+  checkpoints/<step>/data    the grain iterator state (one JSON per process)
+
+`model_init` sources (string, optionally prefixed with a kind):
+  ckpt:DIR       a training workdir or its checkpoints/ folder (latest step), or a
+                 `python -m ufm_jax.convert` output (read through `ufm_jax.load`)
+  snapshot:DIR   a Hugging Face snapshot of the official PyTorch release (`ufm_jax.load_official`)
+  dinov2:PATH    DINOv2 weights for the encoder: HF `facebook/dinov2-*` model.safetensors (or its
+                 folder), transformers naming, no torch needed; or the original `dinov2_vit*14*.pth`
+                 (needs the optional torch extra)
+Without a prefix the kind is guessed from what is on disk.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import pathlib
+import re
+import signal
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
+from absl import logging
+from flax import traverse_util
+
+# ---------------------------------------------------------------------------------------------
+# Manager
+
+
+def _grain_iterator(it) -> bool:
+  try:
+    from grain._src.python import data_loader
+    from grain._src.python.dataset import dataset as gds
+  except ImportError:  # pragma: no cover
+    return False
+  return isinstance(it, (data_loader.DataLoaderIterator, gds.DatasetIterator))
+
+
+def make_manager(workdir, save_interval_steps: int, keep: int, async_save: bool = True):
+  directory = pathlib.Path(workdir).absolute() / "checkpoints"
+  options = ocp.CheckpointManagerOptions(
+      max_to_keep=keep, save_interval_steps=max(int(save_interval_steps), 1), create=True,
+      enable_async_checkpointing=async_save, cleanup_tmp_directories=True)
+  return ocp.CheckpointManager(directory, options=options, item_names=("state", "data"))
+
+
+def _data_save_args(data_iter):
+  if data_iter is None:
+    return None
+  if _grain_iterator(data_iter):
+    import grain
+    return grain.checkpoint.CheckpointSave(data_iter)
+  if hasattr(data_iter, "get_state"):  # plain iterators with a JSON-able state
+    return ocp.args.JsonSave(data_iter.get_state())
+  raise TypeError(f"the data iterator {type(data_iter).__name__} has no get_state(): its position "
+                  "could not be checkpointed")
+
+
+def save(manager, step: int, state, data_iter=None, force: bool = False) -> bool:
+  """Saves when `step` is on the interval (or `force`); returns whether a save was started."""
+  if not force and not manager.should_save(step):
+    return False
+  items = {"state": ocp.args.StandardSave(state)}
+  data = _data_save_args(data_iter)
+  if data is not None:
+    items["data"] = data
+  return manager.save(step, args=ocp.args.Composite(**items), force=force)
+
+
+def restore_latest(manager, abstract_state, data_iter=None):
+  """(state, step) from the latest checkpoint, or (None, None) when there is none.
+
+  `abstract_state`: a pytree of jax.ShapeDtypeStruct with `.sharding` set, so arrays come back
+  sharded as the train step expects. The data iterator is restored in place.
+  """
+  step = manager.latest_step()
+  if step is None:
+    return None, None
+  items = {"state": ocp.args.StandardRestore(abstract_state)}
+  if data_iter is not None:
+    if _grain_iterator(data_iter):
+      import grain
+      items["data"] = grain.checkpoint.CheckpointRestore(data_iter)
+    else:
+      items["data"] = ocp.args.JsonRestore()
+  restored = manager.restore(step, args=ocp.args.Composite(**items))
+  if data_iter is not None and not _grain_iterator(data_iter):
+    data_iter.set_state(restored["data"])
+  logging.info("resumed from %s at step %d", manager.directory, step)
+  return restored["state"], step
+
+
+# ---------------------------------------------------------------------------------------------
+# Preemption
+
+
+class PreemptionGuard:
+  """Turns SIGTERM into a flag the loop polls, so it can save and exit cleanly."""
+
+  def __init__(self):
+    self.requested = False
+    self._previous = None
+
+  def __enter__(self):
+    def handler(signum, frame):
+      del frame
+      logging.warning("received signal %d: will save a checkpoint and exit", signum)
+      self.requested = True
+    self._previous = signal.signal(signal.SIGTERM, handler)
+    return self
+
+  def __exit__(self, *exc):
+    signal.signal(signal.SIGTERM, self._previous or signal.SIG_DFL)
+
+  def should_stop(self, step: int) -> bool:
+    if jax.process_count() > 1:
+      # All hosts must agree on the step; JAX's preemption service (enabled by
+      # jax.distributed.initialize) says when one of them was notified.
+      from jax.experimental import multihost_utils
+      try:
+        return self.requested or multihost_utils.reached_preemption_sync_point(step)
+      except Exception:  # noqa: BLE001 - preemption service unavailable on this platform
+        return self.requested
+    return self.requested
+
+
+# ---------------------------------------------------------------------------------------------
+# model_init: parameters from elsewhere
+
+
+@dataclasses.dataclass
+class InitReport:
+  source: str
+  loaded: list[str]
+  resized: list[str]
+  left_at_init: list[str]
+  unused: list[str]
+
+  def summary(self) -> str:
+    lines = [f"model_init from {self.source}: {len(self.loaded)} loaded, {len(self.resized)} "
+             f"resized, {len(self.left_at_init)} left at init, {len(self.unused)} unused"]
+    for name, items in (("resized", self.resized), ("left at init", self.left_at_init),
+                        ("unused", self.unused)):
+      if items:
+        shown = ", ".join(items[:20]) + (f", ... ({len(items) - 20} more)" if len(items) > 20 else "")
+        lines.append(f"  {name}: {shown}")
+    return "\n".join(lines)
+
+
+def _flat(tree) -> dict[str, Any]:
+  return {"/".join(k): v for k, v in traverse_util.flatten_dict(dict(tree)).items()}
+
+
+def resize_pos_embed(pe: np.ndarray, new_shape) -> np.ndarray:
+  """[1, extra + g*g, D] -> [1, extra + g'*g', D]: bicubic on the square grid, extra tokens kept."""
+  pe = np.asarray(pe, np.float32)
+  n_old, n_new = pe.shape[1], new_shape[1]
+  for extra in (1, 0):
+    g_old, g_new = np.sqrt(n_old - extra), np.sqrt(n_new - extra)
+    if g_old == int(g_old) and g_new == int(g_new):
+      g_old, g_new = int(g_old), int(g_new)
+      grid = pe[0, extra:].reshape(g_old, g_old, -1)
+      grid = jax.image.resize(jnp.asarray(grid), (g_new, g_new, grid.shape[-1]), "cubic")
+      return np.concatenate([pe[0, :extra], np.asarray(grid).reshape(g_new * g_new, -1)])[None]
+  raise ValueError(f"cannot resize position embedding {pe.shape} -> {tuple(new_shape)}")
+
+
+def merge_into(template, loaded: dict[str, np.ndarray], source: str,
+               resizable: str = r"pos_embed") -> tuple[Any, InitReport]:
+  """Fills `template` (a param tree) with `loaded` (flat "a/b/c" -> array) where paths match.
+
+  Shape mismatches on `resizable` params (position embeddings) are resized; other mismatches
+  are an error naming both shapes. Returns (params, report).
+  """
+  flat_t = _flat(template)
+  out, rep = {}, InitReport(source, [], [], [], sorted(set(loaded) - set(flat_t)))
+  mismatched = []
+  for k, v in flat_t.items():
+    if k not in loaded:
+      out[k] = v
+      rep.left_at_init.append(k)
+      continue
+    w = np.asarray(loaded[k])
+    if w.shape == tuple(v.shape):
+      out[k] = jnp.asarray(w, v.dtype)
+      rep.loaded.append(k)
+    elif re.search(resizable, k):
+      out[k] = jnp.asarray(resize_pos_embed(w, v.shape), v.dtype)
+      rep.resized.append(f"{k} {w.shape}->{tuple(v.shape)}")
+    else:
+      mismatched.append(f"{k}: checkpoint {w.shape} vs model {tuple(v.shape)}")
+  if mismatched:
+    raise ValueError(f"model_init {source}: shape mismatch for\n  " + "\n  ".join(mismatched))
+  return traverse_util.unflatten_dict({tuple(k.split("/")): v for k, v in out.items()}), rep
+
+
+# --- DINOv2 weights -> official (UniCeption) torch names -------------------------------------
+
+
+def _dinov2_hf_to_original(sd: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+  """transformers Dinov2Model names -> the original facebookresearch/dinov2 names."""
+  out: dict[str, np.ndarray] = {}
+  qkv: dict[str, dict[str, np.ndarray]] = {}
+  simple = {
+      "embeddings.cls_token": "cls_token",
+      "embeddings.mask_token": "mask_token",
+      "embeddings.position_embeddings": "pos_embed",
+      "embeddings.register_tokens": "register_tokens",
+      "embeddings.patch_embeddings.projection.weight": "patch_embed.proj.weight",
+      "embeddings.patch_embeddings.projection.bias": "patch_embed.proj.bias",
+      "layernorm.weight": "norm.weight",
+      "layernorm.bias": "norm.bias",
+  }
+  layer = {
+      "norm1": "norm1", "norm2": "norm2",
+      "attention.output.dense": "attn.proj",
+      "layer_scale1.lambda1": "ls1.gamma", "layer_scale2.lambda1": "ls2.gamma",
+      "mlp.fc1": "mlp.fc1", "mlp.fc2": "mlp.fc2",
+      "mlp.weights_in": "mlp.w12", "mlp.weights_out": "mlp.w3",  # SwiGLU (ViT-g)
+  }
+  for key, val in sd.items():
+    k = key[len("dinov2."):] if key.startswith("dinov2.") else key
+    if k in simple:
+      out[simple[k]] = val
+      continue
+    m = re.fullmatch(r"encoder\.layer\.(\d+)\.(.+)", k)
+    if not m:
+      out[f"unmapped:{key}"] = val
+      continue
+    i, rest = m.groups()
+    a = re.fullmatch(r"attention\.attention\.(query|key|value)\.(weight|bias)", rest)
+    if a:
+      qkv.setdefault(f"blocks.{i}.attn.qkv.{a.group(2)}", {})[a.group(1)] = val
+      continue
+    for src, dst in layer.items():
+      if rest.startswith(src + ".") or rest == src:
+        out[f"blocks.{i}.{dst}{rest[len(src):]}"] = val
+        break
+    else:
+      out[f"unmapped:{key}"] = val
+  for name, parts in qkv.items():
+    if set(parts) != {"query", "key", "value"}:
+      raise ValueError(f"DINOv2 checkpoint: incomplete q/k/v for {name}: has {sorted(parts)}")
+    out[name] = np.concatenate([parts["query"], parts["key"], parts["value"]], axis=0)
+  return out
+
+
+def _dinov2_original_flatten_chunks(sd):
+  """Chunked checkpoints ("blocks.<chunk>.<i>.") -> flat block indices."""
+  if not any(re.match(r"blocks\.\d+\.\d+\.", k) for k in sd):
+    return sd
+  return {re.sub(r"^blocks\.\d+\.(\d+)\.", r"blocks.\1.", k): v for k, v in sd.items()}
+
+
+def read_dinov2(path) -> dict[str, np.ndarray]:
+  """DINOv2 weights in the original naming (numpy), from HF safetensors or an original .pth."""
+  path = pathlib.Path(path)
+  if path.is_dir():
+    cands = sorted(path.glob("*.safetensors")) + sorted(path.glob("*.pth"))
+    if not cands:
+      raise FileNotFoundError(f"no *.safetensors or *.pth DINOv2 weights in {path}")
+    path = cands[0]
+  if path.suffix == ".safetensors":
+    from safetensors.numpy import load_file
+    sd = load_file(str(path))
+    if any(k.startswith(("embeddings.", "dinov2.embeddings.")) for k in sd):
+      sd = _dinov2_hf_to_original(sd)
+  elif path.suffix in (".pth", ".pt"):
+    try:
+      import torch
+    except ImportError as e:
+      raise ImportError(f"reading {path} needs torch (pip install 'ufm_jax[torch]'); or use the "
+                        "Hugging Face facebook/dinov2-* model.safetensors instead") from e
+    obj = torch.load(str(path), map_location="cpu", weights_only=True)
+    obj = obj.get("model", obj) if isinstance(obj, dict) else obj
+    sd = {k: v.float().numpy() if v.is_floating_point() else v.numpy() for k, v in obj.items()}
+  else:
+    raise ValueError(f"unknown DINOv2 checkpoint format: {path} (want .safetensors or .pth)")
+  sd = _dinov2_original_flatten_chunks(sd)
+  unmapped = [k for k in sd if k.startswith("unmapped:")]
+  if unmapped:
+    raise ValueError(f"{path}: keys with no DINOv2 counterpart: {unmapped[:10]}")
+  return sd
+
+
+def _dinov2_to_flax(sd: dict[str, np.ndarray], template) -> dict[str, np.ndarray]:
+  """Original DINOv2 names -> flat flax paths of the UFM encoder, via the model's key map."""
+  del template
+  from ufm_jax import convert
+  out = {}
+  for k, v in sd.items():
+    if k == "mask_token":  # deleted by UniCeption: UFM has no masked-token path
+      continue
+    key = f"encoder.model.{k}"
+    out["/".join(convert.torch_key_to_path(key, v.ndim))] = convert.torch_to_flax_array(key, v)
+  return out
+
+
+# --- UFM parameters --------------------------------------------------------------------------
+
+
+def checkpoint_steps(path) -> list[int]:
+  """Completed checkpoint steps in a workdir or its checkpoints/ folder."""
+  path = pathlib.Path(path)
+  d = path / "checkpoints" if (path / "checkpoints").is_dir() else path
+  return sorted(int(x.name) for x in d.glob("*") if x.name.isdigit() and (x / "state").is_dir()
+                and not x.name.endswith(".orbax-checkpoint-tmp"))
+
+
+def read_state_numpy(path, step: int | None = None) -> tuple[dict, int]:
+  """The saved TrainState as a tree of numpy arrays (any mesh it was written from) and its step."""
+  path = pathlib.Path(path).absolute()
+  d = path / "checkpoints" if (path / "checkpoints").is_dir() else path
+  steps = checkpoint_steps(d)
+  if not steps:
+    raise FileNotFoundError(f"no checkpoint steps under {d}")
+  step = steps[-1] if step is None else step
+  ckptr = ocp.PyTreeCheckpointer()
+  item = d / str(step) / "state"
+  tree = ckptr.metadata(item).item_metadata.tree
+  restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree)
+  return ckptr.restore(item, args=ocp.args.PyTreeRestore(item=None, restore_args=restore_args)), step
+
+
+def _latest_params_from_workdir(path: pathlib.Path, template):
+  del template
+  state, step = read_state_numpy(path)
+  return _flat(state["params"]), f"{path}@{step}"
+
+
+def guess_kind(spec: str) -> tuple[str, str]:
+  if ":" in spec and spec.split(":", 1)[0] in ("ckpt", "snapshot", "dinov2"):
+    kind, path = spec.split(":", 1)
+    return kind, path
+  p = pathlib.Path(spec)
+  if p.is_file():
+    if p.suffix == ".pth":
+      return "dinov2", spec
+    if p.suffix == ".safetensors":
+      from safetensors import safe_open
+      with safe_open(str(p), "np") as f:
+        keys = list(f.keys())
+      return ("snapshot" if any(k.startswith("info_sharing.") for k in keys) else "dinov2"), spec
+  if (p / "config.json").is_file() and (p / "model.safetensors").is_file():
+    cfg = json.loads((p / "config.json").read_text())
+    return ("dinov2" if cfg.get("model_type", "").startswith("dinov2") else "snapshot"), spec
+  if (p / "checkpoints").is_dir() or any(x.name.isdigit() for x in p.glob("*")) \
+      or (p / "params").exists() or (p / "model_config.json").exists():
+    return "ckpt", spec
+  raise FileNotFoundError(f"model_init: cannot tell what {spec!r} is (expected a training workdir, "
+                          "a converted checkpoint, a UFM HF snapshot or DINOv2 weights)")
+
+
+def load_init_params(spec: str, template) -> tuple[Any, InitReport]:
+  """Parameters for `template` (the freshly initialised tree) from the `model_init` source."""
+  kind, path = guess_kind(spec)
+  if kind == "dinov2":
+    loaded = _dinov2_to_flax(read_dinov2(path), template)
+  elif kind == "snapshot":
+    import ufm_jax
+    _, params = ufm_jax.load_official(path)
+    loaded = {k: np.asarray(v) for k, v in _flat(params).items()}
+  else:
+    p = pathlib.Path(path)
+    if (p / "checkpoints").is_dir() or any(x.name.isdigit() for x in p.glob("*")):
+      loaded, path = _latest_params_from_workdir(p, template)
+    else:
+      import ufm_jax
+      _, params = ufm_jax.load(path)
+      loaded = {k: np.asarray(v) for k, v in _flat(params).items()}
+  params, report = merge_into(template, loaded, f"{kind}:{path}")
+  logging.info("%s", report.summary())
+  return params, report
+
+
+def write_json_atomic(path, obj) -> None:
+  path = pathlib.Path(path)
+  tmp = path.with_name(path.name + ".tmp")
+  tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=str))
+  os.replace(tmp, path)

@@ -1,0 +1,537 @@
+"""The training input pipeline: a quota mixture of datasets as a grain random-access index.
+
+Position g in the global stream of unique pairs belongs to epoch g // E (E = sum of quotas). Each
+epoch's plan is drawn from (seed, epoch) alone: every dataset contributes exactly its quota (without
+replacement while it is large enough, every item floor(quota/len) times plus a draw without
+replacement for the rest otherwise), then the union is shuffled. Global batch k holds positions
+[k*Bu, (k+1)*Bu) (Bu unique pairs); host p reads its contiguous block of Bu/P of them, so the hosts'
+batches together are exactly the global batch, and every position is read by exactly one host.
+
+Element j of a host is a pure function of j (and the config), so grain's iterator state (the next
+index) is the whole pipeline state: resuming mid-epoch yields exactly the remaining batches, with or
+without worker processes. Everything random (which pairs, augmentation, training shape of batch
+k) comes from (seed, position), never from process-local generators.
+
+Batches are dicts of numpy arrays with a leading batch axis of the per-host batch size:
+image0, image1 [B,H,W,3] uint8; flow [B,H,W,2] float32; covisibility, flow_valid, covis_valid
+[B,H,W] bool; dataset_id [B] int32 (index into `Pipeline.names`); epoch [B] int32. With
+symmetrize, rows (2i, 2i+1) are (a, b) and (b, a): backward labels come from the source (its
+`both(i)`, `backward(i)` or `reverse(i)`), else for static scenes from depth + poses in meta, else
+(reverse_fallback='unsupervised', e.g. FlyingChairs, HD1K) the (b, a) row has all masks False, so
+the loss must tolerate rows without supervised pixels (FlyingChairs' covis_valid is all False too).
+
+A sample that raises while loading or fails validation is skipped: a replacement is drawn from the
+same dataset (deterministically), the failure is logged with the error text (readers name the
+file) and counted; the iterator raises when the skipped fraction exceeds `max_skip_fraction`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import threading
+import zlib
+from typing import Any, Mapping, Sequence
+
+import grain
+import numpy as np
+
+from ufm_jax.data import augment as augment_lib
+from ufm_jax.data.registry import get_source
+
+log = logging.getLogger(__name__)
+
+_ARRAY_KEYS = ("image0", "image1", "flow", "covisibility", "flow_valid", "covis_valid")
+_GEOMETRY_META = ("depth0", "depth1", "K0", "K1", "cam2world0", "cam2world1")
+_STREAM_EPOCHS = 10**6  # "infinite" stream when num_epochs is None
+
+
+class SkipLimitExceeded(RuntimeError):
+  pass
+
+
+# ----------------------------------------------------------------------------------------------
+# The per-epoch plan
+
+
+def draw_quota(size: int, quota: int, rng: np.random.Generator) -> np.ndarray:
+  """`quota` indices into range(size): without replacement while size >= quota, else every index
+  floor(quota/size) times plus a draw without replacement for the remainder."""
+  if size <= 0:
+    raise ValueError(f"cannot draw {quota} samples from an empty dataset")
+  full, rest = divmod(quota, size)
+  parts = [np.arange(size, dtype=np.int64)] * full
+  if rest:
+    parts.append(rng.choice(size, rest, replace=False).astype(np.int64))
+  return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+
+def epoch_plan(names: Sequence[str], sizes: Sequence[int], quotas: Sequence[int], seed: int,
+               epoch: int) -> tuple[np.ndarray, np.ndarray]:
+  """(dataset_id [E], sample_index [E]) of one epoch, shuffled; depends only on (seed, epoch).
+
+  Each dataset's draw is keyed by its name, so adding or dropping another dataset leaves it as is.
+  """
+  ids, idx = [], []
+  for d, (name, size, quota) in enumerate(zip(names, sizes, quotas)):
+    rng = np.random.default_rng([seed, epoch, zlib.crc32(name.encode()), 1])
+    idx.append(draw_quota(size, quota, rng))
+    ids.append(np.full(quota, d, np.int32))
+  ids, idx = np.concatenate(ids), np.concatenate(idx)
+  perm = np.random.default_rng([seed, epoch, 2]).permutation(len(ids))
+  return ids[perm], idx[perm]
+
+
+# ----------------------------------------------------------------------------------------------
+# Index: host-local element j -> (position, step, epoch, dataset, sample index)
+
+
+@dataclasses.dataclass(frozen=True)
+class MixtureLayout:
+  names: tuple[str, ...]
+  sizes: tuple[int, ...]
+  quotas: tuple[int, ...]
+  seed: int
+  unique_per_host: int           # bu
+  process_index: int
+  process_count: int
+  num_epochs: int | None
+
+  @property
+  def epoch_size(self) -> int:
+    return int(sum(self.quotas))
+
+  @property
+  def unique_per_step(self) -> int:   # Bu
+    return self.unique_per_host * self.process_count
+
+  @property
+  def num_steps(self) -> int:
+    epochs = _STREAM_EPOCHS if self.num_epochs is None else self.num_epochs
+    return epochs * self.epoch_size // self.unique_per_step
+
+  def position(self, j: int) -> int:
+    step, r = divmod(j, self.unique_per_host)
+    return step * self.unique_per_step + self.process_index * self.unique_per_host + r
+
+
+class MixtureIndex(grain.MapDataset):
+  """Random-access index over this host's share of the mixture stream."""
+
+  def __init__(self, layout: MixtureLayout):
+    super().__init__()
+    self.layout = layout
+    self._plans: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    self._lock = threading.Lock()   # grain reads with several threads
+
+  def __getstate__(self):
+    state = self.__dict__.copy()
+    state["_plans"] = {}   # recomputed in worker processes
+    del state["_lock"]
+    return state
+
+  def __setstate__(self, state):
+    self.__dict__.update(state)
+    self._lock = threading.Lock()
+
+  def __len__(self) -> int:
+    return self.layout.num_steps * self.layout.unique_per_host
+
+  def plan(self, epoch: int):
+    with self._lock:
+      if epoch not in self._plans:
+        if len(self._plans) >= 2:   # batches straddle at most two epochs
+          self._plans.pop(min(self._plans))
+        lay = self.layout
+        self._plans[epoch] = epoch_plan(lay.names, lay.sizes, lay.quotas, lay.seed, epoch)
+      return self._plans[epoch]
+
+  def __getitem__(self, j):
+    if isinstance(j, slice):
+      return self.slice(j)
+    lay = self.layout
+    j = int(j) % len(self)
+    g = lay.position(j)
+    epoch, offset = divmod(g, lay.epoch_size)
+    ids, idx = self.plan(epoch)
+    return {"position": g, "step": j // lay.unique_per_host, "epoch": epoch,
+            "dataset_id": int(ids[offset]), "index": int(idx[offset])}
+
+  def __str__(self):
+    return f"MixtureIndex({dict(zip(self.layout.names, self.layout.quotas))})"
+
+
+# ----------------------------------------------------------------------------------------------
+# Loading, validation, symmetrization, augmentation
+
+
+def check_sample(sample: Mapping[str, Any], where: str) -> dict:
+  """Shapes/dtypes of the sample-dict interface; finite flow where supervised. Raises ValueError."""
+  missing = [k for k in _ARRAY_KEYS if k not in sample]
+  if missing:
+    raise ValueError(f"{where}: sample lacks keys {missing}")
+  out = dict(sample)
+  for k in ("image0", "image1"):
+    a = np.asarray(sample[k])
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8 or min(a.shape[:2]) < 2:
+      raise ValueError(f"{where}: {k} must be HxWx3 uint8, got {a.shape} {a.dtype}")
+    out[k] = a
+  hw = out["image0"].shape[:2]
+  flow = np.asarray(sample["flow"])
+  if flow.shape != hw + (2,) or not np.issubdtype(flow.dtype, np.floating):
+    raise ValueError(f"{where}: flow must be float {hw + (2,)}, got {flow.shape} {flow.dtype}")
+  out["flow"] = flow.astype(np.float32, copy=False)
+  for k in ("covisibility", "flow_valid", "covis_valid"):
+    m = np.asarray(sample[k])
+    if m.shape != hw:
+      raise ValueError(f"{where}: {k} must be {hw}, got {m.shape}")
+    out[k] = m.astype(bool, copy=False)
+  bad = int((~np.isfinite(out["flow"]).all(-1) & out["flow_valid"]).sum())
+  if bad:
+    raise ValueError(f"{where}: non-finite flow at {bad} pixels marked flow_valid")
+  return out
+
+
+# Static scenes (paper Table 1, above the dashed line): their backward labels follow from depth and
+# poses alone. Dynamic sets (Kubric4D's moving objects, scene flow) must come from the source.
+STATIC_DATASETS = ("blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat", "staticthings")
+
+
+def _geometry_possible(meta) -> bool:
+  return (all(k in meta for k in _GEOMETRY_META)
+          and str(meta.get("dataset", "")).lower() in STATIC_DATASETS)
+
+
+def geometry_reverse(sample: Mapping[str, Any], thresholds=None) -> dict:
+  """Backward labels (image1 -> image0) of a static-scene pair from depth + poses in meta, with the
+  source's thresholds (else Table S1's) and the label rules the sources use."""
+  from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
+  meta = sample["meta"]
+  tau_d, tau_r = thresholds or geometry.COVIS_THRESHOLDS[str(meta["dataset"]).lower()]
+  corr = geometry.correspondence_from_depth(meta["depth1"], meta["K1"], meta["cam2world1"],
+                                            meta["depth0"], meta["K0"], meta["cam2world0"],
+                                            tau_d, tau_r)
+  return {"image0": sample["image1"], "image1": sample["image0"],
+          **geometry.labels_from_correspondence(corr), "meta": meta}
+
+
+def unsupervised_reverse(sample: Mapping[str, Any]) -> dict:
+  """The swapped pair with every supervision mask False: keeps the (a,b),(b,a) batch layout for
+  datasets without backward labels (FlyingChairs, HD1K) without training on made-up labels."""
+  hw = np.shape(sample["image1"])[:2]
+  off = np.zeros(hw, bool)
+  return {"image0": sample["image1"], "image1": sample["image0"],
+          "flow": np.zeros(hw + (2,), np.float32), "covisibility": off, "flow_valid": off,
+          "covis_valid": off, "meta": sample.get("meta", {})}
+
+
+def _source_backward(source):
+  """The source's own backward accessor; sources spell it `both`, `backward` or `reverse`."""
+  if getattr(source, "has_reverse", True) is False:
+    return None, None
+  for attr in ("both", "backward", "reverse"):
+    fn = getattr(source, attr, None)
+    if callable(fn):
+      return attr, fn
+  return None, None
+
+
+def reverse_mode(source, name: str, fallback: str = "unsupervised") -> str:
+  """How backward labels of `source` are obtained: 'both' / 'backward' / 'reverse' (its method),
+  'geometry' (depth + poses in meta), else `fallback` ('unsupervised' or 'error')."""
+  attr, _ = _source_backward(source)
+  if attr:
+    return attr
+  try:
+    meta = source[0].get("meta", {})
+  except Exception as e:  # pylint: disable=broad-except  # a corrupt first sample is skipped later
+    log.warning("%s[0] unreadable while probing for backward labels: %s", name, e)
+    meta = {}
+  if _geometry_possible(meta):
+    return "geometry"
+  if fallback == "unsupervised":
+    return "unsupervised"
+  raise ValueError(
+      f"dataset {name!r} cannot be symmetrized: its source has no `both`/`backward`/`reverse` "
+      f"method and its samples are not static-scene pairs ({', '.join(STATIC_DATASETS)}) with "
+      f"{', '.join(_GEOMETRY_META)} in meta to compute backward labels from; set input.symmetrize=False, input.reverse_fallback='unsupervised'"
+      " or drop it from the mixture")
+
+
+class LoadPair:
+  """grain map: index record -> dict of augmented arrays with a leading axis of 1 or 2 pairs."""
+
+  def __init__(self, sources, names, reverse_modes, layout: MixtureLayout, shapes,
+               augment_cfg: augment_lib.AugmentConfig, symmetrize: bool, max_retries: int = 8):
+    self.sources, self.names, self.reverse_modes = sources, names, reverse_modes
+    self.layout, self.shapes, self.cfg = layout, tuple(shapes), augment_cfg
+    self.symmetrize, self.max_retries = symmetrize, max_retries
+
+  def _load(self, d: int, i: int):
+    where = f"{self.names[d]}[{i}]"
+    src = self.sources[d]
+    mode = self.reverse_modes[d] if self.symmetrize else None
+    if mode in ("both", "backward", "reverse") and not getattr(src, "has_backward",
+                                                               lambda _: True)(i):
+      mode = "per_sample"   # e.g. a pairs_folder pair without reverse/ labels
+    if mode == "both":
+      sample, reverse = src.both(i)
+    else:
+      sample, reverse = src[i], None
+      if mode in ("backward", "reverse"):
+        reverse = getattr(src, mode)(i)
+    sample = check_sample(sample, where)
+    if mode == "per_sample":
+      meta = sample.get("meta", {})
+      mode = "geometry" if _geometry_possible(meta) else "unsupervised"
+    if mode == "geometry":
+      reverse = geometry_reverse(sample, getattr(src, "thresholds", None))
+    elif mode == "unsupervised":
+      reverse = unsupervised_reverse(sample)
+    if reverse is not None:
+      reverse = check_sample(reverse, where + ".reverse")
+      if (reverse["image0"].shape != sample["image1"].shape
+          or reverse["image1"].shape != sample["image0"].shape):
+        raise ValueError(f"{where}: reverse sample image shapes {reverse['image0'].shape}, "
+                         f"{reverse['image1'].shape} do not swap the forward's")
+    return sample, reverse
+
+  def __call__(self, rec):
+    d, i, g = rec["dataset_id"], rec["index"], rec["position"]
+    skipped = []
+    for attempt in range(self.max_retries + 1):
+      try:
+        sample, reverse = self._load(d, i)
+        break
+      except Exception as e:  # pylint: disable=broad-except  # any unreadable sample is skipped
+        # Logged (with running counts) when the batch reaches the main process.
+        skipped.append(f"skipped {self.names[d]}[{i}]: {type(e).__name__}: {e}")
+        i = int(np.random.default_rng([self.layout.seed, g, attempt, 3]).integers(
+            self.layout.sizes[d]))
+    else:
+      raise SkipLimitExceeded(f"{self.max_retries + 1} consecutive unreadable samples from "
+                              f"{self.names[d]!r}; last: {skipped[-1]}")
+    out_hw = augment_lib.shape_for_step(self.shapes, self.layout.seed, rec["step"])
+    rng = np.random.default_rng([self.layout.seed, g, 4])
+    pairs = augment_lib.augment(sample, rng, out_hw, self.cfg, reverse=reverse)
+    out = {k: np.stack([p[k] for p in pairs]) for k in _ARRAY_KEYS}
+    out["dataset_id"] = np.full(len(pairs), d, np.int32)
+    out["epoch"] = np.full(len(pairs), rec["epoch"], np.int32)
+    out["_attempts"] = len(skipped) + 1
+    out["_skipped"] = skipped
+    return out
+
+
+def collate(elements):
+  batch = {k: np.concatenate([e[k] for e in elements]) for k in elements[0] if not k.startswith("_")}
+  batch["_attempts"] = sum(e["_attempts"] for e in elements)
+  batch["_skipped"] = [m for e in elements for m in e["_skipped"]]
+  return batch
+
+
+# ----------------------------------------------------------------------------------------------
+# Skip accounting (in the main process, part of the checkpointed state)
+
+
+class _SkipAccountingIterator(grain.DatasetIterator):
+
+  def __init__(self, parent, max_skip_fraction: float, min_samples: int):
+    super().__init__(parent)
+    self.max_skip_fraction, self.min_samples = max_skip_fraction, min_samples
+    self.attempted = 0
+    self.skipped = 0
+
+  def __next__(self):
+    batch = next(self._parent)
+    self.attempted += int(batch.pop("_attempts"))
+    messages = batch.pop("_skipped")
+    self.skipped += len(messages)
+    for m in messages:
+      log.warning("%s (%d skipped of %d read so far)", m, self.skipped, self.attempted)
+    if (self.skipped and self.attempted >= self.min_samples
+        and self.skipped > self.max_skip_fraction * self.attempted):
+      raise SkipLimitExceeded(
+          f"{self.skipped} of {self.attempted} samples were unreadable "
+          f"({self.skipped / self.attempted:.1%} > max_skip_fraction={self.max_skip_fraction}); "
+          f"last: {messages[-1] if messages else 'see log'}")
+    return batch
+
+  def get_state(self):
+    return {"pipeline": self._parent.get_state(), "attempted": self.attempted,
+            "skipped": self.skipped}
+
+  def set_state(self, state):
+    self._parent.set_state(state["pipeline"])
+    self.attempted, self.skipped = int(state["attempted"]), int(state["skipped"])
+
+
+class _SkipAccounting(grain.IterDataset):
+
+  def __init__(self, parent, max_skip_fraction: float, min_samples: int):
+    super().__init__(parent)
+    self.max_skip_fraction, self.min_samples = max_skip_fraction, min_samples
+
+  def __iter__(self):
+    return _SkipAccountingIterator(self._parent.__iter__(), self.max_skip_fraction,
+                                   self.min_samples)
+
+
+# ----------------------------------------------------------------------------------------------
+# Building the pipeline from the config's input block
+
+
+@dataclasses.dataclass
+class Pipeline:
+  dataset: grain.IterDataset    # iter(dataset) -> checkpointable grain DatasetIterator of batches
+  names: tuple[str, ...]        # dataset_id -> name
+  quotas: tuple[int, ...]
+  sizes: tuple[int, ...]
+  dropped: tuple[str, ...]      # configured but absent on disk
+  epoch_size: int               # unique pairs per epoch
+  steps_per_epoch: float        # global batches per epoch (batches may straddle epochs)
+  num_steps: int                # batches this iterator yields before it ends
+  batch_size: int               # pairs per host batch
+  shapes: tuple[tuple[int, int], ...]
+  symmetrize: bool
+
+  def __iter__(self):
+    return iter(self.dataset)
+
+
+def _open_sources(datasets: Mapping[str, Mapping[str, Any]], split: str | None,
+                  data_root: str | None):
+  present, dropped = {}, []
+  for name, spec in datasets.items():
+    spec = dict(spec)
+    quota = int(spec.pop("quota"))
+    root = spec.pop("root", None)
+    options = dict(spec.pop("options", {}) or {})
+    if spec:
+      raise KeyError(f"input.datasets.{name}: unknown keys {sorted(spec)}; "
+                     "expected quota, root, options")
+    if quota <= 0:
+      continue
+    if root is not None:
+      root = os.path.expanduser(str(root))
+      if data_root is not None and not os.path.isabs(root):
+        root = os.path.join(os.path.expanduser(str(data_root)), root)
+    if root is not None and not os.path.exists(root):
+      dropped.append(f"{name} ({root})")
+      continue
+    if split is not None:
+      options.setdefault("split", split)
+    try:
+      source = get_source(name, root, **options)
+    except FileNotFoundError as e:
+      dropped.append(f"{name} ({e})")
+      continue
+    if len(source) == 0:
+      dropped.append(f"{name} (empty at {root})")
+      continue
+    present[name] = (source, quota)
+  if dropped:
+    log.warning("datasets absent on disk, dropped from the mixture (the others keep their "
+                "quotas): %s", "; ".join(dropped))
+  if not present:
+    raise FileNotFoundError(f"no dataset of the mixture is available; absent: {'; '.join(dropped)}")
+  return present, tuple(d.split(" ")[0] for d in dropped)
+
+
+def make_train_iterator(config: Mapping[str, Any], *, process_batch: int | None = None,
+                        seed: int = 0, num_epochs: int | None = None):
+  """(checkpointable grain iterator of host batches, info) for train.py.
+
+  info: pairs_per_epoch (batch rows per epoch: both directions counted when symmetrized, so
+  steps per epoch = pairs_per_epoch / input.batch_size), unique_pairs_per_epoch, image_shape
+  (the first training shape), shapes, datasets {name: quota}, dropped.
+  """
+  pipe = create(config, seed=seed, num_epochs=num_epochs)
+  if process_batch is not None and int(process_batch) != pipe.batch_size:
+    raise ValueError(f"train.py expects {process_batch} pairs per process, the pipeline makes "
+                     f"{pipe.batch_size} (input.batch_size / process count)")
+  rows = pipe.epoch_size * (2 if pipe.symmetrize else 1)
+  info = {"pairs_per_epoch": rows, "unique_pairs_per_epoch": pipe.epoch_size,
+          "image_shape": tuple(pipe.shapes[0]), "shapes": [tuple(x) for x in pipe.shapes],
+          "datasets": dict(zip(pipe.names, pipe.quotas)), "dropped": list(pipe.dropped)}
+  return iter(pipe), info
+
+
+def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None = None,
+           process_index: int | None = None, process_count: int | None = None) -> Pipeline:
+  """Builds the training pipeline from an input block (see `configs/common.py:input_config`).
+
+  Keys: datasets {name: {quota, root, options}} (relative roots are under data_root), data_root,
+  batch_size (global pairs per step, counting both directions when symmetrized), symmetrize,
+  longest_side, aspect_ratios, augment {...}, num_workers, worker_buffer_size, read_threads, prefetch_buffer_size, max_skip_fraction,
+  skip_check_min_samples, reverse_fallback, split. process_index/count default to jax's (grain ShardByJaxProcess).
+  """
+  cfg = dict(config.to_dict() if hasattr(config, "to_dict") else config)
+  jax_processes = process_index is None or process_count is None
+  if jax_processes:
+    shard = grain.sharding.ShardByJaxProcess(drop_remainder=True)
+    process_index, process_count = shard.shard_index, shard.shard_count
+  symmetrize = bool(cfg.get("symmetrize", True))
+  global_batch = int(cfg["batch_size"])
+  per_host, rem = divmod(global_batch, process_count)
+  if rem:
+    raise ValueError(f"input.batch_size={global_batch} is not divisible by {process_count} processes")
+  if symmetrize and per_host % 2:
+    raise ValueError(f"input.batch_size={global_batch}: symmetrized batches need an even per-host "
+                     f"batch, got {per_host} on each of {process_count} processes")
+  unique_per_host = per_host // 2 if symmetrize else per_host
+
+  present, dropped = _open_sources(cfg["datasets"], cfg.get("split"), cfg.get("data_root"))
+  names = tuple(present)
+  sources = [present[n][0] for n in names]
+  quotas = tuple(present[n][1] for n in names)
+  sizes = tuple(len(s) for s in sources)
+  modes = ()
+  if symmetrize:
+    fallback = str(cfg.get("reverse_fallback", "unsupervised"))
+    if fallback not in ("unsupervised", "error"):
+      raise ValueError(f"input.reverse_fallback must be 'unsupervised' or 'error', got {fallback!r}")
+    modes = tuple(reverse_mode(s, n, fallback) for s, n in zip(sources, names))
+    unsup = [n for n, m in zip(names, modes) if m == "unsupervised"]
+    if unsup:
+      log.warning("no backward labels for %s: their (b, a) rows in symmetrized batches carry no "
+                  "supervision (all masks False)", ", ".join(unsup))
+  shapes = augment_lib.training_shapes(int(cfg.get("longest_side", 560)),
+                                       tuple(cfg.get("aspect_ratios",
+                                                     augment_lib.DEFAULT_ASPECT_RATIOS)))
+  if jax_processes and process_count > 1:
+    # Every host derives the same plans only if it sees the same datasets with the same sizes.
+    from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
+    multihost_utils.assert_equal(
+        # int32: jax without x64 would wrap an int64 differently on each side of the comparison.
+        np.array([zlib.crc32(repr((names, sizes, quotas)).encode()) & 0x7FFFFFFF], np.int32),
+        f"hosts disagree on the mixture (names, sizes, quotas); this host: "
+        f"{list(zip(names, sizes, quotas))}")
+  layout = MixtureLayout(names, sizes, quotas, int(seed), unique_per_host, int(process_index),
+                         int(process_count), num_epochs)
+  if layout.num_steps == 0:
+    raise ValueError(f"epoch of {layout.epoch_size} pairs is smaller than one global batch of "
+                     f"{layout.unique_per_step} unique pairs")
+  load = LoadPair(sources, names, modes, layout, shapes,
+                  augment_lib.AugmentConfig.from_dict(cfg.get("augment")), symmetrize,
+                  int(cfg.get("max_retries", 8)))
+  ds = MixtureIndex(layout).map(load).batch(unique_per_host, drop_remainder=True, batch_fn=collate)
+  ds = ds.to_iter_dataset(grain.ReadOptions(
+      num_threads=int(cfg.get("read_threads", 2)),
+      prefetch_buffer_size=int(cfg.get("prefetch_buffer_size", 2))))
+  workers = int(cfg.get("num_workers", 0))
+  if workers > 0:
+    from absl import flags  # pylint: disable=g-import-not-at-top
+    if not flags.FLAGS.is_parsed():
+      # grain's worker start-up reads its absl flags; outside an absl app (pytest, notebooks,
+      # benchmarks) they keep their defaults.
+      flags.FLAGS.mark_as_parsed()
+    ds = ds.mp_prefetch(grain.MultiprocessingOptions(
+        num_workers=workers, per_worker_buffer_size=int(cfg.get("worker_buffer_size", 1))))
+  ds = _SkipAccounting(ds, float(cfg.get("max_skip_fraction", 0.01)),
+                       int(cfg.get("skip_check_min_samples", 100)))
+  return Pipeline(dataset=ds, names=names, quotas=quotas, sizes=sizes, dropped=dropped,
+                  epoch_size=layout.epoch_size,
+                  steps_per_epoch=layout.epoch_size / layout.unique_per_step,
+                  num_steps=layout.num_steps, batch_size=per_host, shapes=shapes,
+                  symmetrize=symmetrize)

@@ -1,0 +1,73 @@
+"""BlendedMVS (raw low-res release + BlendedMVS+/++), depth-derived flow and covisibility.
+
+Layout under root (as unpacked from the official archives, see data/blendedmvs/README.md):
+  <scene: 24 hex chars>/blended_images/{%08d}.jpg      (not the *_masked.jpg)
+  <scene>/cams/{%08d}_cam.txt                         MVSNet format, extrinsic = world-to-camera
+  <scene>/cams/pair.txt                               MVSNet view selection
+  <scene>/rendered_depth_maps/{%08d}.pfm              z-depth, scene units, 0 = invalid
+Split (DUSt3R): val = scenes whose last 16 hex digits (seq_low) % 10 == 0, train = the rest.
+Pairs: `<root>/pairs_<split>.txt` if present; else DUSt3R's `blendedmvs_pairs.npy` at root
+(fields seq_high, seq_low, img1, img2); else every (reference, source) entry of each scene's
+cams/pair.txt (MVSNet's top-10 neighbours by SfM score).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ufm_jax.data.registry import register
+from ufm_jax.data.sources import _posed
+
+
+def _is_scene(name: str) -> bool:
+  return len(name) == 24 and all(c in "0123456789abcdefABCDEF" for c in name)
+
+
+def _in_split(scene: str, split: str) -> bool:
+  if split in (None, "all"):
+    return True
+  is_val = int(scene[8:], 16) % 10 == 0
+  return is_val if split == "val" else not is_val
+
+
+@register("blendedmvs")
+class BlendedMVS(_posed.PosedPairSource):
+  name = "blendedmvs"
+
+  def scenes(self):
+    return sorted(s for s in os.listdir(self.root)
+                  if _is_scene(s) and os.path.isdir(os.path.join(self.root, s))
+                  and _in_split(s, self.split))
+
+  def frames(self, scene):
+    d = _posed.require_dir(os.path.join(self.root, scene, "blended_images"), "blended_images/")
+    return sorted(f[:-4] for f in os.listdir(d) if f.endswith(".jpg") and "_masked" not in f)
+
+  def default_pairs(self):
+    npy = os.path.join(self.root, "blendedmvs_pairs.npy")
+    if os.path.isfile(npy):
+      arr = np.load(npy)
+      for row in arr:
+        scene = f"{int(row['seq_high']):08x}{int(row['seq_low']):016x}"
+        if _in_split(scene, self.split):
+          yield scene, f"{int(row['img1']):08d}", f"{int(row['img2']):08d}"
+      return
+    scenes = self.scenes()
+    if not scenes:
+      raise FileNotFoundError(f"{self.root}: no BlendedMVS scene folders (24 hex characters) for "
+                              f"split {self.split!r}")
+    for scene in scenes:
+      table = _posed.read_mvsnet_pairs(os.path.join(self.root, scene, "cams", "pair.txt"))
+      for ref, srcs in table.items():
+        for src in srcs:
+          yield scene, f"{ref:08d}", f"{src:08d}"
+
+  def load_view(self, scene, frame):
+    d = os.path.join(self.root, scene)
+    w2c, K = _posed.read_mvsnet_cam(os.path.join(d, "cams", f"{frame}_cam.txt"))
+    depth = _posed.sanitize_depth(_posed.read_pfm(
+        os.path.join(d, "rendered_depth_maps", f"{frame}.pfm")))
+    image = _posed.read_image(os.path.join(d, "blended_images", f"{frame}.jpg"))
+    return _posed.View(image, depth, K, np.linalg.inv(w2c))

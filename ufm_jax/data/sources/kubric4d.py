@@ -1,0 +1,251 @@
+"""Kubric-4D (GCD release): dynamic scenes of rigid objects, 16 static cameras, 60 frames.
+
+Pairs span viewpoint and time; correspondence and covisibility follow the rigid-posed-objects
+rule (supplementary "Computing Covisibility Mask"): a source pixel's 3D point moves with the pose
+of the object it belongs to (segmentation id), then is projected into the target camera and
+checked against the target depth. The dataset's precomputed flow is not used.
+
+Layout under root (the GCD download, see data/kubric4d/README.md):
+  scn{%05d}/scn{%05d}_p0_v{v}.json                  Kubric metadata of view v: scene.resolution
+                                                   (W, H), scene.num_frames, camera.K (normalised,
+                                                   sign-flipped), camera.positions / quaternions
+                                                   (w, x, y, z; camera-to-world, OpenGL/Blender
+                                                   axes), instances[k-1].positions / quaternions
+                                                   (object-to-world pose of segmentation id k)
+  scn{%05d}/frames_p0_v{v}/rgba_{t:05d}.png        RGBA
+  scn{%05d}/frames_p0_v{v}/depth_{t:05d}.tiff      float32 Euclidean range (not z-depth)
+  scn{%05d}/frames_p0_v{v}/segmentation_{t:05d}.png  object id per pixel (palette or grey PNG),
+                                                   0 = static background
+Conventions: K = |camera.K| * (W, H) is in Kubric's corner-origin frame (pixel i centred at
+i + 0.5), so the OpenCV principal point is that minus 0.5; the camera pose's y and z columns are
+negated for OpenCV axes; range is converted to z-depth with the same K.
+Scene = `scn{%05d}`, frame = `{view}/{time}`. Split: scenes 0-2799 train, 2800-2899 val, the rest
+test. Pairs: `<root>/pairs_<split>.txt` written by `python data/kubric4d/sample_pairs.py`
+(the supplementary sampler, `sample_scene_pairs` below).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import struct
+import zlib
+
+import cv2
+import numpy as np
+
+from ufm_jax.data.registry import register
+from ufm_jax.data.sources import _posed
+
+SPLITS = {"train": (0, 2800), "val": (2800, 2900), "test": (2900, 10 ** 9)}
+
+
+# --------------------------------------------------------------------------------- file decoding
+
+def read_index_png(path: str) -> np.ndarray:
+  """Segmentation PNG -> [H, W] int32 ids: palette indices for palette PNGs (recovered through the
+  PLTE chunk), the grey value otherwise."""
+  _posed.require_file(path, "a Kubric segmentation PNG")
+  raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  if raw is None:
+    raise ValueError(f"{path}: not a decodable PNG")
+  if raw.ndim == 2:
+    return raw.astype(np.int32)
+  with open(path, "rb") as f:
+    buf = f.read()
+  pos, palette = 8, None
+  while pos + 8 <= len(buf):
+    n, kind = struct.unpack(">I4s", buf[pos:pos + 8])
+    if kind == b"PLTE":
+      palette = np.frombuffer(buf[pos + 8:pos + 8 + n], np.uint8).reshape(-1, 3)
+      break
+    pos += 12 + n
+  if palette is None:
+    raise ValueError(f"{path}: colour segmentation without a palette (expected a palette or "
+                     "grey PNG of object ids)")
+  rgb = raw[..., 2::-1].astype(np.int64)  # BGR(A) -> RGB
+  codes = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
+  pcodes = (palette[:, 0].astype(np.int64) << 16) | (palette[:, 1].astype(np.int64) << 8) | \
+      palette[:, 2]
+  lookup = {}
+  for i, c in enumerate(pcodes):
+    lookup.setdefault(int(c), i)  # first index wins for duplicate colours
+  uniq, inv = np.unique(codes, return_inverse=True)
+  try:
+    ids = np.array([lookup[int(u)] for u in uniq], np.int32)
+  except KeyError as e:
+    raise ValueError(f"{path}: pixel colour {e} not in the PNG palette") from e
+  return ids[inv].reshape(codes.shape)
+
+
+def write_index_png(path: str, ids: np.ndarray, palette: np.ndarray) -> None:
+  """8-bit palette PNG writer (for tests and tools; cv2 cannot write palette PNGs)."""
+  ids = np.asarray(ids, np.uint8)
+  h, w = ids.shape
+  raw = b"".join(b"\0" + ids[r].tobytes() for r in range(h))
+
+  def chunk(kind, data):
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+  png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 3, 0, 0, 0))
+         + chunk(b"PLTE", np.asarray(palette, np.uint8).tobytes())
+         + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+  tmp = f"{path}.tmp{os.getpid()}"
+  with open(tmp, "wb") as f:
+    f.write(png)
+  os.replace(tmp, path)
+
+
+def read_metadata(path: str) -> dict:
+  _posed.require_file(path, "a Kubric metadata json (scn*_p0_v*.json)")
+  try:
+    with open(path) as f:
+      m = json.load(f)
+    W, H = m["scene"]["resolution"]
+    Kn = np.abs(np.array(m["camera"]["K"], np.float64))
+    pos = np.array(m["camera"]["positions"], np.float64)
+    quat = np.array(m["camera"]["quaternions"], np.float64)
+    inst = [(np.array(o["positions"], np.float64), np.array(o["quaternions"], np.float64))
+            for o in m.get("instances", [])]
+  except (ValueError, KeyError, TypeError) as e:
+    raise ValueError(f"{path}: malformed Kubric metadata (expected scene.resolution, camera.K/"
+                     f"positions/quaternions, instances): {e}") from e
+  K = Kn.copy()
+  K[0] *= W
+  K[1] *= H
+  K[0, 2] -= 0.5  # corner-origin -> pixel centres at integers
+  K[1, 2] -= 0.5
+  c2w = np.tile(np.eye(4), (len(pos), 1, 1))
+  for t in range(len(pos)):
+    c2w[t, :3, :3] = _posed.qvec_to_rotmat(quat[t]) @ np.diag([1.0, -1.0, -1.0])
+    c2w[t, :3, 3] = pos[t]
+  return dict(K=K, cam2world=c2w, instances=inst, num_frames=len(pos), size=(H, W))
+
+
+def object_poses(meta: dict, t: int) -> dict:
+  """{segmentation id: object-to-world 4x4} at time t; id 0 (background) is static."""
+  out = {0: np.eye(4)}
+  for k, (pos, quat) in enumerate(meta["instances"], 1):
+    T = np.eye(4)
+    T[:3, :3] = _posed.qvec_to_rotmat(quat[t])
+    T[:3, 3] = pos[t]
+    out[k] = T
+  return out
+
+
+# ----------------------------------------------------------------------------------- the sampler
+
+def camera_pair_weight(alpha: np.ndarray) -> np.ndarray:
+  """Supplementary w(alpha): 1 + alpha below pi/3, 1 + pi/3 up to pi/2, 0 from pi/2 on."""
+  alpha = np.asarray(alpha, np.float64)
+  return np.where(alpha < np.pi / 3, 1 + alpha, np.where(alpha < np.pi / 2, 1 + np.pi / 3, 0.0))
+
+
+def frame_difference_probs(max_diff: int = 40) -> np.ndarray:
+  """P(d) for d = 0..max_diff rising linearly so that P(max_diff) = 2 P(0)."""
+  p = 1 + np.arange(max_diff + 1) / max_diff
+  return p / p.sum()
+
+
+def sample_scene_pairs(cam2world: np.ndarray, num_frames: int, num_pairs: int, rng,
+                       max_diff: int = 40):
+  """Kubric-4D pair sampler: camera pair by w(rotation angle) (pairs of distinct cameras, either
+  order), frame difference d by `frame_difference_probs`, then a uniform valid start frame; the
+  two frames are assigned to the two cameras in random order. Returns [(v0, t0, v1, t1)]."""
+  n = len(cam2world)
+  R = cam2world[:, :3, :3]
+  cosang = (np.einsum("aij,bij->ab", R, R) - 1) / 2  # trace(Ra^T Rb) = sum(Ra * Rb)
+  alpha = np.arccos(np.clip(cosang, -1, 1))
+  w = camera_pair_weight(alpha)
+  np.fill_diagonal(w, 0)
+  if w.sum() <= 0:
+    raise ValueError("no camera pair with a rotation below pi/2")
+  flat = w.ravel() / w.sum()
+  max_diff = min(max_diff, num_frames - 1)
+  pd = frame_difference_probs(max_diff)
+  cams = rng.choice(n * n, size=num_pairs, p=flat)
+  diffs = rng.choice(max_diff + 1, size=num_pairs, p=pd)
+  out = []
+  for c, d in zip(cams, diffs):
+    t0 = int(rng.integers(0, num_frames - d))
+    t1 = t0 + int(d)
+    if rng.random() < 0.5:
+      t0, t1 = t1, t0
+    out.append((int(c // n), t0, int(c % n), t1))
+  return out
+
+
+# ----------------------------------------------------------------------------------------- source
+
+@register("kubric4d")
+class Kubric4D(_posed.PosedPairSource):
+  name = "kubric4d"
+
+  def scenes(self):
+    lo, hi = SPLITS.get(self.split, (0, 10 ** 9))
+    return sorted(s for s in os.listdir(self.root)
+                  if s.startswith("scn") and s[3:].isdigit() and lo <= int(s[3:]) < hi
+                  and os.path.isdir(os.path.join(self.root, s)))
+
+  def views(self, scene):
+    d = os.path.join(self.root, scene)
+    return sorted(int(f[len(scene) + 5:-5]) for f in os.listdir(d)
+                  if f.startswith(f"{scene}_p0_v") and f.endswith(".json"))
+
+  def default_pairs(self):
+    raise FileNotFoundError(
+        f"{os.path.join(self.root, f'pairs_{self.split}.txt')}: missing Kubric-4D pair list; "
+        f"create it with `python data/kubric4d/sample_pairs.py --root {self.root} "
+        f"--split {self.split}`")
+
+  @functools.lru_cache(maxsize=256)
+  def metadata(self, scene, view):
+    return read_metadata(os.path.join(self.root, scene, f"{scene}_p0_v{view}.json"))
+
+  def _view(self, scene, frame):
+    v, t = (int(x) for x in frame.split("/"))
+    meta = self.metadata(scene, v)
+    d = os.path.join(self.root, scene, f"frames_p0_v{v}")
+    image = _posed.read_image(os.path.join(d, f"rgba_{t:05d}.png"))
+    path = os.path.join(d, f"depth_{t:05d}.tiff")
+    _posed.require_file(path, "a Kubric float32 range TIFF")
+    rng = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if rng is None or rng.ndim != 2:
+      raise ValueError(f"{path}: expected a single-channel float32 TIFF")
+    if t >= meta["num_frames"]:
+      raise ValueError(f"{scene}_p0_v{v}.json: {meta['num_frames']} frames, asked for {t}")
+    depth = _posed.sanitize_depth(_posed.range_to_z(_posed.sanitize_depth(rng), meta["K"]))
+    seg = read_index_png(os.path.join(d, f"segmentation_{t:05d}.png"))
+    view = _posed.View(image, depth, meta["K"], meta["cam2world"][t])
+    return view, seg, meta, t
+
+  def load_view(self, scene, frame):
+    return self._view(scene, frame)[0]
+
+  def __getitem__(self, i):
+    scene, f0, f1 = self.pairs[i]
+    return self._pair(scene, f0, f1)
+
+  def backward(self, i):
+    """The pair reversed (view 1 at time 1 -> view 0 at time 0), with its own rigid-object labels;
+    the pipeline's static-scene reversal from meta would be wrong here (objects move)."""
+    scene, f0, f1 = self.pairs[i]
+    return self._pair(scene, f1, f0)
+
+  def _pair(self, scene, f0, f1):
+    from ufm_jax import geometry
+    v0, seg0, m0, t0 = self._view(scene, f0)
+    v1, _, m1, t1 = self._view(scene, f1)
+    for v, f in ((v0, f0), (v1, f1)):
+      _posed.check_view(v, f"kubric4d:{scene}/{f}")
+    if seg0.shape != v0.depth.shape:
+      raise ValueError(f"kubric4d:{scene}/{f0}: segmentation {seg0.shape} vs depth "
+                       f"{v0.depth.shape}")
+    tau_d, tau_r = self.thresholds or _posed.covis_thresholds(self.name)
+    # Object poses are scene properties; every view's metadata carries them.
+    corr = geometry.correspondence_from_rigid_objects(
+        v0.depth, v0.K, v0.cam2world, seg0, object_poses(m0, t0), v1.depth, v1.K, v1.cam2world,
+        object_poses(m0, t1), tau_d, tau_r)
+    return _posed.labelled_sample(self.name, scene, (f0, f1), v0, v1, corr,
+                                  dict(time0=t0, time1=t1))

@@ -1,0 +1,121 @@
+"""MegaDepth v1 (raw release): depth h5 + COLMAP poses, depth-derived flow and covisibility.
+
+Layout under root (the official MegaDepth_v1 + MegaDepth_SfM_v1 downloads merged, see
+data/megadepth/README.md):
+  <scene 4 digits>/dense<N>/imgs/<name>.jpg           undistorted images
+  <scene>/dense<N>/depths/<stem>.h5                    key 'depth', float32 z-depth, 0 = invalid
+  <scene>/sparse/manhattan/<N>/cameras.txt, images.txt COLMAP text (images.txt poses are w2c)
+A scene id in pair lists is `<scene>/<N>` and frames are image file names (with extension).
+Intrinsics of the undistorted `imgs` are not shipped; as DUSt3R's preprocessing does, they are
+K_post = cv2.getOptimalNewCameraMatrix(K_colmap, dist, size_colmap, alpha=0,
+newImgSize=size_img, centerPrincipalPoint=True), taken as OpenCV-convention intrinsics.
+Split (DUSt3R): val = scenes 0015 and 0022 (the MegaDepth-1500 test scenes), train = the rest.
+Pairs: `<root>/pairs_<split>.txt`, else DUSt3R's `megadepth_pairs.npz` at root, else run
+data/mine_pairs.py (mutual covisibility > 25%).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import cv2
+import h5py
+import numpy as np
+
+from ufm_jax.data.registry import register
+from ufm_jax.data.sources import _posed
+
+_VAL_SCENES = ("0015", "0022")
+_DIST = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4}
+
+
+def _in_split(scene, split):
+  if split in (None, "all"):
+    return True
+  is_val = scene.startswith(_VAL_SCENES)
+  return is_val if split == "val" else not is_val
+
+
+def read_depth_h5(path):
+  _posed.require_file(path, "a MegaDepth depth .h5 with dataset 'depth'")
+  try:
+    with h5py.File(path, "r") as f:
+      if "depth" not in f:
+        raise ValueError(f"{path}: no 'depth' dataset (keys: {list(f.keys())})")
+      return np.asarray(f["depth"], np.float32)
+  except OSError as e:
+    raise ValueError(f"{path}: not a readable HDF5 file ({e})") from e
+
+
+def undistorted_K(cam: dict, img_size_wh, where: str) -> np.ndarray:
+  """DUSt3R's intrinsics for MegaDepth's undistorted images (see module docstring)."""
+  K = _posed.colmap_K(cam, where)
+  if cam["model"] not in _DIST:
+    raise ValueError(f"{where}: unsupported camera model {cam['model']} for MegaDepth")
+  dist = np.zeros(4)
+  n = _DIST[cam["model"]]
+  dist[:min(n, 2)] = cam["params"][3:3 + min(n, 2)] if cam["model"] != "OPENCV" else \
+      cam["params"][4:6]
+  if cam["model"] == "OPENCV":
+    dist[2:] = cam["params"][6:8]
+  K_post, _ = cv2.getOptimalNewCameraMatrix(K, dist, (cam["width"], cam["height"]), 0,
+                                            tuple(int(x) for x in img_size_wh),
+                                            centerPrincipalPoint=True)
+  return K_post
+
+
+@register("megadepth")
+class MegaDepth(_posed.PosedPairSource):
+  name = "megadepth"
+
+  def scenes(self):
+    out = []
+    for s in sorted(os.listdir(self.root)):
+      d = os.path.join(self.root, s)
+      if not (os.path.isdir(d) and _in_split(s, self.split)):
+        continue
+      for sub in sorted(os.listdir(d)):
+        if sub.startswith("dense") and sub[5:].isdigit():
+          out.append(f"{s}/{sub[5:]}")
+    return out
+
+  def frames(self, scene):
+    s, n = scene.split("/")
+    d = _posed.require_dir(os.path.join(self.root, s, f"dense{n}", "imgs"), "dense<N>/imgs/")
+    return sorted(os.listdir(d))
+
+  def default_pairs(self):
+    npz = os.path.join(self.root, "megadepth_pairs.npz")
+    if not os.path.isfile(npz):
+      yield from super().default_pairs()
+      return
+    data = np.load(npz, allow_pickle=True)
+    scenes, images = data["scenes"], data["images"]
+    for scene_id, im1, im2, _ in data["pairs"]:
+      s, n = str(scenes[int(scene_id)]).split()
+      if _in_split(s, self.split):
+        yield f"{s}/{n}", str(images[int(im1)]), str(images[int(im2)])
+
+  @functools.lru_cache(maxsize=64)
+  def _sfm(self, scene):
+    s, n = scene.split("/")
+    d = os.path.join(self.root, s, "sparse", "manhattan", n)
+    cams_path = os.path.join(d, "cameras.txt")
+    return cams_path, _posed.read_colmap_cameras(cams_path), _posed.read_colmap_images(
+        os.path.join(d, "images.txt"))
+
+  def load_view(self, scene, frame):
+    s, n = scene.split("/")
+    dense = os.path.join(self.root, s, f"dense{n}")
+    image = _posed.read_image(os.path.join(dense, "imgs", frame))
+    depth = _posed.sanitize_depth(read_depth_h5(
+        os.path.join(dense, "depths", os.path.splitext(frame)[0] + ".h5")))
+    cams_path, cams, images = self._sfm(scene)
+    if frame not in images:
+      raise KeyError(f"{cams_path[:-11]}images.txt: no image named {frame!r}")
+    entry = images[frame]
+    if entry["camera_id"] not in cams:
+      raise KeyError(f"{cams_path}: no camera {entry['camera_id']} (used by {frame})")
+    K = undistorted_K(cams[entry["camera_id"]], image.shape[1::-1], cams_path)
+    return _posed.View(image, depth, K, np.linalg.inv(entry["w2c"]))

@@ -1,0 +1,82 @@
+"""ScanNet++ v2 DSLR images with depth rendered from the laser-scan mesh (WAI layout).
+
+The raw release ships fisheye DSLR images and a mesh, no depth; rendering depth needs a mesh
+renderer, so root is the output of map-anything's WAI pipeline for ScanNet++ v2 (conversion,
+undistortion to PINHOLE, mesh depth rendering; see data/scannetpp/README.md):
+  <scene>/scene_meta.json   frames: frame_name, file_path (image), transform_matrix (4x4
+                            camera-to-world, OpenCV axes), fl_x, fl_y, cx, cy (per frame or at the
+                            top level), and the rendered depth path under `rendered_depth`
+                            (or `depth`; default `rendered_depth/<frame_name>.exr`)
+  <scene>/images/<frame>.jpg, <scene>/rendered_depth/<frame>.exr (z-depth metres, 0 = hole)
+Frames are `frame_name`s. Scenes: all folders with a scene_meta.json, or those listed in
+`<root>/scenes_<split>.txt` when present.
+Pairs: `<root>/pairs_<split>.txt` from `python data/mine_pairs.py --dataset scannetpp` (all DSLR
+pairs of a scene, kept when mutual covisibility > 25%, supplementary "Sampling Strategy").
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+
+import numpy as np
+
+from ufm_jax.data.registry import register
+from ufm_jax.data.sources import _exr, _posed
+
+
+def read_scene_meta(path: str) -> dict:
+  _posed.require_file(path, "a WAI scene_meta.json")
+  try:
+    with open(path) as f:
+      meta = json.load(f)
+    frames = {fr["frame_name"]: fr for fr in meta["frames"]}
+  except (ValueError, KeyError, TypeError) as e:
+    raise ValueError(f"{path}: malformed scene_meta.json (expected 'frames' with "
+                     f"'frame_name' entries): {e}") from e
+  return dict(meta=meta, frames=frames)
+
+
+def wai_view(scene_dir: str, meta: dict, frame: dict, depth_keys=("rendered_depth", "depth")):
+  where = os.path.join(scene_dir, "scene_meta.json")
+  conv = meta.get("camera_convention", "opencv")
+  if conv != "opencv":
+    raise ValueError(f"{where}: camera_convention {conv!r}, expected 'opencv'")
+  get = lambda k: frame[k] if k in frame else meta[k]
+  try:
+    K = np.array([[get("fl_x"), 0, get("cx")], [0, get("fl_y"), get("cy")], [0, 0, 1]], np.float64)
+    c2w = np.array(frame["transform_matrix"], np.float64)
+  except KeyError as e:
+    raise ValueError(f"{where}: frame {frame.get('frame_name')} lacks {e}") from e
+  image = _posed.read_image(os.path.join(scene_dir, frame.get("file_path", frame.get("image", ""))))
+  rel = next((frame[k] for k in depth_keys if isinstance(frame.get(k), str)), None)
+  rel = rel or os.path.join(depth_keys[0], f"{frame['frame_name']}.exr")
+  depth = _posed.sanitize_depth(_exr.read_exr(os.path.join(scene_dir, rel)))
+  return _posed.View(image, depth, K, c2w)
+
+
+@register("scannetpp")
+class ScanNetPP(_posed.PosedPairSource):
+  name = "scannetpp"
+
+  def scenes(self):
+    listed = os.path.join(self.root, f"scenes_{self.split}.txt")
+    if os.path.isfile(listed):
+      with open(listed) as f:
+        return [l.strip() for l in f if l.strip()]
+    return sorted(s for s in os.listdir(self.root)
+                  if os.path.isfile(os.path.join(self.root, s, "scene_meta.json")))
+
+  @functools.lru_cache(maxsize=64)
+  def _meta(self, scene):
+    return read_scene_meta(os.path.join(self.root, scene, "scene_meta.json"))
+
+  def frames(self, scene):
+    return list(self._meta(scene)["frames"])
+
+  def load_view(self, scene, frame):
+    m = self._meta(scene)
+    if frame not in m["frames"]:
+      raise KeyError(f"{os.path.join(self.root, scene, 'scene_meta.json')}: no frame {frame!r}")
+    return wai_view(os.path.join(self.root, scene), m["meta"], m["frames"][frame])

@@ -1,0 +1,306 @@
+"""High-level inference: `predict(model, params, source, target)`.
+
+Reproduces the official `predict_correspondences_batched` (uniflowmatch/models/base.py with
+utils/flow_resizing.py) step by step:
+  1. uint8 -> ImageNet-normalised float32 (`(x / 255 - mean) / std`, float32 arithmetic);
+  2. `F.interpolate(mode='bilinear', align_corners=False, antialias=True)` of the NORMALISED image
+     to the inference resolution whose aspect ratios are closest to the pair's (`closest_aspect`);
+  3. forward pass (the model renormalises from 0..255, so the resized image is de-normalised
+     first; the round trip costs ~1e-7, far below the parity tolerances);
+  4. unmap to the source resolution with the official region bookkeeping, including the float32
+     truncation of the representation region (`int64(float32(H_inf / H) * H)`).
+
+The resize and unmap run in numpy on the host (they are cheap and must match PyTorch's float32
+arithmetic); the forward pass is jitted once per model and traced once per inference shape.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from typing import Any, Sequence
+
+import numpy as np
+
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+DEFAULT_INFERENCE_RESOLUTION = (420, 560)  # (H, W); the official default (560, 420) is (W, H)
+
+_f32 = np.float32
+
+
+# ----------------------------------------------------------------------------------------------
+# Normalisation
+# ----------------------------------------------------------------------------------------------
+def normalize(image: np.ndarray) -> np.ndarray:
+  """HWC (or BHWC) uint8 / float 0..255 -> ImageNet-normalised float32, as the official code."""
+  x = np.asarray(image).astype(np.float32) / _f32(255.0)
+  return (x - IMAGENET_MEAN) / IMAGENET_STD
+
+
+def denormalize(image: np.ndarray) -> np.ndarray:
+  """Inverse of `normalize` (float32 in 0..255 up to rounding), for models that normalise inside."""
+  return (np.asarray(image, np.float32) * IMAGENET_STD + IMAGENET_MEAN) * _f32(255.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# PyTorch-exact resampling (CPU float32 kernels)
+# ----------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=64)
+def aa_linear_weights(in_size: int, out_size: int) -> np.ndarray:
+  """[out, in] float32 matrix of `F.interpolate(bilinear, align_corners=False, antialias=True)`.
+
+  Mirrors ATen's `_compute_indices_min_size_weights_aa` for the linear (triangle) filter: the
+  support is `scale` when downsampling (filter stretched by `scale`), 1 when upsampling (plain
+  bilinear with edge clamping); weights normalised to sum 1. float32 like the CPU kernel.
+  """
+  scale = _f32(in_size) / _f32(out_size)
+  support = _f32(1.0) * scale if scale >= 1.0 else _f32(1.0)
+  invscale = _f32(1.0 / float(scale)) if scale >= 1.0 else _f32(1.0)
+  mat = np.zeros((out_size, in_size), np.float32)
+  for i in range(out_size):
+    center = _f32(float(scale) * (i + 0.5))
+    xmin = max(int(float(center - support) + 0.5), 0)
+    xmax = min(int(float(center + support) + 0.5), in_size)
+    j = np.arange(xmin, xmax)
+    # (j + xmin - center + 0.5) in float32 then times invscale
+    arg = ((j.astype(np.float32) - center).astype(np.float64) + 0.5) * float(invscale)
+    w = np.maximum(_f32(1.0) - np.abs(arg.astype(np.float32)), _f32(0.0)).astype(np.float32)
+    total = _f32(0.0)
+    for v in w:
+      total = _f32(total + v)
+    if total != 0:
+      w = (w / total).astype(np.float32)
+    mat[i, xmin:xmax] = w
+  return mat
+
+
+def resize_bilinear_aa(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+  """[..., H, W, C] float -> [..., h, w, C] float32: torch bilinear antialias resize.
+
+  Separable like ATen: the width pass first, then the height pass (a dim whose size does not
+  change is copied, not filtered).
+  """
+  x = np.asarray(image, np.float32)
+  h_in, w_in = x.shape[-3], x.shape[-2]
+  h, w = size
+  if w != w_in:  # [..., H, W, C] x [w, W] -> [..., H, C, w] -> [..., H, w, C]
+    x = np.moveaxis(np.tensordot(x, aa_linear_weights(w_in, w), axes=([-2], [1])), -1, -2)
+  if h != h_in:
+    x = np.moveaxis(np.tensordot(x, aa_linear_weights(h_in, h), axes=([-3], [1])), -1, -3)
+  return np.ascontiguousarray(x, np.float32)
+
+
+def _linear_indices(in_size: int, out_size: int):
+  """Indices/weights of torch bilinear (align_corners=False, no antialias) along one axis."""
+  scale = _f32(in_size) / _f32(out_size)
+  dst = np.arange(out_size, dtype=np.float32)
+  src = np.maximum(scale * (dst + _f32(0.5)) - _f32(0.5), _f32(0.0)).astype(np.float32)
+  i0 = np.minimum(np.floor(src).astype(np.int64), in_size - 1)
+  lam = np.clip(src - i0.astype(np.float32), 0.0, 1.0).astype(np.float32)
+  i1 = i0 + (i0 < in_size - 1)
+  return i0, i1, lam
+
+
+def resize_bilinear(x: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+  """[H, W, C] -> [h, w, C] float32, torch `bilinear`, align_corners=False, no antialias."""
+  x = np.asarray(x, np.float32)
+  y0, y1, ly = _linear_indices(x.shape[0], size[0])
+  x0, x1, lx = _linear_indices(x.shape[1], size[1])
+  ly, lx = ly[:, None, None], lx[None, :, None]
+  top = (_f32(1) - lx) * x[y0][:, x0] + lx * x[y0][:, x1]
+  bot = (_f32(1) - lx) * x[y1][:, x0] + lx * x[y1][:, x1]
+  return ((_f32(1) - ly) * top + ly * bot).astype(np.float32)
+
+
+def _nearest_indices(in_size: int, out_size: int) -> np.ndarray:
+  """torch legacy 'nearest': floor(dst * float32(in / out)), with ATen's exact-ratio shortcuts."""
+  dst = np.arange(out_size)
+  if out_size == in_size:
+    return dst
+  if out_size == 2 * in_size:
+    return dst >> 1
+  scale = _f32(in_size) / _f32(out_size)
+  return np.minimum(np.floor(dst.astype(np.float32) * scale).astype(np.int64), in_size - 1)
+
+
+def resize_nearest(x: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+  """[H, W, ...] -> [h, w, ...], torch legacy `nearest`."""
+  x = np.asarray(x)
+  return x[_nearest_indices(x.shape[0], size[0])][:, _nearest_indices(x.shape[1], size[1])]
+
+
+# ----------------------------------------------------------------------------------------------
+# Region bookkeeping
+# ----------------------------------------------------------------------------------------------
+def representation_region(in_hw: tuple[int, int], out_hw: tuple[int, int]) -> np.ndarray:
+  """[top, bottom, left, right] of a resized image, with the official float32 truncation.
+
+  The official code multiplies the int64 region [0, H, 0, W] by a float32 tensor of the resize
+  ratios and casts back to int64, so e.g. 131 -> 168 rows gives 167 (float32(168/131)*131 < 168).
+  """
+  (h, w), (oh, ow) = in_hw, out_hw
+  mult = np.array([oh / h, oh / h, ow / w, ow / w], np.float32)
+  return (mult * np.array([0, h, 0, w], np.float32)).astype(np.int64)
+
+
+def select_resolution(resolutions: Sequence[tuple[int, int]], src_hw, tgt_hw) -> tuple[int, int]:
+  """The official `closest_aspect` choice among (H, W) inference resolutions (first wins ties)."""
+  def cost(r):
+    a = r[0] / r[1]
+    return abs(a - src_hw[0] / src_hw[1]) + abs(a - tgt_hw[0] / tgt_hw[1])
+  return tuple(min(resolutions, key=cost))
+
+
+def unmap_flow(flow: np.ndarray, region0: np.ndarray, src_hw, tgt_hw) -> np.ndarray:
+  """Inference-resolution flow [h, w, 2] -> source-resolution flow [H, W, 2] (official unmap).
+
+  ROI = the source representation region; source pixel centres of the ROI (i + 0.5) are resized
+  bilinearly to the source size, the flow with legacy nearest; target = source + flow; source
+  coordinates are scaled by source_size / roi_size and target coordinates by target_size /
+  roi_size (the official code uses the SOURCE representation region for both); flow = difference.
+  """
+  t, b, l, r = (int(v) for v in region0)
+  roi = np.asarray(flow, np.float32)[t:b, l:r]
+  rh, rw = roi.shape[:2]
+  (sh, sw), (th, tw) = src_hw, tgt_hw
+  grid = np.stack(np.meshgrid(np.arange(rw, dtype=np.float32) + _f32(0.5),
+                              np.arange(rh, dtype=np.float32) + _f32(0.5), indexing="xy"), -1)
+  src = resize_bilinear(grid, (sh, sw))
+  tgt = resize_nearest(roi, (sh, sw)) + src
+  src = src * np.array([_f32(sw) / _f32(rw), _f32(sh) / _f32(rh)], np.float32)
+  tgt = tgt * np.array([_f32(tw) / _f32(rw), _f32(th) / _f32(rh)], np.float32)
+  return (tgt - src).astype(np.float32)
+
+
+def unmap_channels(values: np.ndarray, region0: np.ndarray, src_hw) -> np.ndarray:
+  """[h, w, ...] at inference resolution -> [H, W, ...]: ROI then legacy nearest."""
+  t, b, l, r = (int(v) for v in region0)
+  return resize_nearest(np.asarray(values)[t:b, l:r], tuple(src_hw))
+
+
+# ----------------------------------------------------------------------------------------------
+# Model plumbing
+# ----------------------------------------------------------------------------------------------
+def inference_resolutions(model) -> list[tuple[int, int]]:
+  """(H, W) inference resolutions of a model (its config's `inference_resolution`)."""
+  res = None
+  for owner in (model, getattr(model, "config", None)):
+    if owner is None:
+      continue
+    res = owner.get("inference_resolution") if isinstance(owner, dict) else getattr(
+        owner, "inference_resolution", None)
+    if res is not None:
+      break
+  if res is None:
+    return [DEFAULT_INFERENCE_RESOLUTION]
+  res = [tuple(int(v) for v in r) for r in (res if isinstance(res[0], (list, tuple)) else [res])]
+  return res
+
+
+_FORWARDS: dict[int, tuple[Any, Any, set]] = {}
+
+
+def _forward_fn(model):
+  """(jitted forward, set of input shapes already compiled) for a model object.
+
+  One jax.jit per model object; jax re-traces per input shape and caches the executable.
+  """
+  import jax
+
+  entry = _FORWARDS.get(id(model))
+  if entry is None or entry[0] is not model:
+    def fwd(params, source, target):
+      out = model.apply({"params": params}, source, target)
+      return {"flow": out["flow"], "covisibility": out["covisibility"]}
+    entry = (model, jax.jit(fwd), set())
+    _FORWARDS[id(model)] = entry
+  return entry[1], entry[2]
+
+
+def _check_image(x, what: str) -> np.ndarray:
+  x = np.asarray(x)
+  if x.ndim != 3 or x.shape[-1] != 3:
+    raise ValueError(f"{what}: expected an HWC RGB image [H, W, 3], got shape {x.shape}")
+  if x.dtype != np.uint8 and not np.issubdtype(x.dtype, np.floating):
+    raise ValueError(f"{what}: expected uint8 (or float 0..255), got dtype {x.dtype}")
+  if min(x.shape[:2]) < 1:
+    raise ValueError(f"{what}: empty image of shape {x.shape}")
+  return x
+
+
+def prepare_pair(source, target, resolutions):
+  """Normalise + resize one pair; returns the 0..255 float inputs and the bookkeeping."""
+  src_hw, tgt_hw = source.shape[:2], target.shape[:2]
+  res = select_resolution(resolutions, src_hw, tgt_hw)
+  src = resize_bilinear_aa(normalize(source), res)
+  tgt = resize_bilinear_aa(normalize(target), res)
+  book = dict(resolution=res, src_hw=tuple(src_hw), tgt_hw=tuple(tgt_hw),
+              region0=representation_region(src_hw, res), region1=representation_region(tgt_hw, res))
+  return src, tgt, book
+
+
+def unmap_prediction(flow, covisibility, book) -> dict[str, np.ndarray]:
+  """Forward outputs of one pair at inference resolution -> source-resolution dict."""
+  return {
+      "flow": unmap_flow(flow, book["region0"], book["src_hw"], book["tgt_hw"]),
+      "covisibility": unmap_channels(np.asarray(covisibility, np.float32), book["region0"],
+                                     book["src_hw"]),
+  }
+
+
+def predict(model, params, source, target, *, batch_size: int = 8, resolutions=None,
+            timings: list | None = None):
+  """Official high-level inference (`predict_correspondences_batched`).
+
+  Args:
+    model, params: a UFM model and its params (`ufm_jax.load_official` / `ufm_jax.load`).
+    source, target: one pair of HWC uint8 RGB images (sizes may differ), or two equal-length
+      lists of such images, or two [B, H, W, 3] arrays.
+    batch_size: pairs per forward call (pairs are grouped by inference resolution).
+    resolutions: (H, W) inference resolutions overriding the model config's.
+    timings: if a list, gets one (seconds, n_pairs) entry per forward call that did not compile
+      (device time of the jitted forward only: no resize, unmap or I/O).
+  Returns:
+    {"flow": [H, W, 2] float32 px, "covisibility": [H, W] float32} at the SOURCE size for a single
+    pair; a list of such dicts for lists; stacked [B, ...] arrays for [B, H, W, 3] inputs.
+  """
+  if getattr(source, "ndim", None) == 4:
+    source, target = np.asarray(source), np.asarray(target)
+    if target.ndim != 4 or len(target) != len(source):
+      raise ValueError(f"batched predict: source {source.shape} and target {target.shape} must "
+                       "both be [B, H, W, 3] with the same B")
+    outs = predict(model, params, list(source), list(target), batch_size=batch_size,
+                   resolutions=resolutions, timings=timings)
+    return {k: np.stack([o[k] for o in outs]) for k in ("flow", "covisibility")}
+  single = not isinstance(source, (list, tuple))
+  sources = [source] if single else list(source)
+  targets = [target] if single else list(target)
+  if len(sources) != len(targets):
+    raise ValueError(f"predict: {len(sources)} source images but {len(targets)} target images")
+  sources = [_check_image(s, f"source[{i}]") for i, s in enumerate(sources)]
+  targets = [_check_image(t, f"target[{i}]") for i, t in enumerate(targets)]
+  resolutions = [tuple(r) for r in resolutions] if resolutions else inference_resolutions(model)
+  fwd, compiled_shapes = _forward_fn(model)
+
+  import jax
+
+  prepared = [prepare_pair(s, t, resolutions) for s, t in zip(sources, targets)]
+  results: list[dict | None] = [None] * len(prepared)
+  by_res: dict[tuple, list[int]] = {}
+  for i, (_, _, book) in enumerate(prepared):
+    by_res.setdefault(book["resolution"], []).append(i)
+  for idx in by_res.values():
+    for start in range(0, len(idx), batch_size):
+      chunk = idx[start:start + batch_size]
+      src = denormalize(np.stack([prepared[i][0] for i in chunk]))
+      tgt = denormalize(np.stack([prepared[i][1] for i in chunk]))
+      t0 = time.perf_counter()
+      out = jax.block_until_ready(fwd(params, src, tgt))
+      if timings is not None and src.shape in compiled_shapes:
+        timings.append((time.perf_counter() - t0, len(chunk)))
+      compiled_shapes.add(src.shape)
+      flow, covis = np.asarray(out["flow"], np.float32), np.asarray(out["covisibility"], np.float32)
+      for j, i in enumerate(chunk):
+        results[i] = unmap_prediction(flow[j], covis[j], prepared[i][2])
+  return results[0] if single else results

@@ -1,0 +1,272 @@
+"""Benchmark metrics. Every formula is stated here; evaluators only decide masks and pooling.
+
+Conventions (see shared docs/datasets.md section 5):
+  * EPE per pixel: e = sqrt((u - u_gt)^2 + (v - v_gt)^2), in pixels at GT resolution.
+  * N-px outlier rate (the paper's "1px/2px/3px/5px" columns): 100 * mean(e > N), a STRICT
+    inequality (a pixel with error exactly N is not an outlier), in percent.
+  * KITTI Fl-all: a pixel is an outlier iff e > 3 AND e / |gt| > 0.05 (both strict);
+    Fl = 100 * outliers / valid pixels.
+  * Pooling: `Pooled` accumulates sums and counts over pixels of ALL images ("per-pixel pooling",
+    RAFT/unimatch on Sintel, KITTI Fl-all, and our dense wide-baseline benches). `PerImage` takes
+    the mean of per-image means (RAFT/SEA-RAFT KITTI EPE). Each evaluator states which it uses.
+  * Pose: error = max(angle of the rotation error, angle between translation directions with the
+    sign ambiguity removed), degrees; AUC@T integrates recall(error) from 0 to T (SuperGlue/LoFTR).
+"""
+
+from __future__ import annotations
+
+import collections
+
+import cv2
+import numpy as np
+
+# ----------------------------------------------------------------------------------------------
+# Dense flow
+# ----------------------------------------------------------------------------------------------
+
+
+def endpoint_error(flow: np.ndarray, flow_gt: np.ndarray) -> np.ndarray:
+  """Per-pixel EPE [..., H, W] = ||flow - flow_gt||_2 (float64 for exact accumulation)."""
+  flow, flow_gt = np.asarray(flow, np.float64), np.asarray(flow_gt, np.float64)
+  if flow.shape != flow_gt.shape or flow.shape[-1] != 2:
+    raise ValueError(f"endpoint_error: prediction {flow.shape} and GT {flow_gt.shape} must both be [..., H, W, 2]")
+  return np.sqrt(((flow - flow_gt) ** 2).sum(-1))
+
+
+def outlier_rate(epe: np.ndarray, threshold: float, mask: np.ndarray | None = None) -> float:
+  """100 * mean(epe > threshold) over `mask` (strict >), percent; NaN on an empty mask."""
+  e = np.asarray(epe)[np.asarray(mask, bool)] if mask is not None else np.asarray(epe).ravel()
+  return float(100.0 * np.mean(e > threshold)) if e.size else float("nan")
+
+
+def fl_outliers(epe: np.ndarray, flow_gt: np.ndarray) -> np.ndarray:
+  """KITTI outlier map: (epe > 3 px) AND (epe / |flow_gt| > 0.05)."""
+  mag = np.sqrt((np.asarray(flow_gt, np.float64) ** 2).sum(-1))
+  with np.errstate(divide="ignore", invalid="ignore"):
+    rel = np.where(mag > 0, epe / mag, np.inf)
+  return (epe > 3.0) & (rel > 0.05)
+
+
+class Pooled:
+  """Per-pixel pooling: sum and count per named quantity over every image added."""
+
+  def __init__(self):
+    self.sum = collections.defaultdict(float)
+    self.count = collections.defaultdict(int)
+
+  def add(self, name: str, values: np.ndarray, mask: np.ndarray | None = None) -> None:
+    v = np.asarray(values, np.float64)
+    v = v[np.asarray(mask, bool)] if mask is not None else v.ravel()
+    self.sum[name] += float(v.sum())
+    self.count[name] += int(v.size)
+
+  def mean(self, name: str) -> float:
+    return self.sum[name] / self.count[name] if self.count[name] else float("nan")
+
+  def result(self, scale: dict[str, float] | None = None) -> dict[str, float]:
+    scale = scale or {}
+    return {k: self.mean(k) * scale.get(k, 1.0) for k in self.sum}
+
+
+class PerImage:
+  """Mean over images of per-image means (images with an empty mask are skipped)."""
+
+  def __init__(self):
+    self.values = collections.defaultdict(list)
+
+  def add(self, name: str, values: np.ndarray, mask: np.ndarray | None = None) -> None:
+    v = np.asarray(values, np.float64)
+    v = v[np.asarray(mask, bool)] if mask is not None else v.ravel()
+    if v.size:
+      self.values[name].append(float(v.mean()))
+
+  def mean(self, name: str) -> float:
+    return float(np.mean(self.values[name])) if self.values[name] else float("nan")
+
+  def result(self, scale: dict[str, float] | None = None) -> dict[str, float]:
+    scale = scale or {}
+    return {k: self.mean(k) * scale.get(k, 1.0) for k in self.values}
+
+
+def add_flow_errors(acc, epe: np.ndarray, mask: np.ndarray | None, prefix: str = "",
+                    thresholds=(1, 3, 5)) -> None:
+  """Adds `<prefix>epe` and `<prefix>px<N>` (outlier indicators e > N, x100 = percent) to `acc`."""
+  acc.add(f"{prefix}epe", epe, mask)
+  for n in thresholds:
+    acc.add(f"{prefix}px{n:g}", 100.0 * (np.asarray(epe) > n), mask)
+
+
+# ---------------------------------------------------------------------------------------------
+# Sintel breakdowns
+# ---------------------------------------------------------------------------------------------
+def speed_masks(flow_gt: np.ndarray) -> dict[str, np.ndarray]:
+  """Speed bins of the GT magnitude s (unimatch): s0-10: s < 10; s10-40: 10 <= s <= 40; s40+: s > 40."""
+  s = np.sqrt((np.asarray(flow_gt, np.float64) ** 2).sum(-1))
+  return {"s0-10": s < 10, "s10-40": (s >= 10) & (s <= 40), "s40+": s > 40}
+
+
+def matched_mask(flow_gt: np.ndarray, occlusion: np.ndarray) -> np.ndarray:
+  """Sintel "matched" pixels (unimatch's approximation of the official definition).
+
+  matched = not occluded AND x + flow inside [0, W-1] x [0, H-1] AND |u| <= W-1, |v| <= H-1;
+  "unmatched" is every other pixel.
+  """
+  h, w = flow_gt.shape[:2]
+  xs, ys = np.meshgrid(np.arange(w), np.arange(h))
+  x1, y1 = xs + flow_gt[..., 0], ys + flow_gt[..., 1]
+  inside = (x1 >= 0) & (x1 <= w - 1) & (y1 >= 0) & (y1 <= h - 1)
+  small = (np.abs(flow_gt[..., 0]) <= w - 1) & (np.abs(flow_gt[..., 1]) <= h - 1)
+  return ~np.asarray(occlusion, bool) & inside & small
+
+
+def boundary_distance_masks(occlusion: np.ndarray) -> dict[str, np.ndarray] | None:
+  """d0-10 / d10-60 / d60-140: Euclidean distance to the nearest occlusion boundary in [0, 10],
+  (10, 60], (60, 140] px. The boundary is the set of pixels with a 4-neighbour of the other
+  occlusion state (an approximation: Sintel's own boundary maps are not public). None when the
+  frame has no occlusion boundary.
+  """
+  occ = np.asarray(occlusion, bool)
+  edge = np.zeros_like(occ)
+  edge[:, 1:] |= occ[:, 1:] != occ[:, :-1]
+  edge[:, :-1] |= occ[:, 1:] != occ[:, :-1]
+  edge[1:] |= occ[1:] != occ[:-1]
+  edge[:-1] |= occ[1:] != occ[:-1]
+  if not edge.any():
+    return None
+  d = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+  return {"d0-10": d <= 10, "d10-60": (d > 10) & (d <= 60), "d60-140": (d > 60) & (d <= 140)}
+
+
+# ---------------------------------------------------------------------------------------------
+# Relative pose
+# ---------------------------------------------------------------------------------------------
+
+
+def rotation_error_deg(R: np.ndarray, R_gt: np.ndarray) -> float:
+  """Angle of R^T R_gt in degrees: arccos(clip((trace - 1) / 2, -1, 1))."""
+  c = (np.trace(np.asarray(R).T @ np.asarray(R_gt)) - 1) / 2
+  return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def translation_error_deg(t: np.ndarray, t_gt: np.ndarray) -> float:
+  """Angle between translation directions in degrees, folded to [0, 90] (E's sign ambiguity)."""
+  t, t_gt = np.ravel(t).astype(np.float64), np.ravel(t_gt).astype(np.float64)
+  n = np.linalg.norm(t) * np.linalg.norm(t_gt)
+  if n == 0:
+    return 90.0
+  e = float(np.degrees(np.arccos(np.clip(t @ t_gt / n, -1.0, 1.0))))
+  return min(e, 180.0 - e)
+
+
+def pose_error(R, t, R_gt, t_gt) -> float:
+  """max(rotation error, translation direction error), degrees."""
+  return max(rotation_error_deg(R, R_gt), translation_error_deg(t, t_gt))
+
+
+def relative_pose(cam2world0: np.ndarray, cam2world1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """(R, t) with x_1 = R x_0 + t from camera-to-world poses (OpenCV axes)."""
+  T = np.linalg.inv(np.asarray(cam2world1, np.float64)) @ np.asarray(cam2world0, np.float64)
+  return T[:3, :3], T[:3, 3]
+
+
+def estimate_pose(kpts0: np.ndarray, kpts1: np.ndarray, K0: np.ndarray, K1: np.ndarray,
+                  threshold_px: float = 0.5, confidence: float = 0.99999, rng=None):
+  """Essential-matrix RANSAC on normalised coordinates (RoMa/DKM protocol).
+
+  Keypoints (pixel coordinates, OpenCV centres) are normalised with K^-1; the RANSAC threshold is
+  threshold_px / mean(fx0, fy0, fx1, fy1); every stacked solution of findEssentialMat goes through
+  recoverPose and the one with most inliers wins. `rng` reshuffles the matches first (the
+  protocol repeats RANSAC on shuffled orders). Returns (R, t, n_inliers) or None (< 5 matches or
+  no solution).
+  """
+  kpts0, kpts1 = np.asarray(kpts0, np.float64), np.asarray(kpts1, np.float64)
+  if len(kpts0) < 5:
+    return None
+  if rng is not None:
+    perm = rng.permutation(len(kpts0))
+    kpts0, kpts1 = kpts0[perm], kpts1[perm]
+  K0, K1 = np.asarray(K0, np.float64), np.asarray(K1, np.float64)
+  n0 = (kpts0 - K0[[0, 1], [2, 2]]) / K0[[0, 1], [0, 1]]
+  n1 = (kpts1 - K1[[0, 1], [2, 2]]) / K1[[0, 1], [0, 1]]
+  thr = threshold_px / np.mean([K0[0, 0], K0[1, 1], K1[0, 0], K1[1, 1]])
+  E, mask = cv2.findEssentialMat(n0, n1, np.eye(3), threshold=thr, prob=confidence, method=cv2.RANSAC)
+  if E is None:
+    return None
+  best = None
+  for i in range(0, E.shape[0] - E.shape[0] % 3, 3):
+    n, R, t, _ = cv2.recoverPose(E[i:i + 3], n0, n1, np.eye(3), 1e9, mask=mask.copy())[:4]
+    if best is None or n > best[2]:
+      best = (R, t.ravel(), int(n))
+  return best
+
+
+def sample_matches(flow: np.ndarray, covisibility: np.ndarray, num: int, rng, target_hw=None,
+                   certainty_threshold: float = 0.05, balanced: bool = True,
+                   kde_sigma: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+  """Draws `num` matches from a dense flow weighted by covisibility (DKM/RoMa `sample`).
+
+  Certainty = covisibility, zeroed where x + flow leaves the target image (size `target_hw`,
+  default the source's; RoMa does the same); values above `certainty_threshold` count as 1
+  ("threshold_balanced"). Draw min(4 num, N) candidates without replacement proportional to
+  certainty; with `balanced`, re-draw min(num, #candidates) of them without replacement
+  proportional to 1 / (1 + KDE density) (Gaussian, sigma 0.1 in the [-1, 1]-normalised 4-D match
+  space; 1e-7 where density < 10) so that dense clusters do not dominate.
+  Returns (kpts0 [n, 2], kpts1 [n, 2]) in pixels (x, y), pixel centres at integers.
+  """
+  flow = np.asarray(flow, np.float64)
+  h, w = flow.shape[:2]
+  h1, w1 = target_hw or (h, w)
+  ys, xs = np.mgrid[0:h, 0:w]
+  k0 = np.stack([xs, ys], -1).reshape(-1, 2).astype(np.float64)
+  k1 = k0 + flow.reshape(-1, 2)
+  cert = np.asarray(covisibility, np.float64).reshape(-1)
+  inside = (k1[:, 0] >= -0.5) & (k1[:, 0] < w1 - 0.5) & (k1[:, 1] >= -0.5) & (k1[:, 1] < h1 - 0.5)
+  cert = np.where(inside & np.isfinite(cert) & np.isfinite(k1).all(1), cert, 0.0)
+  cert = np.where(cert > certainty_threshold, 1.0, cert)
+  nz = np.flatnonzero(cert > 0)
+  if nz.size == 0:
+    return np.zeros((0, 2)), np.zeros((0, 2))
+  n_cand = min(4 * num if balanced else num, nz.size)
+  cand = rng.choice(nz, size=n_cand, replace=False, p=cert[nz] / cert[nz].sum())
+  if balanced and n_cand > num:
+    x = np.concatenate([(k0[cand] + 0.5) / [w, h] * 2 - 1,
+                        (k1[cand] + 0.5) / [w1, h1] * 2 - 1], 1).astype(np.float32)
+    density = np.zeros(len(x))
+    sq = (x * x).sum(1)
+    for s in range(0, len(x), 2048):  # chunked pairwise distances: 20000^2 would not fit
+      d2 = sq[s:s + 2048, None] + sq[None] - 2 * x[s:s + 2048] @ x.T
+      density[s:s + 2048] = np.exp(-np.maximum(d2, 0) / (2 * kde_sigma**2)).sum(1)
+    q = 1.0 / (density + 1.0)
+    q[density < 10] = 1e-7
+    cand = rng.choice(cand, size=num, replace=False, p=q / q.sum())
+  return k0[cand], k1[cand]
+
+
+def pose_auc(errors, thresholds=(5, 10, 20)) -> dict[float, float]:
+  """AUC of the recall-vs-error curve up to each threshold, normalised by it (SuperGlue/LoFTR).
+
+  Errors are sorted, recall_i = i / N; the curve starts at (0, 0); for threshold t the curve is
+  cut at the last error < t and held flat to t; AUC@t = trapezoid area / t (a value in [0, 1]).
+  """
+  errors = np.sort(np.asarray(errors, np.float64))
+  if errors.size == 0:
+    return {t: float("nan") for t in thresholds}
+  recall = (np.arange(len(errors)) + 1) / len(errors)
+  errors = np.r_[0.0, errors]
+  recall = np.r_[0.0, recall]
+  out = {}
+  for t in thresholds:
+    last = np.searchsorted(errors, t)
+    e = np.r_[errors[:last], t]
+    r = np.r_[recall[:last], recall[last - 1]]
+    out[t] = float(np.trapezoid(r, x=e) / t)
+  return out
+
+
+def pose_from_flow(flow, covisibility, K0, K1, rng, num: int = 5000, target_hw=None,
+                   threshold_px: float = 0.5, balanced: bool = True):
+  """Samples matches from flow + covisibility and estimates (R, t, n_inliers); None on failure."""
+  kp0, kp1 = sample_matches(flow, covisibility, num, rng, target_hw=target_hw, balanced=balanced)
+  if len(kp0) < 5:
+    return None
+  return estimate_pose(kp0, kp1, K0, K1, threshold_px=threshold_px, rng=rng)

@@ -1,0 +1,405 @@
+"""UFM-Refine pieces: U-Net, classification feature head, local attention refinement.
+
+Port of the refinement stage of the official `UniFlowMatchClassificationRefinement`:
+  features_i = conv2(relu(conv1(concat[patch_mlp(tokens_i), unet(image_i)])))     (i = source, target)
+  logits[a, b] = <f_src(x, y), f_tgt(x + u + b - R, y + v + a - R)> / temperature + bias[a * P + b]
+  flow = flow_regressed + sum softmax(logits) * (b - R, a - R)
+where f_tgt is read with torch `grid_sample(mode="bicubic", padding_mode="zeros", align_corners=False)`.
+
+Param names mirror the PyTorch modules (`unet_feature.downs.0.conv.0` -> `unet_feature/downs_0/conv_0`).
+"""
+
+from typing import Any, Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+_A = -0.75  # torch's bicubic convolution constant
+
+
+# ----------------------------------------------------------------------------------------------
+# U-Net
+
+
+class DoubleConv(nn.Module):
+  """(conv3x3 pad 1, ReLU) x 2, biases on (no batch norm in the official U-Net)."""
+  features: int
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x):
+    for name in ("conv_0", "conv_2"):
+      x = nn.relu(nn.Conv(self.features, (3, 3), padding=((1, 1), (1, 1)), dtype=self.dtype,
+                          name=name)(x))
+    return x
+
+
+class UpConv2x2(nn.Module):
+  """torch ConvTranspose2d(k=2, s=2): out[2i+a, 2j+b] = x[i, j] @ W[:, :, a, b] + bias.
+
+  The stride equals the kernel size, so the taps never overlap and one einsum does it; the kernel
+  is stored [a, b, in, out] (torch's [in, out, a, b] transposed (2, 3, 0, 1)).
+  """
+  features: int
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x):
+    kernel = self.param("kernel", nn.initializers.lecun_normal(), (2, 2, x.shape[-1], self.features))
+    bias = self.param("bias", nn.initializers.zeros, (self.features,))
+    x = x.astype(self.dtype)
+    y = jnp.einsum("nhwc,abco->nhawbo", x, kernel.astype(self.dtype))
+    n, h, _, w, _, o = y.shape
+    return y.reshape(n, 2 * h, 2 * w, o) + bias.astype(self.dtype)
+
+
+def resize_nearest_legacy(x, size):
+  """torch F.interpolate(mode='nearest', size=size) on NHWC: src = floor(dst * float32(in/out))."""
+  def index(n_in, n_out):
+    scale = np.float32(n_in) / np.float32(n_out)
+    idx = np.floor(np.arange(n_out, dtype=np.float32) * scale).astype(np.int64)
+    return np.minimum(idx, n_in - 1)
+  rows = index(x.shape[1], size[0])
+  cols = index(x.shape[2], size[1])
+  return x[:, rows][:, :, cols]
+
+
+class UNet(nn.Module):
+  """The official U-Net (RoMa-style fine features): widths `features`, output `out_channels`.
+
+  Max-pool 2x2 with floor rounding; after each 2x2 up-convolution the map is resized with legacy
+  nearest when it is smaller than the skip (odd sizes), then concatenated as [skip, upsampled].
+  """
+  features: Sequence[int] = (64, 128, 256, 512)
+  out_channels: int = 16
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x):
+    skips = []
+    for i, f in enumerate(self.features):
+      x = DoubleConv(f, dtype=self.dtype, name=f"downs_{i}")(x)
+      skips.append(x)
+      x = nn.max_pool(x, (2, 2), strides=(2, 2), padding="VALID")
+    x = DoubleConv(2 * self.features[-1], dtype=self.dtype, name="bottleneck")(x)
+    for k, f in enumerate(reversed(self.features)):
+      x = UpConv2x2(f, dtype=self.dtype, name=f"ups_{2 * k}")(x)
+      skip = skips[-1 - k]
+      if x.shape[1:3] != skip.shape[1:3]:
+        x = resize_nearest_legacy(x, skip.shape[1:3])
+      x = DoubleConv(f, dtype=self.dtype, name=f"ups_{2 * k + 1}")(jnp.concatenate([skip, x], -1))
+    return nn.Conv(self.out_channels, (1, 1), dtype=self.dtype, name="final_conv")(x)
+
+
+# ----------------------------------------------------------------------------------------------
+# Classification feature head ("patch_mlp")
+
+
+def pixel_shuffle(x, r):
+  """torch pixel_shuffle on NHWC: channel c*r*r + i*r + j -> (row h*r+i, col w*r+j, channel c)."""
+  n, h, w, c = x.shape
+  x = x.reshape(n, h, w, c // (r * r), r, r)
+  x = x.transpose(0, 1, 4, 2, 5, 3)
+  return x.reshape(n, h * r, w * r, c // (r * r))
+
+
+class Mlp(nn.Module):
+  hidden_dim: int
+  out_dim: int
+
+  @nn.compact
+  def __call__(self, x):
+    x = nn.Dense(self.hidden_dim, name="fc1")(x)
+    x = nn.gelu(x, approximate=False)
+    return nn.Dense(self.out_dim, name="fc2")(x)
+
+
+class MLPFeature(nn.Module):
+  """Official MLPFeature: token MLP (in -> in*ratio -> in), 1x1 conv to out*p*p, pixel shuffle p."""
+  output_dim: int = 16
+  patch_size: int = 14
+  mlp_ratio: float = 4.0
+
+  @nn.compact
+  def __call__(self, x, return_mlp=False):  # [N, h, w, C] tokens -> [N, h*p, w*p, output_dim]
+    c = x.shape[-1]
+    x = Mlp(int(c * self.mlp_ratio), c, name="mlp")(x)
+    if return_mlp:                           # the token MLP output alone (a parity checkpoint)
+      return x
+    p = self.patch_size
+    x = nn.Conv(self.output_dim * p * p, (1, 1), name="linear")(x)
+    return pixel_shuffle(x, p)
+
+
+# ----------------------------------------------------------------------------------------------
+# Local refinement
+
+
+def cubic_weights(t):
+  """torch's bicubic coefficients (A=-0.75) for taps at -1, 0, 1, 2 of fractional position t."""
+  def near(s):
+    return ((_A + 2) * s - (_A + 3)) * s * s + 1
+  def far(s):
+    return ((_A * s - 5 * _A) * s + 8 * _A) * s - 4 * _A
+  return jnp.stack([far(t + 1), near(t), near(1 - t), far(2 - t)], -1)
+
+
+def grid_sample_coordinate(coord, size):
+  """Pixel-index coordinate -> the coordinate torch's grid_sample actually samples, in float32.
+
+  The official code normalises `((coord + 0.5) / size) * 2 - 1`; grid_sample (align_corners=False)
+  maps back with `(g + 1) * (size / 2) - 0.5`. Ideally the identity; we repeat the float32 round trip.
+  """
+  size = jnp.asarray(size, coord.dtype)
+  g = ((coord + 0.5) / size) * 2 - 1
+  return (g + 1) * (size / 2) - 0.5
+
+
+def _axis_weights(center, radius, size):
+  """Per-offset bicubic weights along one axis, on a shared integer tap window.
+
+  center: [...] float32 pixel coordinate of offset 0 (x + u, or y + v).
+  Returns (start [...] int32, weights [..., P, P + 4]) with P = 2R+1: sample(offset k) =
+  sum_j weights[..., k, j] * value(start + j). Each offset is rounded through grid_sample's
+  normalisation on its own (as the official call does), so its floor may differ by one from the
+  others near integers; the window holds one spare tap for that.
+  """
+  p = 2 * radius + 1
+  offsets = jnp.arange(-radius, radius + 1, dtype=center.dtype)
+  pos = grid_sample_coordinate(center[..., None] + offsets, size)       # [..., P]
+  base = jnp.floor(pos)
+  frac = pos - base
+  start = base[..., 0] - 1                                               # tap of offset -R at -1
+  rel = jnp.clip(base - 1 - start[..., None], 0, p).astype(jnp.int32)   # [..., P], ~= k
+  w4 = cubic_weights(frac)                                               # [..., P, 4]
+  taps = jnp.arange(p + 4)
+  # weights[..., k, j] = w4[..., k, j - rel_k] for 0 <= j - rel_k < 4.
+  d = taps - rel[..., None]                                              # [..., P, P+4]
+  weights = jnp.zeros(d.shape, w4.dtype)
+  for i in range(4):
+    weights = weights + jnp.where(d == i, w4[..., i:i + 1], 0.0)
+  return start.astype(jnp.int32), weights
+
+
+def _tap_products(f1, f2, x0, y0, ntaps):
+  """dots[i, n, y, x, j] = <f1[n, y, x], f2[n, y0 + i, x0 + j]> (0 outside f2) for i, j < ntaps.
+
+  One window row at a time (scan), so only [N, H, W, ntaps, C] gathered values are live at once.
+  """
+  n, h, w, c = f2.shape
+  flat = f2.reshape(n, h * w, c)
+  cols = x0[..., None] + jnp.arange(ntaps)                              # [N, h1, w1, T]
+  col_ok = (cols >= 0) & (cols < w)
+  cols = jnp.clip(cols, 0, w - 1)
+
+  def row(_, i):
+    r = y0 + i                                                           # [N, h1, w1]
+    ok = col_ok & ((r >= 0) & (r < h))[..., None]
+    idx = jnp.clip(r, 0, h - 1)[..., None] * w + cols
+    vals = jax.vmap(lambda fl, ix: fl[ix])(flat, idx.reshape(n, -1))    # [N, h1*w1*T, C]
+    vals = vals.reshape(idx.shape + (c,))
+    dots = jnp.einsum("nyxc,nyxtc->nyxt", f1, vals, precision=jax.lax.Precision.HIGHEST)
+    return None, jnp.where(ok, dots, 0.0)
+
+  _, dots = jax.lax.scan(row, None, jnp.arange(ntaps))
+  return dots                                                            # [T rows, N, h1, w1, T cols]
+
+
+def _refine_rows(f1, f2, flow, bias, temperature, radius, row0):
+  """Refinement for the source rows row0 .. row0 + f1.shape[1] (f2 is the whole target map)."""
+  _, h1, w1, _ = f1.shape
+  h2, w2 = f2.shape[1:3]
+  dt = flow.dtype
+  xs = jnp.arange(w1, dtype=dt)
+  ys = row0.astype(dt) + jnp.arange(h1, dtype=dt)
+  cx = xs[None, None, :] + flow[..., 0]
+  cy = ys[None, :, None] + flow[..., 1]
+  x0, wx = _axis_weights(cx, radius, w2)                                 # [N,h,w], [N,h,w,P,P+4]
+  y0, wy = _axis_weights(cy, radius, h2)
+  dots = _tap_products(f1, f2, x0, y0, 2 * radius + 5)                   # [T,N,h,w,T] (rows, cols)
+  # torch interpolates along x first (per tap row), then along y.
+  along_x = jnp.einsum("nyxbj,inyxj->nyxib", wx, dots, precision=jax.lax.Precision.HIGHEST)
+  scores = jnp.einsum("nyxai,nyxib->nyxab", wy, along_x, precision=jax.lax.Precision.HIGHEST)
+  p = 2 * radius + 1
+  logits = scores / temperature + bias.reshape(p, p)
+  log_p = jax.nn.log_softmax(logits.reshape(logits.shape[:3] + (p * p,)), -1)
+  log_p = log_p.reshape(logits.shape)
+  prob = jnp.exp(log_p)
+  offsets = jnp.arange(-radius, radius + 1, dtype=dt)
+  residual = jnp.stack([jnp.einsum("nyxab,b->nyx", prob, offsets),
+                        jnp.einsum("nyxab,a->nyx", prob, offsets)], -1)
+  return residual, log_p
+
+
+def local_refinement(f1, f2, flow, bias, *, temperature, radius, chunk=None):
+  """The official classification refinement.
+
+  Args:
+    f1, f2: [N, H, W, C] refinement features of the source / target view.
+    flow: [N, H, W, 2] regressed flow (pixels) around which the (2R+1)^2 window is searched.
+    bias: [(2R+1)^2] per-offset classification bias (index a*(2R+1) + b).
+    temperature: the score divisor; radius: R.
+    chunk: rows of source pixels per step (lax.map) to bound memory at high resolution; None = all.
+  Returns:
+    residual [N, H, W, 2] (added to `flow` by the caller) and log_softmax [N, H, W, P, P]
+    with [..., a, b] <-> offset (dx, dy) = (b - R, a - R).
+  """
+  # float32 even under bf16 compute (the official code runs it under fp32 autocast); float64 stays.
+  dt = jnp.promote_types(jnp.result_type(f1, f2, flow), jnp.float32)
+  f1, f2, flow, bias = (a.astype(dt) for a in (f1, f2, flow, bias))
+  h = f1.shape[1]
+  if chunk is None or chunk >= h:
+    return _refine_rows(f1, f2, flow, bias, temperature, radius, jnp.int32(0))
+  n_chunks = -(-h // chunk)
+  pad = n_chunks * chunk - h
+
+  def split(a):
+    a = jnp.pad(a, [(0, 0), (0, pad)] + [(0, 0)] * (a.ndim - 2))
+    a = a.reshape((a.shape[0], n_chunks, chunk) + a.shape[2:])
+    return jnp.moveaxis(a, 1, 0)
+
+  def one(args):
+    f1c, flowc, row0 = args
+    return _refine_rows(f1c, f2, flowc, bias, temperature, radius, row0)
+
+  rows0 = jnp.arange(n_chunks, dtype=jnp.int32) * chunk
+  residual, log_p = jax.lax.map(one, (split(f1), split(flow), rows0))
+
+  def merge(a):
+    a = jnp.moveaxis(a, 0, 1)
+    return a.reshape((a.shape[0], n_chunks * chunk) + a.shape[3:])[:, :h]
+
+  return merge(residual), merge(log_p)
+
+
+# ----------------------------------------------------------------------------------------------
+# The refinement stage (its params sit at the top level of the UFM-Refine tree, as in PyTorch)
+
+
+class Refiner(nn.Module):
+  """U-Net + patch_mlp feature maps for both views, then the local attention refinement.
+
+  Children are named like the official module's attributes (unet_feature, classification_head,
+  conv1, conv2, classification_bias) so UFMRefine can expose them at the root of its params.
+  """
+  unet_features: Sequence[int] = (64, 128, 256, 512)
+  feature_dim: int = 16
+  patch_size: int = 14
+  mlp_ratio: float = 4.0
+  use_unet_feature: bool = True
+  feature_combine_method: str = "conv"
+  refinement_range: int = 7
+  temperature: float = 4.0
+  chunk: Any = None
+  unet_dtype: Any = jnp.float32
+
+  def setup(self):
+    if self.refinement_range % 2 != 1:
+      raise ValueError(f"refinement_range must be odd, got {self.refinement_range}")
+    if self.use_unet_feature and self.feature_combine_method != "conv":
+      raise ValueError(f"feature_combine_method {self.feature_combine_method!r} is not supported "
+                       "(the released models use 'conv')")
+    self.classification_head = MLPFeature(self.feature_dim, self.patch_size, self.mlp_ratio)
+    if self.use_unet_feature:
+      self.unet_feature = UNet(tuple(self.unet_features), self.feature_dim, dtype=self.unet_dtype)
+      self.conv1 = nn.Conv(2 * self.feature_dim, (1, 1))
+      self.conv2 = nn.Conv(self.feature_dim, (1, 1))
+    p = self.refinement_range
+    self.classification_bias = self.param("classification_bias", nn.initializers.zeros, (p * p,))
+
+  def features(self, tokens, image_norm):
+    """tokens [N, h, w, C_enc + C_info] (concat of encoder list[0] and info-sharing final),
+    image_norm [N, H, W, 3] normalised image -> [N, H, W, feature_dim] float32."""
+    f = self.classification_head(tokens)
+    if self.use_unet_feature:
+      u = self.unet_feature(image_norm).astype(jnp.float32)
+      f = self.conv2(nn.relu(self.conv1(jnp.concatenate([f, u], -1))))
+    return f
+
+  def refine(self, f1, f2, flow):
+    return local_refinement(f1, f2, flow, self.classification_bias, temperature=self.temperature,
+                            radius=self.refinement_range // 2, chunk=self.chunk)
+
+  def __call__(self, tokens1, tokens2, image1_norm, image2_norm, flow):
+    """Both views' features in one batch (as the official code does), then the refinement."""
+    n = tokens1.shape[0]
+    feats = self.features(jnp.concatenate([tokens1, tokens2], 0),
+                          jnp.concatenate([image1_norm, image2_norm], 0))
+    f1, f2 = feats[:n], feats[n:]
+    residual, log_p = self.refine(f1, f2, flow)
+    return {"flow": flow + residual, "flow_before_refinement": flow, "residual": residual,
+            "log_softmax": log_p, "feature_map_0": f1, "feature_map_1": f2}
+
+
+# ----------------------------------------------------------------------------------------------
+# PyTorch weights
+
+
+REFINE_PREFIXES = ("unet_feature.", "classification_head.", "conv1.", "conv2.", "classification_bias")
+
+
+def unet_widths(tensors, prefix="unet_feature."):
+  """U-Net widths from the weight shapes (`downs.{i}.conv.0.weight.shape[0]`); () when absent."""
+  widths = []
+  while f"{prefix}downs.{len(widths)}.conv.0.weight" in tensors:
+    widths.append(int(tensors[f"{prefix}downs.{len(widths)}.conv.0.weight"].shape[0]))
+  return tuple(widths)
+
+
+def torch_key_to_path(key):
+  """'unet_feature.ups.0.weight' -> ('unet_feature', 'ups_0', 'kernel') plus the layout tag.
+
+  Numbered children (`downs.0`, `conv.2`) become `downs_0`, `conv_2`, as Flax names list members.
+  """
+  parts = key.split(".")
+  path = []
+  for part in parts[:-1]:
+    if part.isdigit() and path:
+      path[-1] = f"{path[-1]}_{part}"
+    else:
+      path.append(part)
+  leaf = parts[-1]
+  if key == "classification_bias":
+    return ("classification_bias",), "copy"
+  if leaf == "bias":
+    return tuple(path) + ("bias",), "copy"
+  if leaf != "weight":
+    raise KeyError(key)
+  # U-Net up-convolutions are ConvTranspose2d (even entries of `ups`).
+  last = path[-1]
+  if path[0] == "unet_feature" and last.startswith("ups_") and int(last[4:]) % 2 == 0:
+    return tuple(path) + ("kernel",), "conv_transpose"
+  return tuple(path) + ("kernel",), "auto"
+
+
+def convert_tensor(value, layout):
+  value = np.asarray(value, np.float32)
+  if layout == "copy":
+    return value
+  if layout == "conv_transpose":           # torch [in, out, kh, kw] -> [kh, kw, in, out]
+    return value.transpose(2, 3, 0, 1)
+  if value.ndim == 4:                      # Conv2d [out, in, kh, kw] -> [kh, kw, in, out]
+    return value.transpose(2, 3, 1, 0)
+  if value.ndim == 2:                      # Linear [out, in] -> Dense [in, out]
+    return value.T
+  raise ValueError(f"unexpected weight rank {value.ndim}")
+
+
+def refiner_params_from_torch(tensors):
+  """The Refiner's param tree from a PyTorch state dict (only the refinement keys are read).
+
+  Returns (params, consumed_keys).
+  """
+  params, used = {}, []
+  for key, value in tensors.items():
+    if not key.startswith(REFINE_PREFIXES):
+      continue
+    path, layout = torch_key_to_path(key)
+    node = params
+    for p in path[:-1]:
+      node = node.setdefault(p, {})
+    node[path[-1]] = convert_tensor(value, layout)
+    used.append(key)
+  return params, used

@@ -1,0 +1,177 @@
+"""Device mesh, parameter sharding rules -> NamedShardings, and global batch assembly.
+
+Everything about how arrays are laid out on devices lives here; `train.py` only calls it.
+
+Config:
+  config.mesh = "data:-1,fsdp:1"   axis names and sizes (or a list of (name, size) pairs); one size
+                                   of -1 takes the remaining devices
+  config.sharding_rules = [(regex, rule), ...]  on the "/"-joined param path, first match wins:
+      "fsdp"       shard the largest dimension divisible by the fsdp axis size over `fsdp`
+      "replicate"  keep a full copy on every device
+      a tuple      explicit PartitionSpec entries, e.g. (None, "fsdp")
+  The batch is always sharded on its leading dimension over ("data", "fsdp").
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import logging
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+BATCH_AXES = ("data", "fsdp")
+
+
+def maybe_initialize_distributed():
+  """`jax.distributed.initialize()` when launched as one of several processes.
+
+  Explicit localhost/multi-node launch: JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID.
+  Managed clusters (TPU pods, SLURM, ...) are detected by JAX itself when UFM_MULTIHOST=1.
+  Returns True when distributed mode was initialised.
+  """
+  if os.environ.get("JAX_NUM_PROCESSES"):
+    n = int(os.environ["JAX_NUM_PROCESSES"])
+    if n > 1:
+      jax.distributed.initialize(
+          coordinator_address=os.environ["JAX_COORDINATOR_ADDRESS"], num_processes=n,
+          process_id=int(os.environ["JAX_PROCESS_ID"]))
+      return True
+    return False
+  if os.environ.get("UFM_MULTIHOST") == "1":
+    jax.distributed.initialize()
+    return True
+  return False
+
+
+def parse_mesh(mesh_config) -> list[tuple[str, int]]:
+  if isinstance(mesh_config, str):
+    try:
+      return [(a.split(":")[0].strip(), int(a.split(":")[1])) for a in mesh_config.split(",")]
+    except (IndexError, ValueError) as e:
+      raise ValueError(f"config.mesh={mesh_config!r}: want 'axis:size,axis:size'") from e
+  return [(str(n), int(s)) for n, s in mesh_config]
+
+
+def make_mesh(mesh_config, devices=None) -> Mesh:
+  """Mesh from "data:-1,fsdp:2" or [(axis, size), ...]; -1 means "all remaining devices"."""
+  mesh_config = parse_mesh(mesh_config)
+  devices = list(jax.devices() if devices is None else devices)
+  names = [str(n) for n, _ in mesh_config]
+  for required in BATCH_AXES:
+    if required not in names:
+      raise ValueError(f"config.mesh must name the axes {BATCH_AXES}; got {names}")
+  sizes = [int(s) for _, s in mesh_config]
+  if sizes.count(-1) > 1:
+    raise ValueError(f"config.mesh: at most one axis may be -1; got {list(mesh_config)}")
+  known = int(np.prod([s for s in sizes if s != -1]))
+  if -1 in sizes:
+    if len(devices) % known:
+      raise ValueError(f"config.mesh {list(mesh_config)} does not divide {len(devices)} devices")
+    sizes[sizes.index(-1)] = len(devices) // known
+  if -1 not in sizes and int(np.prod(sizes)) < len(devices) and jax.process_count() == 1:
+    devices = devices[:int(np.prod(sizes))]  # an explicit smaller mesh uses the first devices
+  if int(np.prod(sizes)) != len(devices):
+    raise ValueError(f"config.mesh {list(mesh_config)} needs {int(np.prod(sizes))} devices, "
+                     f"have {len(devices)}")
+  try:
+    arr = jax.experimental.mesh_utils.create_device_mesh(sizes, devices)
+  except Exception:  # noqa: BLE001 - CPU/fake devices have no topology to optimise for
+    arr = np.asarray(devices).reshape(sizes)
+  return Mesh(arr, names)
+
+
+def _path_str(path) -> str:
+  return "/".join(str(getattr(k, "key", getattr(k, "name", getattr(k, "idx", k)))) for k in path)
+
+
+def _fsdp_spec(shape, axis_size: int, axis: str = "fsdp", min_size: int = 0) -> P:
+  """Shard the largest dimension divisible by axis_size; replicate if none (or tiny arrays)."""
+  if axis_size == 1 or int(np.prod(shape, dtype=np.int64)) < min_size:
+    return P()
+  order = sorted(range(len(shape)), key=lambda i: -shape[i])
+  for i in order:
+    if shape[i] % axis_size == 0 and shape[i] >= axis_size:
+      spec = [None] * len(shape)
+      spec[i] = axis
+      return P(*spec)
+  return P()
+
+
+def spec_for(path: str, shape, rules, mesh: Mesh) -> P:
+  for rx, rule in rules:
+    if re.search(rx, path):
+      if rule == "fsdp":
+        return _fsdp_spec(shape, mesh.shape["fsdp"])
+      if rule == "replicate":
+        return P()
+      rule = tuple(rule)
+      if len(rule) != len(shape):
+        raise ValueError(f"sharding rule {rx!r} -> {rule} has {len(rule)} entries but param "
+                         f"{path} has shape {tuple(shape)}")
+      return P(*rule)
+  return P()
+
+
+def tree_shardings(tree, mesh: Mesh, rules) -> Any:
+  """NamedSharding for every leaf of `tree` (arrays or ShapeDtypeStructs) by the config rules.
+
+  Leaves that are scalars (step counters) are replicated.
+  """
+  rules = [tuple(r) for r in (rules or [])]
+
+  def one(path, x):
+    shape = getattr(x, "shape", ())
+    if len(shape) == 0:
+      return NamedSharding(mesh, P())
+    return NamedSharding(mesh, spec_for(_path_str(path), shape, rules, mesh))
+
+  return jax.tree_util.tree_map_with_path(one, tree)
+
+
+def batch_sharding(mesh: Mesh) -> NamedSharding:
+  return NamedSharding(mesh, P(BATCH_AXES))
+
+
+def replicated(mesh: Mesh) -> NamedSharding:
+  return NamedSharding(mesh, P())
+
+
+def batch_divisor(mesh: Mesh) -> int:
+  return mesh.shape["data"] * mesh.shape["fsdp"]
+
+
+def make_global_batch(local_batch: dict, mesh: Mesh) -> dict:
+  """Global jax.Arrays from this process's slice of the batch (leading dim = per-process batch).
+
+  Non-array entries (e.g. `meta`) are dropped: they never enter the jitted step.
+  """
+  sharding = batch_sharding(mesh)
+  out = {}
+  for k, v in local_batch.items():
+    if isinstance(v, (np.ndarray, jnp.ndarray)) and getattr(v, "ndim", 0) >= 1:
+      out[k] = jax.make_array_from_process_local_data(sharding, np.asarray(v))
+  return out
+
+
+def local_batch_size(global_batch_size: int, mesh: Mesh) -> int:
+  """Per-process batch size; checks the global batch divides the mesh and the processes."""
+  div = batch_divisor(mesh)
+  if global_batch_size % div:
+    raise ValueError(f"input.batch_size={global_batch_size} must be divisible by the data*fsdp "
+                     f"mesh size {div}")
+  if global_batch_size % jax.process_count():
+    raise ValueError(f"input.batch_size={global_batch_size} must be divisible by the number of "
+                     f"processes {jax.process_count()}")
+  return global_batch_size // jax.process_count()
+
+
+def log_shardings(shardings, params) -> None:
+  n_sharded = sum(int(x.size) for x, s in zip(jax.tree.leaves(params), jax.tree.leaves(shardings))
+                  if any(a is not None for a in s.spec))
+  n = sum(int(x.size) for x in jax.tree.leaves(params))
+  logging.info("sharding: %.1f%% of %d parameters sharded", 100 * n_sharded / max(n, 1), n)
