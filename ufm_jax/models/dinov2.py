@@ -205,7 +205,7 @@ class DinoV2(nn.Module):
 
     take = cfg.take_indices()
     block = layers.block_class(self.remat)
-    norm = layers.layer_norm("norm", self.dtype)
+    norm = layers.layer_norm("norm")  # float32 out, as torch autocast runs LayerNorm
     outs = {}
     # Blocks after the last returned index cannot change any output, so they are not run.
     for i in range(max(take) + 1):

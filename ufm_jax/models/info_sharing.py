@@ -74,7 +74,7 @@ class InfoSharing(nn.Module):
     x = constrain(x)
 
     block = layers.block_class(self.remat)
-    norm = layers.layer_norm("norm", self.dtype)
+    norm = layers.layer_norm("norm")  # float32 out, as torch autocast runs LayerNorm
     take = cfg.take_indices()
     inters = []
     for i in range(cfg.depth):

@@ -14,6 +14,8 @@ import jax.numpy as jnp
 Dtype = Any
 
 # Every LayerNorm of UFM uses eps 1e-6. Two-pass variance (as torch) instead of E[x^2]-E[x]^2.
+# Block and final norms run in the residual dtype (float32) even in bf16 mode, as torch autocast
+# does; the following Dense casts to bf16.
 LN_EPS = 1e-6
 
 
@@ -114,11 +116,11 @@ class Block(nn.Module):
     c = x.shape[-1]
     ls = (lambda name: LayerScale(self.init_values, name=name)) if self.init_values else (
         lambda name: identity)
-    y = layer_norm("norm1", self.dtype)(x)
+    y = layer_norm("norm1")(x)
     y = Attention(self.num_heads, self.qkv_bias, self.qk_norm, self.dtype, self.attention_impl,
                   name="attn")(y)
     x = x + ls("ls1")(y)
-    y = layer_norm("norm2", self.dtype)(x)
+    y = layer_norm("norm2")(x)
     if self.ffn == "mlp":
       y = Mlp(int(c * self.mlp_ratio), self.dtype, name="mlp")(y)
     elif self.ffn == "swiglu":
