@@ -115,3 +115,13 @@ def test_variants_build():
     assert ufm.config_from_json(ufm.config_to_json(cfg)) == cfg
   with pytest.raises(ValueError, match="unknown model variant"):
     cm.get("ufm_huge")
+
+
+def test_config_json_errors():
+  d = ufm.config_to_dict(_configs_models().tiny())
+  with pytest.raises(ValueError, match="unknown model config key 'depth'"):
+    ufm.config_from_dict({**d, "depth": 3})
+  with pytest.raises(ValueError, match=r"unknown keys \['width'\] in model config section 'encoder'"):
+    ufm.config_from_dict({**d, "encoder": {**d["encoder"], "width": 3}})
+  with pytest.raises(ValueError, match="UFMConfig.dtype 'float16'"):
+    ufm.config_from_dict({**d, "dtype": "float16"})
