@@ -1,10 +1,8 @@
 """Official-checkpoint loader: key map, error reporting, other structures, convert CLI."""
 
-import dataclasses
 import json
 import os
 import pathlib
-import shutil
 import subprocess
 import sys
 

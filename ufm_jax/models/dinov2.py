@@ -7,7 +7,6 @@ the selected block outputs go through the final `norm`, cls/register tokens are 
 """
 
 import dataclasses
-import math
 from typing import Optional, Sequence, Tuple, Union
 
 import flax.linen as nn
