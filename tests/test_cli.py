@@ -98,3 +98,28 @@ def test_convert_then_infer_from_converted_checkpoint(io, reference_dir, pair_fi
   assert "backward_panel.png" in printed
   flo = read_flo(tmp_path / "o" / "forward.flo")
   np.testing.assert_allclose(flo, io["hl1_flow"][0].transpose(1, 2, 0), atol=1e-3)
+
+
+def test_load_train_workdir(tmp_path):
+  """A train.py workdir (config.json + orbax steps under checkpoints/) loads its latest step."""
+  import json
+
+  import jax
+  import jax.numpy as jnp
+
+  from ufm_jax import checkpoint
+
+  model = cli.model_from_name("tiny")
+  x = jnp.zeros((1, 28, 28, 3), jnp.uint8)
+  params = jax.jit(model.init)(jax.random.PRNGKey(1), x, x)["params"]
+  manager = checkpoint.make_manager(tmp_path, save_interval_steps=1, keep=2, async_save=False)
+  for step in (1, 2):
+    state = {"params": jax.tree.map(lambda p: p + step, params), "step": step}
+    checkpoint.save(manager, step, state, force=True)
+  manager.wait_until_finished()
+  (tmp_path / "config.json").write_text(json.dumps({"model_name": "tiny", "model": {}}))
+  assert cli.is_workdir(tmp_path)
+  loaded_model, loaded = cli.load_model(tmp_path)
+  assert loaded_model.config == model.config
+  for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params)):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b) + 2, rtol=0, atol=1e-6)  # latest step
