@@ -149,9 +149,10 @@ class _Target:
     self.valid_f = None if self.valid.all() else self.valid.astype(_F)
 
   def sample(self, u, v):
-    """Bilinear range at finite float32 (u, v) (clamped to the outermost pixel centres), mixing
+    """Bilinear range at finite float64 (u, v) (clamped to the outermost pixel centres), mixing
     only valid neighbours with renormalised weights: exactly `bilinear_sample`'s rule.
-    Returns (value, ok = some valid neighbour had weight, flat index of the nearest pixel)."""
+    Returns (value, ok = some valid neighbour had weight, validity of the nearest pixel).
+    The nearest pixel of (u, v) is the bilinear corner on its side of the half-pixel mark."""
     h, w = self.h, self.w
     uc = np.clip(u, 0, w - 1)
     vc = np.clip(v, 0, h - 1)
@@ -163,31 +164,35 @@ class _Target:
     y0 += x0
     i00 = y0.astype(np.intp)
     dx, dy = (1 if w > 1 else 0), (w if h > 1 else 0)
-    i01, i10 = i00 + dx, i00 + dy
-    i11 = i10 + dx
     gx = 1 - fx
     gy = 1 - fy
 
-    def interp(a):
-      top = np.take(a, i00)
-      top *= gx
-      top += np.take(a, i01) * fx
-      top *= gy
-      bottom = np.take(a, i10)
-      bottom *= gx
-      bottom += np.take(a, i11) * fx
-      bottom *= fy
-      top += bottom
-      return top
+    def corners(a):  # a[i00], a[i00 + 1], a[i00 + w], a[i00 + w + 1] via shifted views
+      return (np.take(a, i00), np.take(a[dx:], i00), np.take(a[dy:], i00),
+              np.take(a[dy + dx:], i00))
 
-    value = interp(self.range)
-    nearest = i00 + (fx >= 0.5) * dx + (fy >= 0.5) * dy
+    def interp(c00, c01, c10, c11):
+      c00 *= gx
+      c01 *= fx
+      c00 += c01
+      c00 *= gy
+      c10 *= gx
+      c11 *= fx
+      c10 += c11
+      c10 *= fy
+      c00 += c10
+      return c00
+
     if self.valid_f is None:
-      return value, np.ones(value.shape, bool), nearest
-    wsum = interp(self.valid_f)
+      return interp(*corners(self.range)), np.ones(fx.shape, bool), np.ones(fx.shape, bool)
+    value = interp(*corners(self.range))
+    v00, v01, v10, v11 = corners(self.valid_f)
+    right, down = fx >= 0.5, fy >= 0.5
+    nearest_valid = np.where(down, np.where(right, v11, v10), np.where(right, v01, v00)) > 0
+    wsum = interp(v00, v01, v10, v11)
     ok = wsum > 1e-9
     value /= np.where(ok, wsum, 1)
-    return value, ok, nearest
+    return value, ok, nearest_valid
 
 
 def _correspond(X, Y, Z, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0):
@@ -215,7 +220,7 @@ def _correspond(X, Y, Z, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0):
   grid_u, grid_v = np.arange(w0, dtype=np.float64)[None, :], np.arange(h0, dtype=np.float64)[:, None]
   u = np.where(in_front, u, grid_u)
   v = np.where(in_front, v, grid_v)
-  sampled, ok, nearest = target.sample(u, v)
+  sampled, ok, nearest_valid = target.sample(u, v)
   expected = X * X
   expected += Y * Y
   expected += Z * Z
@@ -237,7 +242,7 @@ def _correspond(X, Y, Z, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0):
           val, ok_t, _ = target.sample(u_t + ox, v_t + oy)
           found |= ok_t & (np.abs(want - val) < thr)
     covis.reshape(-1)[todo[found]] = True
-  valid_other = fov & np.take(target.valid, nearest)
+  valid_other = fov & nearest_valid
   flow = np.empty((h0, w0, 2), _F)
   np.subtract(u, grid_u, out=flow[..., 0])
   np.subtract(v, grid_v, out=flow[..., 1])
@@ -246,28 +251,18 @@ def _correspond(X, Y, Z, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0):
 
 
 def _source_in_target(depth0, valid0, K0, rel):
-  """Camera-2 coordinates (float64 X, Y, Z) of the unprojected source depth under the rigid
-  transform(s) rel: [4, 4] camera 1 -> camera 2, or per-pixel ([12, H*W]) rows of [R K0^-1 | t]."""
+  """Camera-2 coordinates (float64 X, Y, Z planes) of the unprojected source depth under the
+  rigid transform rel [4, 4] (camera 1 -> camera 2)."""
   h, w = depth0.shape
   d = np.where(valid0, depth0, 0.0)
   u = np.arange(w, dtype=np.float64)[None, :]
   v = np.arange(h, dtype=np.float64)[:, None]
+  M = rel[:3, :3] @ _k_inverse(K0)
   out = []
-  if rel.shape == (4, 4):
-    M = rel[:3, :3] @ _k_inverse(K0)
-    for i in range(3):
-      p = M[i, 0] * u + (M[i, 1] * v + M[i, 2])
-      p *= d
-      p += rel[i, 3]
-      out.append(p)
-    return out
-  coef = rel.reshape(3, 4, h, w)
   for i in range(3):
-    p = coef[i, 0] * u
-    p += coef[i, 1] * v
-    p += coef[i, 2]
+    p = M[i, 0] * u + (M[i, 1] * v + M[i, 2])
     p *= d
-    p += coef[i, 3]
+    p += rel[i, 3]
     out.append(p)
   return out
 

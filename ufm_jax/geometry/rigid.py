@@ -69,10 +69,23 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
   ids = np.where(in_table, seg, 0)
   valid0 = camera.valid_depth(depth0) & in_table & known[ids]
   # Per object the whole chain camera 1 -> world -> moved -> camera 2 is one rigid transform
-  # (composed in float64); pixels pick their object's rows of [R K0^-1 | t].
-  rel = (camera.invert_pose(cam2world1) @ motions @ np.asarray(cam2world0, np.float64))[:, :3]
-  rel[:, :, :3] = rel[:, :, :3] @ _k_inverse(K0)
-  table = np.ascontiguousarray(rel.reshape(len(rel), 12).T)  # [12, N]
-  coef = table[:, ids.reshape(-1).astype(np.intp)]        # [12, H*W]
-  xyz = _source_in_target(depth0, valid0, K0, coef)
+  # (composed in float64). The most common object (usually the static background) is done on
+  # the dense grid; the other objects' pixels are gathered, transformed and scattered back.
+  rel = camera.invert_pose(cam2world1) @ motions @ np.asarray(cam2world0, np.float64)
+  ids = ids.reshape(-1).astype(np.intp, copy=False)
+  counts = np.bincount(ids, minlength=len(rel))
+  base = int(counts.argmax())
+  xyz = _source_in_target(depth0, valid0, K0, rel[base])
+  others = np.flatnonzero(ids != base) if counts[base] < ids.size else np.zeros(0, np.intp)
+  if others.size:
+    rows = rel[:, :3].copy()
+    rows[:, :, :3] = rows[:, :, :3] @ _k_inverse(K0)
+    table = np.ascontiguousarray(rows.reshape(len(rows), 12).T)  # [12, N] rows of [R K0^-1 | t]
+    coef = table[:, ids[others]]
+    w = depth0.shape[1]
+    u, v = (others % w).astype(np.float64), (others // w).astype(np.float64)
+    d = np.where(valid0.reshape(-1)[others], depth0.reshape(-1)[others], 0.0)
+    for i in range(3):
+      xyz[i].reshape(-1)[others] = (coef[4 * i] * u + coef[4 * i + 1] * v + coef[4 * i + 2]) * d \
+          + coef[4 * i + 3]
   return _correspond(*xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search)
