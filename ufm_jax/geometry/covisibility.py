@@ -188,7 +188,9 @@ class _Target:
     value = interp(*corners(self.range))
     v00, v01, v10, v11 = corners(self.valid_f)
     right, down = fx >= 0.5, fy >= 0.5
-    nearest_valid = np.where(down, np.where(right, v11, v10), np.where(right, v01, v00)) > 0
+    left, up = ~right, ~down
+    nearest_valid = (((v00 > 0) & left & up) | ((v01 > 0) & right & up) |
+                     ((v10 > 0) & left & down) | ((v11 > 0) & right & down))
     wsum = interp(v00, v01, v10, v11)
     ok = wsum > 1e-9
     value /= np.where(ok, wsum, 1)
