@@ -114,9 +114,12 @@ def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_c
     z_moved = np.where(moved_ok, fb / dm, np.float32(0))
 
   fov = fov_mask(flow) & moved_ok
-  # Keep out-of-view samples inside the array; their result is masked by `fov` below.
-  u_s = np.clip(np.arange(w, dtype=np.float32)[None, :] + np.nan_to_num(flow[..., 0]), -0.5, w - 0.5)
-  v_s = np.clip(np.arange(h, dtype=np.float32)[:, None] + np.nan_to_num(flow[..., 1]), -0.5, h - 0.5)
+  # Keep out-of-view samples inside the array; their result is masked by `fov` below (so where
+  # the flow is NaN any in-range position will do: fmax/fmin map NaN to the bound).
+  u_s = np.fmin(np.fmax(np.arange(w, dtype=np.float32)[None, :] + flow[..., 0], np.float32(-0.5)),
+                np.float32(w - 0.5))
+  v_s = np.fmin(np.fmax(np.arange(h, dtype=np.float32)[:, None] + flow[..., 1], np.float32(-0.5)),
+                np.float32(h - 0.5))
 
   grid_norm = _ray_norm(np.arange(w, dtype=np.float32)[None, :],
                         np.arange(h, dtype=np.float32)[:, None], K)
@@ -126,5 +129,5 @@ def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_c
   covisible = fov & other_valid & (error < np.float32(tau_d) + np.float32(tau_r) * expected)
   covis_valid = (valid0 & ~fov) | (fov & other_valid)
   return dict(covisibility=covisible, fov_mask=fov, valid=valid0, covis_valid=covis_valid,
-              error=error.astype(np.float32, copy=False), depth0=depth0.astype(np.float32),
-              depth1=depth1.astype(np.float32))
+              error=error.astype(np.float32, copy=False), depth0=depth0.astype(np.float32, copy=False),
+              depth1=depth1.astype(np.float32, copy=False))
