@@ -143,3 +143,18 @@ def test_rigid_matches_float64_reference():
   np.testing.assert_array_equal(out["valid"], valid0)
   assert not valid0[:4].any() and valid0[seg == 3].mean() > 0.8
   _compare(out, ref)
+
+
+def test_source_load_benchmark_covers_every_reader():
+  import os
+  import sys
+  sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                  "benchmarks"))
+  import source_load  # pylint: disable=g-import-not-at-top
+  times = source_load.measure((28, 42), repeats=1, progress=False)
+  expected = {"blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat", "staticthings",
+              "kubric4d", "eth3d", "dtu", "tawb", "flyingchairs", "flyingthings", "monkaa",
+              "sintel_clean", "spring", "hd1k", "kitti2015"}
+  assert set(times) == expected
+  for name, (cpu, wall, hw) in times.items():
+    assert cpu >= 0 and wall > 0 and hw == (28, 42), name
