@@ -34,6 +34,7 @@ from ufm_jax import evaluators  # noqa: E402
 from ufm_jax.evaluators import base  # noqa: E402
 
 DEFAULT_WORKDIR = "workdirs/synthetic"
+RANDOM_MODEL = "tiny"  # configs/models.py variant used when there is no checkpoint at all
 TABLE_COLUMNS = {  # the paper's column order per family (metric suffixes)
     "flow": ["epe_covis", "epe_all", "px1", "px3", "px5", "fl_all", "fl_bg", "fl_fg",
              "epe_matched", "epe_unmatched", "epe_s0-10", "epe_s10-40", "epe_s40+",
@@ -76,18 +77,19 @@ def load_model(args):
     return (*cli.load_model(args.checkpoint), os.path.abspath(args.checkpoint))
   if os.path.isdir(DEFAULT_WORKDIR):
     return (*cli.load_model(DEFAULT_WORKDIR), os.path.abspath(DEFAULT_WORKDIR))
-  return (*random_model(), "random-init:fixture_base")
+  return (*random_model(), f"random-init:{RANDOM_MODEL}")
 
 
-def random_model(name: str = "fixture_base"):
+def random_model(name: str = None):
   """A randomly initialised small model (no checkpoint on a fresh machine)."""
   import jax
   import jax.numpy as jnp
 
-  from configs import models
+  from ufm_jax.cli import model_from_name
+  name = name or RANDOM_MODEL
   print(f"warning: no checkpoint given and no {DEFAULT_WORKDIR}/: evaluating a randomly "
         f"initialised {name!r} model (numbers are meaningless)", file=sys.stderr)
-  model = models.get_model(name)
+  model = model_from_name(name)
   x = jnp.zeros((1, 28, 28, 3), jnp.uint8)
   return model, jax.jit(model.init)(jax.random.PRNGKey(0), x, x)["params"]
 

@@ -37,8 +37,9 @@ def build_model(config):
   named variant of configs/models.py with `config.model` overrides."""
   if config.get("model_fn"):
     return _import(config.model_fn)(config.model)
-  from ufm_jax.models import build_model as build
-  return build(config.model_name, **config.model.to_dict())
+  from configs import models as model_variants
+  from ufm_jax.models import ufm
+  return ufm.model_from_config(model_variants.get(config.model_name, **config.model.to_dict()))
 
 
 def build_input(config, process_batch: int, seed: int):
@@ -50,11 +51,49 @@ def build_input(config, process_batch: int, seed: int):
 
 
 def build_loss(config):
+  """loss(model outputs, batch) -> (loss, aux dict of scalars)."""
+  kwargs = dict(config.get("loss_kwargs", {}))
   if config.get("loss", "ufm") == "refine":
-    from ufm_jax import refine_training
-    return functools.partial(refine_training.refinement_loss, **config.get("loss_kwargs", {}))
+    from ufm_jax import losses, refine_training
+
+    def refine_loss(out, batch):
+      loss, aux = refine_training.refinement_loss(
+          out["log_softmax"], out["flow_before_refinement"], batch["flow"],
+          batch["covisibility"], batch["flow_valid"], **kwargs)
+      epe = losses.end_point_error(out["flow"], batch["flow"])
+      mask = losses.flow_supervision_mask(batch)
+      aux = dict(aux, loss_refine=loss, epe=losses._masked_mean(epe, mask))  # pylint: disable=protected-access
+      return loss, aux
+    return refine_loss
   from ufm_jax import losses
-  return functools.partial(losses.ufm_loss, **config.get("loss_kwargs", {}))
+  return functools.partial(losses.ufm_loss, **kwargs)
+
+
+def make_train_step(model, loss_fn, tx, labels, apply_kwargs):
+  """train_step(state, batch) -> (state, metrics): one optimizer update.
+
+  Gradients are taken w.r.t. the trainable params only (frozen ones enter through stop_gradient,
+  so e.g. the refine stage runs no backward pass through the base model).
+  """
+  import jax
+  import jax.numpy as jnp
+  import optax
+  from ufm_jax import optim
+
+  def loss_and_aux(trainable, frozen, batch):
+    params = optim.merge_params(trainable, jax.lax.stop_gradient(frozen))
+    out = model.apply({"params": params}, batch["image0"], batch["image1"], **apply_kwargs)
+    return loss_fn(out, batch)
+
+  def train_step(state, batch):
+    trainable, frozen = optim.split_trainable(state.params, labels)
+    (loss, aux), g = jax.value_and_grad(loss_and_aux, has_aux=True)(trainable, frozen, batch)
+    grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
+    new_state, ok = optim.apply_gradients(state, grads, loss, tx)
+    metrics = dict(aux, loss=loss, grad_norm=optax.global_norm(g), update_ok=ok)
+    return new_state, metrics
+
+  return train_step
 
 
 class EvalResult:
@@ -139,13 +178,45 @@ class HeldoutEval:
     return EvalResult(scalars, images)
 
 
-def build_evaluators(evals_cfg, mesh):
-  """name -> evaluator; `type: heldout` is built in, other types come from ufm_jax.evaluators."""
+class BenchEval:
+  """A benchmark of ufm_jax.evaluators (evaluate.py's benches) run on the current params.
+
+  Config: bench (e.g. sintel), every, max_pairs, resolution (560 | 980 | native), data_root.
+  Benches whose data is absent are skipped with a warning (once).
+  """
+
+  def __init__(self, cfg, model):
+    self.cfg, self.model = cfg, model
+    self.every = int(cfg.get("every", 0))
+    self.missing = False
+
+  def run(self, predict, params) -> EvalResult:
+    del predict  # the benches run ufm_jax.predict pair by pair at their own resolution
+    from ufm_jax import evaluators
+    if self.missing:
+      return EvalResult({})
+    runner = evaluators.Runner(self.model, params, self.cfg.get("resolution"))
+    try:
+      metrics, _ = evaluators.run_bench(self.cfg.bench, runner, self.cfg.get("data_root"),
+                                        max_pairs=self.cfg.get("max_pairs"), progress=False)
+    except evaluators.MissingDataError as e:
+      logging.warning("eval %s skipped from now on: %s", self.cfg.bench, e)
+      self.missing = True
+      return EvalResult({})
+    return EvalResult({k.replace("/", "_"): float(v) for k, v in metrics.items()
+                       if isinstance(v, (int, float))})
+
+
+def build_evaluators(evals_cfg, mesh, model):
+  """name -> evaluator: `type: heldout` (fixed pairs of a source, sharded forward), `type: bench`
+  (a benchmark of ufm_jax.evaluators), or "module:Class" (called with (cfg, mesh))."""
   out = {}
   for name, cfg in dict(evals_cfg).items():
     kind = cfg.get("type", "heldout")
     if kind == "heldout":
       out[name] = HeldoutEval(cfg, mesh)
+    elif kind == "bench":
+      out[name] = BenchEval(cfg, model)
     else:
       out[name] = _import(kind)(cfg, mesh)
   return out
@@ -253,21 +324,7 @@ def main(argv):
   sharding.log_shardings(param_sh, abstract_params)
 
   # ---------------------------------------------------------------------------------- step
-  def loss_and_aux(trainable, frozen, batch):
-    params = optim.merge_params(trainable, jax.lax.stop_gradient(frozen))
-    out = model.apply({"params": params}, batch["image0"], batch["image1"], **apply_kwargs)
-    return loss_fn_outer(out, batch)
-
-  def train_step(state, batch):
-    trainable, frozen = optim.split_trainable(state.params, labels)
-    (loss, aux), g = jax.value_and_grad(loss_and_aux, has_aux=True)(trainable, frozen, batch)
-    grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
-    new_state, ok = optim.apply_gradients(state, grads, loss, tx)
-    metrics = dict(aux, loss=loss, grad_norm=optax_global_norm(g), update_ok=ok)
-    return new_state, metrics
-
-  import optax
-  optax_global_norm = optax.global_norm
+  train_step = make_train_step(model, loss_fn_outer, tx, labels, apply_kwargs)
   p_train_step = jax.jit(train_step, in_shardings=(state_sh, batch_sh),
                          out_shardings=(state_sh, repl), donate_argnums=(0,))
 
@@ -296,13 +353,15 @@ def main(argv):
     print(f"resumed from step {start_step}", flush=True)
 
   # ---------------------------------------------------------------------------------- evals
-  evaluators = build_evaluators(config.get("evals", {}), mesh)
+  evaluators = build_evaluators(config.get("evals", {}), mesh, model)
   writer = Writer(workdir, is_main)
 
   def run_evals(step, force=False):
     for name, ev in evaluators.items():
       if force or (ev.every and step % ev.every == 0):
         res = ev.run(p_predict, state.params)
+        if not res.scalars:
+          continue
         rec = {"step": step, "eval": name, **res.scalars}
         if is_main:
           print(f"[eval {name}] step {step}: " +
@@ -339,6 +398,7 @@ def main(argv):
                "lr": lrs.get("default"), **{f"lr_{g}": v for g, v in lrs.items()},
                "pairs_per_s": pairs_s}
         writer.scalars("metrics.jsonl", step, rec, "train")
+        logging.info("process %d metrics %s", jax.process_index(), json.dumps(rec))
         if is_main:
           ep = f" ep {rec['epoch']:.3f}" if rec["epoch"] is not None else ""
           print(f"step {step}/{total_steps}{ep} loss {rec['loss']:.5f} "

@@ -4,6 +4,12 @@
   python benchmarks/data_pipeline.py --longest_side 560 --workers 0,2,4 --batch_size 16
   python benchmarks/data_pipeline.py --config configs/ufm560.py --data_root /data/ufm  # real mixture
 
+Source per shape: up to --render_max_side the synthetic source renders pairs on the fly at 3:4 of
+the training side; above it (rendering a 420x560 pair takes seconds, far more than reading one), the
+synthetic pairs are rendered at 84x112, upsampled to 3:4 of the side with consistent labels and
+written once in the pairs_folder format under --cache_dir, so the figure covers PNG/.flo/npz decoding
+plus augmentation at that size, as for a real dataset read from disk.
+
 "samples" are pairs as the train step sees them (both directions when symmetrized). Prints figures,
 asserts nothing about timings.
 """
@@ -22,6 +28,50 @@ from ufm_jax.data import pipeline  # pylint: disable=g-import-not-at-top
 from configs import common  # pylint: disable=g-import-not-at-top
 
 
+def _upsampled_pairs(cache_dir, side, n):
+  """n synthetic pairs upsampled to (3/4 side, side), written as a pairs_folder tree (cached)."""
+  import cv2  # pylint: disable=g-import-not-at-top
+  import numpy as np  # pylint: disable=g-import-not-at-top
+  from ufm_jax.data import get_source, synthetic  # pylint: disable=g-import-not-at-top
+  h, w = 3 * side // 4, side
+  root = os.path.join(cache_dir, f"synthetic_pairs_{h}x{w}_{n}")
+  if os.path.isdir(root) and len([d for d in os.listdir(root) if not d.startswith(".")]) >= n:
+    return root
+  src = get_source("synthetic", None, split="train", num_pairs=n, size=(84, 112))
+  sy, sx = h / 84, w / 112
+
+  def up(sample):
+    out = {k: cv2.resize(sample[k], (w, h), interpolation=cv2.INTER_LINEAR)
+           for k in ("image0", "image1")}
+    for k in ("covisibility", "flow_valid", "covis_valid"):
+      out[k] = cv2.resize(sample[k].astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST_EXACT) > 0
+    flow = cv2.resize(sample["flow"], (w, h), interpolation=cv2.INTER_LINEAR)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)   # flow of the resized grid (pixel centres)
+    x0, y0 = (x + 0.5) / sx - 0.5, (y + 0.5) / sy - 0.5
+    flow[..., 0] = (x0 + flow[..., 0] + 0.5) * sx - 0.5 - x
+    flow[..., 1] = (y0 + flow[..., 1] + 0.5) * sy - 0.5 - y
+    out["flow"] = flow
+    meta = dict(sample["meta"])
+    for k in ("depth0", "depth1"):
+      meta[k] = cv2.resize(meta[k], (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
+    for k in ("K0", "K1"):
+      kk = np.array(meta[k], np.float64)
+      kk[0] *= sx
+      kk[1] *= sy
+      kk[0, 2] += 0.5 * sx - 0.5
+      kk[1, 2] += 0.5 * sy - 0.5
+      meta[k] = kk
+    meta.pop("segmentation0", None)
+    out["meta"] = meta
+    return out
+
+  os.makedirs(root, exist_ok=True)
+  for i in range(n):
+    fwd, bwd = src.both(i)
+    synthetic.write_pair(os.path.join(root, f"{i:06d}"), up(fwd), up(bwd))
+  return root
+
+
 def _input_block(args, longest_side, workers):
   if args.config:
     import importlib.util  # pylint: disable=g-import-not-at-top
@@ -31,9 +81,13 @@ def _input_block(args, longest_side, workers):
     block = mod.get_config(args.config_arg).input
     if args.data_root:
       block.data_root = args.data_root
+  elif longest_side <= args.render_max_side:
+    options = {"size": (3 * longest_side // 4, longest_side), **json.loads(args.source_options)}
+    block = common.input_config(common.synthetic_mixture(args.quota, **options),
+                                symmetrize=args.symmetrize)
   else:
-    options = json.loads(args.source_options)
-    datasets = {"synthetic": {"quota": args.quota, "root": None, "options": options}}
+    root = _upsampled_pairs(args.cache_dir, longest_side, args.disk_pairs)
+    datasets = {"pairs_folder": {"quota": args.quota, "root": root, "options": {}}}
     block = common.input_config(datasets, symmetrize=args.symmetrize)
   block.batch_size = args.batch_size
   block.longest_side = longest_side
@@ -70,8 +124,12 @@ def main(argv=None):
   p.add_argument("--warmup", type=int, default=2, help="untimed batches (worker start-up)")
   p.add_argument("--read_threads", type=int, default=1)
   p.add_argument("--no_symmetrize", dest="symmetrize", action="store_false")
-  p.add_argument("--quota", type=int, default=10_000, help="synthetic pairs per epoch")
+  p.add_argument("--quota", type=int, default=1000, help="pairs per epoch")
   p.add_argument("--source_options", default="{}", help="JSON options of the synthetic source")
+  p.add_argument("--render_max_side", type=int, default=224,
+                  help="largest side rendered on the fly; larger ones read upsampled pairs from disk")
+  p.add_argument("--disk_pairs", type=int, default=32, help="pairs written for the disk mixture")
+  p.add_argument("--cache_dir", default="/tmp/ufm_bench_data")
   p.add_argument("--config", default=None, help="a training config file: benchmark its mixture")
   p.add_argument("--config_arg", default=None)
   p.add_argument("--data_root", default=None)

@@ -60,6 +60,16 @@ def mixture(names: Iterable[str] = ALL, quotas: Mapping[str, int] | None = None,
   return out
 
 
+def synthetic_mixture(num_pairs: int = 10_000, size=(112, 112), seed: int = 0,
+                      **options) -> ml_collections.ConfigDict:
+  """`input.datasets` of the embedded synthetic source alone (rendered on the fly, no files):
+  one epoch = `num_pairs` pairs, each rendered at `size` (H, W)."""
+  return ml_collections.ConfigDict({"synthetic": {
+      "quota": int(num_pairs), "root": None,
+      "options": {"split": "train", "num_pairs": int(num_pairs), "size": tuple(size),
+                  "seed": int(seed), **options}}})
+
+
 def input_config(datasets: ml_collections.ConfigDict | Mapping[str, Any], *, batch_size: int = 96,
                  longest_side: int = 560, symmetrize: bool = True,
                  data_root: str = DEFAULT_DATA_ROOT, aspect_ratios=TRAIN_SHAPE_ASPECTS,

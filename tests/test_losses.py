@@ -92,3 +92,16 @@ def test_total_is_flow_plus_ten_bce():
   assert float(aux["loss_covis"]) == pytest.approx(math.log(2), rel=1e-6)
   assert float(loss) == pytest.approx(_rho(5.0) / 2 + 10 * math.log(2), rel=1e-6)
   assert float(aux["epe"]) == pytest.approx(2.5)
+
+
+def test_flow_supervision_covisible_vs_all_pixels():
+  out = {"flow": jnp.zeros((1, 1, 2, 2)), "covisibility_logits": jnp.zeros((1, 1, 2))}
+  batch = {"flow": jnp.array([[[[3.0, 4.0], [0.24, 0.0]]]]),
+           "covisibility": jnp.array([[[False, True]]]), "flow_valid": jnp.ones((1, 1, 2), bool),
+           "covis_valid": jnp.ones((1, 1, 2), bool)}
+  _, aux = losses.ufm_loss(out, batch)  # paper eq. 2: covisible pixels only
+  assert float(aux["loss_flow"]) == pytest.approx(_rho(0.24), rel=1e-6)
+  _, aux = losses.ufm_loss(out, batch, flow_pixels="all")  # the 980 bootstrap
+  assert float(aux["loss_flow"]) == pytest.approx((_rho(5.0) + _rho(0.24)) / 2, rel=1e-6)
+  with pytest.raises(ValueError, match="flow_pixels"):
+    losses.ufm_loss(out, batch, flow_pixels="some")

@@ -75,3 +75,44 @@ def test_parse_arg():
   assert common.parse_arg(None, data="both").data == "both"
   with pytest.raises(KeyError, match="unknown config arg 'x'"):
     common.parse_arg("x=1", data="both")
+
+
+def test_synthetic_mixture_through_train_entry_point():
+  cfg = common.input_config(common.synthetic_mixture(num_pairs=6, size=(28, 42)), batch_size=4,
+                            longest_side=28, num_workers=0)
+  it, info = pipeline.make_train_iterator(cfg, process_batch=4, seed=0)
+  assert info["pairs_per_epoch"] == 12 and info["unique_pairs_per_epoch"] == 6
+  assert info["datasets"] == {"synthetic": 6} and info["image_shape"] in ((14, 28), (28, 28))
+  b = next(it)
+  assert b["image0"].shape[0] == 4 and b["image0"].shape[1:3] in info["shapes"]
+  assert b["flow_valid"].any() and b["covis_valid"].any()
+  with pytest.raises(ValueError, match="expects 2 pairs per process"):
+    pipeline.make_train_iterator(cfg, process_batch=2, seed=0)
+
+
+def test_pairs_folder_on_disk_with_a_truncated_png(tmp_path, caplog):
+  """A real reader in the mixture: synthetic pairs written in the pairs_folder format, one with its
+  image0.png truncated (skipped, logged with its path), one without reverse/ labels."""
+  import shutil
+  from ufm_jax.data import get_source, synthetic
+  root = tmp_path / "pairs"
+  src = get_source("synthetic", None, split="val", num_pairs=6, size=(28, 42))
+  for i in range(6):
+    fwd, bwd = src.both(i)
+    synthetic.write_pair(str(root / f"{i:03d}"), fwd, bwd)
+  shutil.rmtree(root / "004" / "reverse")
+  png = root / "002" / "image0.png"
+  png.write_bytes(png.read_bytes()[:40])
+  ds = {"pairs_folder": {"quota": 6, "root": str(root), "options": {}}}
+  cfg = common.input_config(ds, batch_size=4, longest_side=28, num_workers=0,
+                            max_skip_fraction=0.5, augment={"color_prob": 0.0})
+  pipe = pipeline.create(cfg, seed=1, num_epochs=1, process_index=0, process_count=1)
+  it = iter(pipe)
+  with caplog.at_level(logging.WARNING):
+    batches = list(it)
+  assert len(batches) == 3 and it.skipped >= 1
+  assert f"{png}: missing or unreadable image" in caplog.text
+  # Rows without supervision: only the backward row of pair 004 (no reverse/, no static geometry).
+  unsupervised = sum(int(not b["flow_valid"][r].any()) for b in batches for r in range(4))
+  assert 1 <= unsupervised <= 2 and all(b["flow_valid"][::2].any(axis=(1, 2)).all()
+                                        for b in batches)

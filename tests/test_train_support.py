@@ -53,7 +53,10 @@ def shifted_pairs(input_cfg, process_batch, seed):
   """Infinite grain iterator of batches; checkpointable via grain's handler."""
   h, w = input_cfg.get("shape", (14, 14))
   n = int(input_cfg.get("num_pairs", 64))
-  ds = (grain.MapDataset.range(n).shuffle(seed=seed).repeat()
+  import jax
+  # Each process reads every P-th pair, so the P per-process batches form the global batch.
+  pid, count = jax.process_index(), jax.process_count()
+  ds = (grain.MapDataset.range(n).shuffle(seed=seed)[pid::count].repeat()
         .map(lambda i: _make_pair(int(i), seed, h, w)).batch(process_batch, drop_remainder=True))
   it = ds.to_iter_dataset().__iter__()
   return it, {"pairs_per_epoch": n, "image_shape": (h, w)}

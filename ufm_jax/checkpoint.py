@@ -293,9 +293,15 @@ def read_dinov2(path) -> dict[str, np.ndarray]:
 
 def _dinov2_to_flax(sd: dict[str, np.ndarray], template) -> dict[str, np.ndarray]:
   """Original DINOv2 names -> flat flax paths of the UFM encoder, via the model's key map."""
+  del template
   from ufm_jax import convert
-  torch_named = {f"encoder.model.{k}": v for k, v in sd.items() if k != "mask_token"}
-  return convert.torch_to_flat_params(torch_named, template)
+  out = {}
+  for k, v in sd.items():
+    if k == "mask_token":  # deleted by UniCeption: UFM has no masked-token path
+      continue
+    key = f"encoder.model.{k}"
+    out["/".join(convert.torch_key_to_path(key, v.ndim))] = convert.torch_to_flax_array(key, v)
+  return out
 
 
 # --- UFM parameters --------------------------------------------------------------------------

@@ -10,8 +10,9 @@
   python -m ufm_jax convert SNAPSHOT_DIR OUT_DIR ...
       Converts an official Hugging Face snapshot (see `ufm_jax.convert`).
 
-`--checkpoint` takes a converted checkpoint (`python -m ufm_jax convert`) or, with `--snapshot`
-(or when the folder holds config.json + model.safetensors), an official snapshot.
+`--checkpoint` takes a converted checkpoint (`python -m ufm_jax convert`), a train.py workdir
+(latest step) or, with `--snapshot` (or when the folder holds config.json + model.safetensors),
+an official snapshot.
 """
 
 from __future__ import annotations
@@ -30,8 +31,53 @@ def is_snapshot(path: str | os.PathLike) -> bool:
   return (p / "config.json").is_file() and (p / "model.safetensors").is_file()
 
 
+def model_from_name(name: str):
+  """A model (random weights not included) from a variant name of configs/models.py."""
+  try:
+    from ufm_jax.models import build_model
+  except ImportError:
+    build_model = None
+  if build_model is not None:
+    return build_model(name)
+  from configs import models
+  from ufm_jax.models import ufm
+  fn = getattr(models, name, None)
+  if not callable(fn):
+    raise ValueError(f"unknown model config {name!r} in configs/models.py")
+  return ufm.model_from_config(fn())
+
+
+def is_workdir(path: str | os.PathLike) -> bool:
+  """A train.py workdir: its config.json plus orbax steps under checkpoints/."""
+  p = pathlib.Path(path)
+  return (p / "config.json").is_file() and (p / "checkpoints").is_dir()
+
+
+def load_workdir(path: str | os.PathLike, step: int | None = None):
+  """(model, params) of the latest (or given) checkpoint step of a train.py workdir."""
+  import importlib
+  import json
+
+  from ufm_jax import checkpoint
+
+  p = pathlib.Path(path)
+  cfg = json.loads((p / "config.json").read_text())
+  model_kw = dict(cfg.get("model") or {})
+  if cfg.get("model_fn"):
+    import ml_collections
+    module, attr = cfg["model_fn"].split(":")
+    model = getattr(importlib.import_module(module), attr)(ml_collections.ConfigDict(model_kw))
+  else:
+    if not cfg.get("model_name"):
+      raise ValueError(f"{p / 'config.json'}: neither model_fn nor model_name; cannot rebuild the model")
+    from ufm_jax.models import build_model
+    model = build_model(cfg["model_name"], **model_kw)
+  state, _ = checkpoint.read_state_numpy(p, step)
+  return model, state["params"]
+
+
 def load_model(path: str | os.PathLike, snapshot: bool = False):
-  """(model, params) from a converted checkpoint or an official snapshot folder."""
+  """(model, params) from an official snapshot, a train.py workdir or a converted checkpoint."""
   p = pathlib.Path(path)
   if not p.is_dir():
     raise FileNotFoundError(f"checkpoint directory not found: {p}")
@@ -41,6 +87,8 @@ def load_model(path: str | os.PathLike, snapshot: bool = False):
       raise FileNotFoundError(f"{p} is not a Hugging Face snapshot: expected config.json and "
                               "model.safetensors in it")
     return ufm_jax.load_official(p)
+  if is_workdir(p):
+    return load_workdir(p)
   return ufm_jax.load(p)
 
 

@@ -58,15 +58,27 @@ def covisibility_bce(logits, covisibility, covis_valid):
   return _masked_mean(per_pixel, covis_valid)
 
 
+def flow_supervision_mask(batch, flow_pixels: str = "covisible"):
+  """Pixels whose flow is supervised: "covisible" (paper eq. 2, UFM-560: flow_valid & covisible)
+  or "all" (the 980 bootstrap: every pixel with ground-truth flow, as optical-flow benchmarks)."""
+  if flow_pixels == "covisible":
+    return batch["flow_valid"].astype(bool) & batch["covisibility"].astype(bool)
+  if flow_pixels == "all":
+    return batch["flow_valid"].astype(bool)
+  raise ValueError(f"flow_pixels must be 'covisible' or 'all', got {flow_pixels!r}")
+
+
 def ufm_loss(outputs, batch, covis_weight: float = COVIS_WEIGHT, alpha: float = ALPHA,
-             c: float = SCALE):
+             c: float = SCALE, flow_pixels: str = "covisible"):
   """Total loss L = L_EPE + covis_weight * L_BCE, plus the terms and a few diagnostics.
 
   `outputs`: model dict with "flow" [B,H,W,2] and "covisibility_logits" [B,H,W].
   `batch`: dict with "flow", "covisibility", "flow_valid", "covis_valid".
+  `flow_pixels`: see `flow_supervision_mask`.
   Returns (loss, aux) with aux = {loss_flow, loss_covis, epe, covis_acc}.
   """
-  l_flow = flow_loss(outputs["flow"], batch["flow"], batch["flow_valid"], alpha, c)
+  flow_mask = flow_supervision_mask(batch, flow_pixels)
+  l_flow = flow_loss(outputs["flow"], batch["flow"], flow_mask, alpha, c)
   l_covis = covisibility_bce(outputs["covisibility_logits"], batch["covisibility"],
                              batch["covis_valid"])
   loss = l_flow + covis_weight * l_covis
@@ -77,7 +89,7 @@ def ufm_loss(outputs, batch, covis_weight: float = COVIS_WEIGHT, alpha: float = 
   aux = {
       "loss_flow": l_flow,
       "loss_covis": l_covis,
-      "epe": _masked_mean(epe, batch["flow_valid"]),
+      "epe": _masked_mean(epe, flow_mask),
       "covis_acc": _masked_mean(acc, batch["covis_valid"]),
   }
   return loss, aux

@@ -185,17 +185,21 @@ def warp_labels(sample: Mapping[str, np.ndarray], view0: View, view1: View, out_
   y = (yp + view0.cy + 0.5) / view0.sy - 0.5
   x0, x1, wx, xn = _taps(x, w)
   y0, y1, wy, yn = _taps(y, h)
-  wx, wy = wx[None, :, None], wy[:, None, None]
-  top = flow[y0][:, x0] * (1 - wx) + flow[y0][:, x1] * wx
-  bottom = flow[y1][:, x0] * (1 - wx) + flow[y1][:, x1] * wx
-  flow_r = top * (1 - wy) + bottom * wy
+  # Separable: blend the two source rows, then the two columns (4 gathers instead of 8).
+  wy = wy[:, None, None]
+  rows = flow[y0] * (1 - wy) + flow[y1] * wy
+  wx = wx[None, :, None]
+  flow_r = rows[:, x0] * (1 - wx) + rows[:, x1] * wx
   # A label is valid only if every bilinear tap with weight was valid (no blending with garbage).
-  flow_valid = (valid[y0][:, x0] & valid[y0][:, x1] & valid[y1][:, x0] & valid[y1][:, x1]
-                & valid[yn][:, xn])
+  vrows = valid[y0] & valid[y1]
+  flow_valid = vrows[:, x0] & vrows[:, x1] & valid[yn][:, xn]
+  # flow' = A1(x + flow) - x' = s1 * flow + (s1 * x + b1 - x'); the bracket is 1-D, in float64.
   a1 = view1.matrix()
-  u = a1[0, 0] * (x[None, :] + flow_r[..., 0]) + a1[0, 2] - xp[None, :]
-  v = a1[1, 1] * (y[:, None] + flow_r[..., 1]) + a1[1, 2] - yp[:, None]
-  out = {"flow": np.stack([u, v], -1).astype(np.float32), "flow_valid": flow_valid}
+  off_x = (a1[0, 0] * x + a1[0, 2] - xp).astype(np.float32)
+  off_y = (a1[1, 1] * y + a1[1, 2] - yp).astype(np.float32)
+  u = np.float32(a1[0, 0]) * flow_r[..., 0] + off_x[None, :]
+  v = np.float32(a1[1, 1]) * flow_r[..., 1] + off_y[:, None]
+  out = {"flow": np.stack([u, v], -1), "flow_valid": flow_valid}
   for key in ("covisibility", "covis_valid"):
     out[key] = np.asarray(sample[key], bool)[yn][:, xn]
   return out
@@ -212,12 +216,13 @@ def color_jitter(image: np.ndarray, params) -> np.ndarray:
   if params is None:
     return image
   brightness, contrast, saturation, hue = params
-  img = image.astype(np.float32) * brightness
-  grey = img @ np.array([0.299, 0.587, 0.114], np.float32)
-  img = (img - grey.mean()) * contrast + grey.mean()
-  grey = img @ np.array([0.299, 0.587, 0.114], np.float32)
-  img = (img - grey[..., None]) * saturation + grey[..., None]
-  img = np.clip(img, 0, 255).astype(np.uint8)
+  # brightness b, contrast c (around the mean grey m), saturation s (around the pixel's grey g)
+  # fold into one affine blend: out = s*b*c * img + (1-s)*b*c * g + m*(1-c), m = b * mean(g).
+  grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+  m = brightness * float(grey.mean())
+  bc = brightness * contrast
+  img = cv2.addWeighted(image, saturation * bc, cv2.cvtColor(grey, cv2.COLOR_GRAY2RGB),
+                        (1 - saturation) * bc, m * (1 - contrast))
   if hue:
     hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV_FULL)
     hsv[..., 0] = (hsv[..., 0].astype(np.int32) + int(round(hue * 256))) % 256

@@ -16,7 +16,7 @@ Batches are dicts of numpy arrays with a leading batch axis of the per-host batc
 image0, image1 [B,H,W,3] uint8; flow [B,H,W,2] float32; covisibility, flow_valid, covis_valid
 [B,H,W] bool; dataset_id [B] int32 (index into `Pipeline.names`); epoch [B] int32. With
 symmetrize, rows (2i, 2i+1) are (a, b) and (b, a): backward labels come from the source (its
-`both(i)`, `backward(i)` or `reverse(i)`), else from depth + poses in meta (ufm_jax.geometry), else
+`both(i)`, `backward(i)` or `reverse(i)`), else for static scenes from depth + poses in meta, else
 (reverse_fallback='unsupervised', e.g. FlyingChairs, HD1K) the (b, a) row has all masks False, so
 the loss must tolerate rows without supervised pixels (FlyingChairs' covis_valid is all False too).
 
@@ -174,7 +174,7 @@ def check_sample(sample: Mapping[str, Any], where: str) -> dict:
   out = dict(sample)
   for k in ("image0", "image1"):
     a = np.asarray(sample[k])
-    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8 or min(a.shape[:2]) < 2:
       raise ValueError(f"{where}: {k} must be HxWx3 uint8, got {a.shape} {a.dtype}")
     out[k] = a
   hw = out["image0"].shape[:2]
@@ -193,17 +193,22 @@ def check_sample(sample: Mapping[str, Any], where: str) -> dict:
   return out
 
 
-def _thresholds_known(meta) -> bool:
-  from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
-  return str(meta.get("dataset", "")).lower() in geometry.COVIS_THRESHOLDS
+# Static scenes (paper Table 1, above the dashed line): their backward labels follow from depth and
+# poses alone. Dynamic sets (Kubric4D's moving objects, scene flow) must come from the source.
+STATIC_DATASETS = ("blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat", "staticthings")
 
 
-def geometry_reverse(sample: Mapping[str, Any]) -> dict:
-  """Backward labels (image1 -> image0) from depth + poses in meta (static scenes), with the
-  dataset's Table S1 thresholds and the same label rules the sources use."""
+def _geometry_possible(meta) -> bool:
+  return (all(k in meta for k in _GEOMETRY_META)
+          and str(meta.get("dataset", "")).lower() in STATIC_DATASETS)
+
+
+def geometry_reverse(sample: Mapping[str, Any], thresholds=None) -> dict:
+  """Backward labels (image1 -> image0) of a static-scene pair from depth + poses in meta, with the
+  source's thresholds (else Table S1's) and the label rules the sources use."""
   from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
   meta = sample["meta"]
-  tau_d, tau_r = geometry.COVIS_THRESHOLDS[str(meta["dataset"]).lower()]
+  tau_d, tau_r = thresholds or geometry.COVIS_THRESHOLDS[str(meta["dataset"]).lower()]
   corr = geometry.correspondence_from_depth(meta["depth1"], meta["K1"], meta["cam2world1"],
                                             meta["depth0"], meta["K0"], meta["cam2world0"],
                                             tau_d, tau_r)
@@ -238,15 +243,19 @@ def reverse_mode(source, name: str, fallback: str = "unsupervised") -> str:
   attr, _ = _source_backward(source)
   if attr:
     return attr
-  meta = source[0].get("meta", {})
-  if all(k in meta for k in _GEOMETRY_META) and _thresholds_known(meta):
+  try:
+    meta = source[0].get("meta", {})
+  except Exception as e:  # pylint: disable=broad-except  # a corrupt first sample is skipped later
+    log.warning("%s[0] unreadable while probing for backward labels: %s", name, e)
+    meta = {}
+  if _geometry_possible(meta):
     return "geometry"
   if fallback == "unsupervised":
     return "unsupervised"
   raise ValueError(
       f"dataset {name!r} cannot be symmetrized: its source has no `both`/`backward`/`reverse` "
-      f"method and its samples' meta lack {[k for k in _GEOMETRY_META if k not in meta]} to "
-      "compute backward labels; set input.symmetrize=False, input.reverse_fallback='unsupervised'"
+      f"method and its samples are not static-scene pairs ({', '.join(STATIC_DATASETS)}) with "
+      f"{', '.join(_GEOMETRY_META)} in meta to compute backward labels from; set input.symmetrize=False, input.reverse_fallback='unsupervised'"
       " or drop it from the mixture")
 
 
@@ -275,10 +284,9 @@ class LoadPair:
     sample = check_sample(sample, where)
     if mode == "per_sample":
       meta = sample.get("meta", {})
-      mode = ("geometry" if all(k in meta for k in _GEOMETRY_META) and _thresholds_known(meta)
-              else "unsupervised")
+      mode = "geometry" if _geometry_possible(meta) else "unsupervised"
     if mode == "geometry":
-      reverse = geometry_reverse(sample)
+      reverse = geometry_reverse(sample, getattr(src, "thresholds", None))
     elif mode == "unsupervised":
       reverse = unsupervised_reverse(sample)
     if reverse is not None:
@@ -385,6 +393,7 @@ class Pipeline:
   num_steps: int                # batches this iterator yields before it ends
   batch_size: int               # pairs per host batch
   shapes: tuple[tuple[int, int], ...]
+  symmetrize: bool
 
   def __iter__(self):
     return iter(self.dataset)
@@ -429,6 +438,25 @@ def _open_sources(datasets: Mapping[str, Mapping[str, Any]], split: str | None,
   return present, tuple(d.split(" ")[0] for d in dropped)
 
 
+def make_train_iterator(config: Mapping[str, Any], *, process_batch: int | None = None,
+                        seed: int = 0, num_epochs: int | None = None):
+  """(checkpointable grain iterator of host batches, info) for train.py.
+
+  info: pairs_per_epoch (batch rows per epoch: both directions counted when symmetrized, so
+  steps per epoch = pairs_per_epoch / input.batch_size), unique_pairs_per_epoch, image_shape
+  (the first training shape), shapes, datasets {name: quota}, dropped.
+  """
+  pipe = create(config, seed=seed, num_epochs=num_epochs)
+  if process_batch is not None and int(process_batch) != pipe.batch_size:
+    raise ValueError(f"train.py expects {process_batch} pairs per process, the pipeline makes "
+                     f"{pipe.batch_size} (input.batch_size / process count)")
+  rows = pipe.epoch_size * (2 if pipe.symmetrize else 1)
+  info = {"pairs_per_epoch": rows, "unique_pairs_per_epoch": pipe.epoch_size,
+          "image_shape": tuple(pipe.shapes[0]), "shapes": [tuple(x) for x in pipe.shapes],
+          "datasets": dict(zip(pipe.names, pipe.quotas)), "dropped": list(pipe.dropped)}
+  return iter(pipe), info
+
+
 def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None = None,
            process_index: int | None = None, process_count: int | None = None) -> Pipeline:
   """Builds the training pipeline from an input block (see `configs/common.py:input_config`).
@@ -439,7 +467,8 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   skip_check_min_samples, reverse_fallback, split. process_index/count default to jax's (grain ShardByJaxProcess).
   """
   cfg = dict(config.to_dict() if hasattr(config, "to_dict") else config)
-  if process_index is None or process_count is None:
+  jax_processes = process_index is None or process_count is None
+  if jax_processes:
     shard = grain.sharding.ShardByJaxProcess(drop_remainder=True)
     process_index, process_count = shard.shard_index, shard.shard_count
   symmetrize = bool(cfg.get("symmetrize", True))
@@ -470,6 +499,14 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   shapes = augment_lib.training_shapes(int(cfg.get("longest_side", 560)),
                                        tuple(cfg.get("aspect_ratios",
                                                      augment_lib.DEFAULT_ASPECT_RATIOS)))
+  if jax_processes and process_count > 1:
+    # Every host derives the same plans only if it sees the same datasets with the same sizes.
+    from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
+    multihost_utils.assert_equal(
+        # int32: jax without x64 would wrap an int64 differently on each side of the comparison.
+        np.array([zlib.crc32(repr((names, sizes, quotas)).encode()) & 0x7FFFFFFF], np.int32),
+        f"hosts disagree on the mixture (names, sizes, quotas); this host: "
+        f"{list(zip(names, sizes, quotas))}")
   layout = MixtureLayout(names, sizes, quotas, int(seed), unique_per_host, int(process_index),
                          int(process_count), num_epochs)
   if layout.num_steps == 0:
@@ -496,4 +533,5 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   return Pipeline(dataset=ds, names=names, quotas=quotas, sizes=sizes, dropped=dropped,
                   epoch_size=layout.epoch_size,
                   steps_per_epoch=layout.epoch_size / layout.unique_per_step,
-                  num_steps=layout.num_steps, batch_size=per_host, shapes=shapes)
+                  num_steps=layout.num_steps, batch_size=per_host, shapes=shapes,
+                  symmetrize=symmetrize)

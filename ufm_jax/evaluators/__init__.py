@@ -78,13 +78,17 @@ def open_source(bench: Bench, split: Split, data_root: str | None, **options):
   if bench.data_subdir and root is None:
     raise MissingDataError(f"bench {bench.name}: --data_root is required; {hint}")
   try:
-    return get_source(split.source, root, **dict(split.options), **options)
+    source = get_source(split.source, root, **dict(split.options), **options)
+    n = len(source)  # some readers list their pairs lazily: surface missing files here
   except KeyError as e:
     raise MissingDataError(f"bench {bench.name}: no reader registered for dataset "
                            f"{split.source!r} ({e}); {hint}") from None
   except (FileNotFoundError, NotADirectoryError, ValueError) as e:
     raise MissingDataError(f"bench {bench.name}: no usable data for {split.source} at {root}: "
                            f"{e}; {hint}") from None
+  if n == 0:
+    raise MissingDataError(f"bench {bench.name}: {split.source} at {root} has no pairs; {hint}")
+  return source
 
 
 def run_bench(name: str, runner: Runner, data_root: str | None = None, max_pairs=None,

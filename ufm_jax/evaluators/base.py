@@ -98,12 +98,13 @@ def relpath_of(sample: dict, index: int) -> str:
 
 
 class PredictionWriter:
-  """--save_predictions: flow (.flo) + covisibility PNG per pair, panels for the first N pairs."""
+  """--save_predictions: flow (.flo) + covisibility PNG per pair, panels for the first N pairs
+  of each bench, under <root>/<bench>/<the dataset's GT relative path>."""
 
   def __init__(self, root: str | os.PathLike | None, num_panels: int = 8):
     self.root = None if root is None else pathlib.Path(root)
     self.num_panels = num_panels
-    self.written = 0
+    self.written: dict[str, int] = {}  # per bench
 
   def __call__(self, bench: str, sample: dict, index: int, pred: dict) -> None:
     if self.root is None:
@@ -117,12 +118,12 @@ class PredictionWriter:
     write_flo(base.with_suffix(".flo"), pred["flow"])
     viz.write_png(base.parent / (base.name + "_covisibility.png"),
                   viz.covisibility_to_image(pred["covisibility"]))
-    if self.written < self.num_panels:
+    if self.written.get(bench, 0) < self.num_panels:
       panels = self.root / bench / "panels"
       panels.mkdir(parents=True, exist_ok=True)
       viz.write_png(panels / (str(rel).replace("/", "__") + ".png"),
                     viz.panel(sample["image0"], sample["image1"], pred["flow"], pred["covisibility"]))
-    self.written += 1
+    self.written[bench] = self.written.get(bench, 0) + 1
 
 
 def predicted_paths(root, bench: str, sample: dict, index: int) -> tuple[pathlib.Path, pathlib.Path]:

@@ -1,0 +1,122 @@
+"""Model size variants: plain functions returning `ufm_jax.models.ufm.UFMConfig`.
+
+    from configs.models import ufm_base
+    model = ufm_jax.models.ufm.model_from_config(ufm_base())
+
+The released checkpoints carry their own config.json (`ufm_jax.load_official` reads it); these
+functions describe the same structures for training from scratch, benchmarks and eval_shape.
+"""
+
+import dataclasses
+
+from ufm_jax.models import dinov2, dpt, info_sharing, ufm
+
+# DPT head of the release: hooks on [encoder last, fusion layer 6, fusion layer 9, fusion final].
+_UFM_LAYER_DIMS = (96, 192, 384, 768)
+_UFM_FEATURE_DIM = 256
+
+
+def _dpt(enc_dim: int, fusion_dim: int, output_dim: int, layer_dims=_UFM_LAYER_DIMS,
+         feature_dim=_UFM_FEATURE_DIM) -> dpt.DPTConfig:
+  return dpt.DPTConfig(input_feature_dims=(enc_dim, fusion_dim, fusion_dim, fusion_dim),
+                       layer_dims=tuple(layer_dims), feature_dim=feature_dim, output_dim=output_dim)
+
+
+def dinov2_small(**kw) -> dinov2.DinoV2Config:
+  """ViT-S/14: 384 wide, 12 blocks, 6 heads (21M params)."""
+  return dinov2.dinov2_config("small", **kw)
+
+
+def dinov2_base(**kw) -> dinov2.DinoV2Config:
+  """ViT-B/14: 768 wide, 12 blocks, 12 heads (86M)."""
+  return dinov2.dinov2_config("base", **kw)
+
+
+def dinov2_large(**kw) -> dinov2.DinoV2Config:
+  """ViT-L/14: 1024 wide, 24 blocks, 16 heads (304M) - the UFM encoder."""
+  return dinov2.dinov2_config("large", **kw)
+
+
+def dinov2_giant(**kw) -> dinov2.DinoV2Config:
+  """ViT-g/14: 1536 wide, 40 blocks, 24 heads, SwiGLU FFN (1.1B)."""
+  return dinov2.dinov2_config("giant", **kw)
+
+
+def with_registers(cfg: dinov2.DinoV2Config, n: int = 4) -> dinov2.DinoV2Config:
+  """The hub's *_reg variant: 4 register tokens, antialiased position interpolation, no offset."""
+  return dataclasses.replace(cfg, num_register_tokens=n, interpolate_antialias=True,
+                             interpolate_offset=0.0)
+
+
+def ufm_base(**kw) -> ufm.UFMConfig:
+  """UFM-Base (UFM 560): DINOv2 ViT-L/14 (all 24 blocks), 12 x 768 fusion transformer with
+  12 heads, DPT taps at fusion layers 6 and 9 (0-based indices 5, 8) plus the final layer,
+  DPT layer dims [96, 192, 384, 768], feature dim 256; about 428.3M parameters.
+
+  The flow adaptor normalisation of the release is read from its config.json by the loader; the
+  values here (zero mean, unit std at a 420 x 560 base shape, scale_both) are for training from
+  scratch.
+  """
+  cfg = ufm.UFMConfig(
+      encoder=dinov2_large(indices=(23,)),
+      info_sharing=info_sharing.InfoSharingConfig(
+          input_embed_dim=1024, dim=768, depth=12, num_heads=12, mlp_ratio=4.0, qkv_bias=True,
+          qk_norm=False, init_values=None, indices=(5, 8)),
+      flow_head=_dpt(1024, 768, 2),
+      covisibility_head=_dpt(1024, 768, 1),
+      flow_adaptor=dpt.FlowAdaptorConfig(flow_mean=(0.0, 0.0), flow_std=(1.0, 1.0),
+                                         base_shape=(420, 560), scale_strategy="scale_both"),
+      detach_uncertainty_head=True,
+      inference_resolution=(420, 560))
+  return cfg.replace(**kw)
+
+
+def ufm_base_980(**kw) -> ufm.UFMConfig:
+  """UFM 980: same structure as UFM-Base, inferred at 980 px on the long side (H a multiple of
+  14 near 3:4; the snapshot's config.json is authoritative)."""
+  return ufm_base(**{"inference_resolution": (742, 980), **kw})
+
+
+def ufm_refine(**kw) -> ufm.UFMConfig:
+  """The base part of UFM-Refine (UniFlowMatchClassificationRefinement): identical to UFM-Base;
+  the refiner's own structure (U-Net, classification head) is configured by ufm_jax.models.refine."""
+  return ufm_base(**kw)
+
+
+def fixture_small(**kw) -> ufm.UFMConfig:
+  """The public parity fixture (ufm_reference/base): ViT-S/14 cut to 2 blocks, 4 x 96 fusion
+  with 4 heads and taps [1, 2], DPT layer dims [24, 48, 96, 192], feature dim 48."""
+  cfg = ufm.UFMConfig(
+      encoder=dinov2_small(depth=2, indices=(0, 1)),
+      info_sharing=info_sharing.InfoSharingConfig(
+          input_embed_dim=384, dim=96, depth=4, num_heads=4, indices=(1, 2)),
+      flow_head=_dpt(384, 96, 2, (24, 48, 96, 192), 48),
+      covisibility_head=_dpt(384, 96, 1, (24, 48, 96, 192), 48),
+      flow_adaptor=dpt.FlowAdaptorConfig(flow_mean=(1.5, -2.0), flow_std=(12.0, 9.0),
+                                         base_shape=(120, 160), scale_strategy="scale_both"),
+      inference_resolution=(168, 224))
+  return cfg.replace(**kw)
+
+
+def tiny(**kw) -> ufm.UFMConfig:
+  """A very small UFM for smoke tests and the synthetic training config (~1M parameters)."""
+  cfg = ufm.UFMConfig(
+      encoder=dinov2.DinoV2Config(embed_dim=64, depth=2, num_heads=2, indices=(1,)),
+      info_sharing=info_sharing.InfoSharingConfig(
+          input_embed_dim=64, dim=64, depth=3, num_heads=2, indices=(0, 1)),
+      flow_head=_dpt(64, 64, 2, (16, 32, 64, 64), 32),
+      covisibility_head=_dpt(64, 64, 1, (16, 32, 64, 64), 32),
+      flow_adaptor=dpt.FlowAdaptorConfig(flow_mean=(0.0, 0.0), flow_std=(8.0, 8.0),
+                                         base_shape=(112, 112), scale_strategy="scale_both"),
+      inference_resolution=(112, 112))
+  return cfg.replace(**kw)
+
+
+VARIANTS = {"fixture_small": fixture_small, "tiny": tiny, "ufm_base": ufm_base,
+            "ufm_base_980": ufm_base_980, "ufm_refine": ufm_refine}
+
+
+def get(name: str, **kw) -> ufm.UFMConfig:
+  if name not in VARIANTS:
+    raise ValueError(f"unknown model variant {name!r}; expected one of {sorted(VARIANTS)}")
+  return VARIANTS[name](**kw)

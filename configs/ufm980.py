@@ -1,0 +1,30 @@
+r"""UFM-980: bootstrapped from UFM-560 (sec. "Training Details").
+
+  python train.py --config=configs/ufm980.py --workdir=DIR980 \
+      --config.model_init=ckpt:DIR560 --config.input.data_root=/data/ufm
+
+Parameters from a 560 checkpoint (`model_init`: a training workdir, a converted checkpoint or the
+official UFM-Base snapshot), a fresh optimizer, 10x lower learning rates (1e-5 / 5e-7), the
+optical-flow datasets only, flow supervised on all pixels with ground truth (not only covisible
+ones: `loss_kwargs.flow_pixels="all"`), longest side 980, 15 epochs.
+"""
+
+import ml_collections
+
+import configs.common as cc
+from configs import ufm560
+
+
+def get_config(arg=None):
+  arg = cc.parse_arg(arg, model="ufm_base")
+  c = ufm560.common(ml_collections.ConfigDict())
+  c.num_epochs = 15
+  c.input = cc.input_config(cc.mixture(cc.OPTICAL_FLOW), batch_size=96, longest_side=980)
+  # Optical-flow benchmarks evaluate every pixel with valid flow, not just covisible ones.
+  c.loss_kwargs.flow_pixels = "all"
+  c.model_name = arg.model
+  c.model = ml_collections.ConfigDict({"dtype": "bfloat16", "remat": True})
+  c.model_init = ml_collections.FieldReference(None, field_type=str)  # required: the 560 run
+  c.optim = ufm560.ufm_optim(lr=1e-5, encoder_lr=5e-7)
+  c.evals = ml_collections.ConfigDict({"sintel": ufm560.sintel_eval(resolution="980")})
+  return c

@@ -1,0 +1,51 @@
+"""Sharding rules and mesh parsing (pure logic; the multi-device runs are in test_train_mesh.py)."""
+
+import jax
+import numpy as np
+import pytest
+from jax.sharding import PartitionSpec as P
+
+from ufm_jax import sharding
+
+
+def test_fsdp_picks_largest_divisible_dim():
+  assert sharding._fsdp_spec((1024, 4096), 8) == P(None, "fsdp")
+  assert sharding._fsdp_spec((4096, 1000), 8) == P("fsdp", None)
+  assert sharding._fsdp_spec((1001, 6), 8) == P()          # nothing divisible: replicate
+  assert sharding._fsdp_spec((3, 3, 64, 16), 4) == P(None, None, "fsdp", None)
+  assert sharding._fsdp_spec((1, 1370, 1024), 4) == P(None, None, "fsdp")  # 1370 % 4 != 0
+  assert sharding._fsdp_spec((1024,), 1) == P()
+
+
+def test_parse_mesh_and_errors():
+  assert sharding.parse_mesh("data:-1,fsdp:2") == [("data", -1), ("fsdp", 2)]
+  assert sharding.parse_mesh([("data", 2), ("fsdp", 1)]) == [("data", 2), ("fsdp", 1)]
+  with pytest.raises(ValueError, match="axis:size"):
+    sharding.parse_mesh("data=2")
+  with pytest.raises(ValueError, match="must name the axes"):
+    sharding.make_mesh("data:-1")
+  with pytest.raises(ValueError, match="at most one axis"):
+    sharding.make_mesh("data:-1,fsdp:-1")
+  mesh = sharding.make_mesh("data:-1,fsdp:1")
+  assert dict(mesh.shape) == {"data": jax.device_count(), "fsdp": 1}
+
+
+def test_rules_first_match_and_explicit_specs():
+  mesh = sharding.make_mesh("data:-1,fsdp:1")
+  tree = {"encoder": {"pos_embed": np.zeros((1, 5, 4))}, "head": {"kernel": np.zeros((4, 2))},
+          "step": np.zeros(())}
+  rules = [(r"pos_embed$", "replicate"), (r"^head/", (None, "fsdp")), (r".*", "fsdp")]
+  sh = sharding.tree_shardings(tree, mesh, rules)
+  assert sh["encoder"]["pos_embed"].spec == P()
+  assert sh["head"]["kernel"].spec == P(None, "fsdp")
+  assert sh["step"].spec == P()
+  with pytest.raises(ValueError, match="has 1 entries but param head/kernel"):
+    sharding.tree_shardings(tree, mesh, [(r"^head/", ("fsdp",))])
+
+
+def test_local_batch_size_checks_divisibility():
+  mesh = sharding.make_mesh("data:-1,fsdp:1")
+  assert sharding.local_batch_size(4 * jax.device_count(), mesh) == 4 * jax.device_count()
+  if jax.device_count() > 1:
+    with pytest.raises(ValueError, match="divisible by the data\\*fsdp"):
+      sharding.local_batch_size(jax.device_count() + 1, mesh)

@@ -1,0 +1,536 @@
+"""Official PyTorch UFM checkpoints (Hugging Face snapshot: config.json + model.safetensors) ->
+(Flax model, params); and the orbax checkpoint format of this project.
+
+    model, params = load_official("path/to/UFM-Base")      # HF snapshot folder
+    python -m ufm_jax.convert SNAPSHOT_DIR OUT_DIR          # -> orbax params + model_config.json
+    model, params = load(OUT_DIR)
+
+Key map (PyTorch state-dict name -> Flax param path), one rule each:
+  1. aliases: `scratch.layer{k}_rn.*` / `scratch.layer_rn.{k-1}.*` -> `input_process.{k-1}.1.*`
+     (one module registered three times; safetensors keeps only the alphabetically first name);
+  2. prefixes: `encoder.model.` -> `encoder.`;
+  3. split on ".", a numeric part joins the previous one with "_" (`blocks.3` -> `blocks_3`,
+     `head1.0.0` -> `head1_0_0`), the leaf `weight` becomes `kernel` (Linear, Conv) or `scale`
+     (LayerNorm);
+  4. layouts: Linear [out, in] -> [in, out]; Conv OIHW -> HWIO; ConvTranspose [in, out, kh, kw]
+     -> [kh, kw, in, out].
+Buffers (view_pos_table, flow_mean/flow_std) are not parameters: they are checked against the
+values the config implies. Other official model classes register a builder with
+`register_official_class` (dispatch on config.json).
+"""
+
+import dataclasses
+import json
+import os
+import pathlib
+import re
+import shutil
+import sys
+import tempfile
+from typing import Any, Callable, Dict, List, Optional, Tuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ufm_jax.models import dinov2, dpt, info_sharing, ufm
+
+# ----------------------------------------------------------------------------- key map
+
+ALIASES = [
+    (re.compile(r"scratch\.layer(\d)_rn\."), lambda m: f"input_process.{int(m.group(1)) - 1}.1."),
+    (re.compile(r"scratch\.layer_rn\.(\d)\."), lambda m: f"input_process.{m.group(1)}.1."),
+]
+PREFIXES = [("encoder.model.", "encoder.")]
+# Weights stored [in, out, kh, kw] by torch ConvTranspose2d.
+CONV_TRANSPOSE = [re.compile(r"input_process\.[01]\.0\.1\.weight$")]
+# Tensors that are not Flax params: name regex -> fn(config, match) -> expected value.
+BufferFn = Callable[[Any, "re.Match"], np.ndarray]
+
+
+def canonical_key(key: str) -> str:
+  for pattern, repl in ALIASES:
+    key = pattern.sub(repl, key)
+  return key
+
+
+def torch_key_to_path(key: str, ndim: int) -> Tuple[str, ...]:
+  key = canonical_key(key)
+  for old, new in PREFIXES:
+    if key.startswith(old):
+      key = new + key[len(old):]
+  out: List[str] = []
+  for part in key.split("."):
+    if part.isdigit() and out:
+      out[-1] += "_" + part
+    else:
+      out.append(part)
+  if out[-1] == "weight":
+    out[-1] = "kernel" if ndim >= 2 else "scale"
+  return tuple(out)
+
+
+def path_to_torch_key(path: Tuple[str, ...]) -> str:
+  """Inverse of torch_key_to_path (the canonical, de-duplicated name)."""
+  parts = list(path)
+  if parts[-1] in ("kernel", "scale"):
+    parts[-1] = "weight"
+  key = ".".join(re.sub(r"_(\d+)", r".\1", p) for p in parts)
+  for old, new in PREFIXES:
+    if key.startswith(new):
+      key = old + key[len(new):]
+  return key
+
+
+def torch_to_flax_array(key: str, value: np.ndarray) -> np.ndarray:
+  if value.ndim == 2 and key.endswith("weight"):
+    return value.T
+  if value.ndim == 4 and key.endswith("weight"):
+    if any(p.search(canonical_key(key)) for p in CONV_TRANSPOSE):
+      return value.transpose(2, 3, 0, 1)
+    return value.transpose(2, 3, 1, 0)
+  return value
+
+
+def flax_to_torch_array(key: str, value: np.ndarray) -> np.ndarray:
+  if value.ndim == 2 and key.endswith("weight"):
+    return value.T
+  if value.ndim == 4 and key.endswith("weight"):
+    if any(p.search(key) for p in CONV_TRANSPOSE):
+      return value.transpose(2, 3, 0, 1)
+    return value.transpose(3, 2, 0, 1)
+  return value
+
+
+# ----------------------------------------------------------------------------- model classes
+
+
+@dataclasses.dataclass
+class OfficialSpec:
+  """What a builder returns: the Flax model plus the buffer tensors it expects in the file."""
+  model: Any
+  buffers: Dict[str, np.ndarray]  # exact torch name -> expected value
+  class_name: str
+
+
+# (detect(config_json) -> bool, build(config_json, shapes: {torch name: shape}) -> OfficialSpec)
+OFFICIAL_CLASSES: List[Tuple[Callable[[dict], bool], Callable[[dict, dict], OfficialSpec]]] = []
+# class name -> (config_from_dict, model_from_config) for checkpoints written by `save`.
+SAVED_CLASSES: Dict[str, Tuple[Callable, Callable]] = {
+    "UniFlowMatchConfidence": (ufm.config_from_dict, ufm.model_from_config),
+}
+
+
+def register_official_class(detect, build, front: bool = True):
+  """Add a builder; front=True lets a more specific detector win over the base one."""
+  if front:
+    OFFICIAL_CLASSES.insert(0, (detect, build))
+  else:
+    OFFICIAL_CLASSES.append((detect, build))
+
+
+def _kw(d: dict, key: str, where: str, default=None, required=True):
+  if key in d:
+    return d[key]
+  if required and default is None:
+    raise ValueError(f"config.json: missing {where}.{key}")
+  return default
+
+
+def encoder_config_from_official(enc: dict, shapes: dict, prefix: str = "encoder.model.",
+                                 ) -> dinov2.DinoV2Config:
+  size = _kw(enc, "size", "encoder_kwargs")
+  if size not in dinov2.SIZES:
+    raise ValueError(f"config.json: encoder_kwargs.size={size!r}; expected one of "
+                     f"{sorted(dinov2.SIZES)}")
+  dim, full_depth, heads, _ = dinov2.SIZES[size]
+  blocks = {int(m.group(1)) for k in shapes for m in [re.match(re.escape(prefix) + r"blocks\.(\d+)\.", k)] if m}
+  if not blocks:
+    raise ValueError(f"model.safetensors has no {prefix}blocks.* tensors")
+  depth = max(blocks) + 1  # after keep_first_n_layers
+  keep = enc.get("keep_first_n_layers")
+  if keep is not None and keep != depth:
+    raise ValueError(f"config.json keep_first_n_layers={keep} but model.safetensors has "
+                     f"{depth} encoder blocks")
+  pos = shapes.get(prefix + "pos_embed")
+  if pos is None:
+    raise ValueError(f"model.safetensors has no {prefix}pos_embed")
+  grid = int(round(np.sqrt(pos[1] - 1)))
+  if grid * grid != pos[1] - 1 or pos[2] != dim:
+    raise ValueError(f"{prefix}pos_embed has shape {pos}; expected (1, 1 + G*G, {dim}) for "
+                     f"DINOv2 {size}")
+  reg = shapes.get(prefix + "register_tokens")
+  n_reg = reg[1] if reg is not None else 0
+  if bool(enc.get("with_registers", False)) != bool(n_reg):
+    raise ValueError(f"config.json with_registers={enc.get('with_registers')} but "
+                     f"model.safetensors has {n_reg} register tokens")
+  patch = shapes[prefix + "patch_embed.proj.weight"][-1]
+  if enc.get("patch_size", patch) != patch:
+    raise ValueError(f"config.json patch_size={enc.get('patch_size')} but the patch embedding "
+                     f"kernel is {patch}x{patch}")
+  ffn = "swiglu" if any(k.startswith(prefix + "blocks.0.mlp.w12") for k in shapes) else "mlp"
+  ls = any(k.startswith(prefix + "blocks.0.ls1") for k in shapes)
+  indices = enc.get("indices", 1)
+  indices = indices if isinstance(indices, int) else tuple(indices)
+  return dinov2.DinoV2Config(
+      embed_dim=dim, depth=depth, num_heads=heads, ffn=ffn, patch_size=patch, pos_grid=grid,
+      num_register_tokens=n_reg, init_values=1.0 if ls else None,
+      # facebookresearch/dinov2 hubconf: *_reg models use antialias=True, offset 0.0.
+      interpolate_antialias=bool(n_reg), interpolate_offset=0.0 if n_reg else 0.1,
+      indices=indices, norm_intermediate=bool(enc.get("norm_intermediate", True)))
+
+
+def info_sharing_config_from_official(kw: dict, shapes: dict,
+                                      prefix: str = "info_sharing.") -> info_sharing.InfoSharingConfig:
+  if kw.get("custom_positional_encoding") is not None:
+    raise ValueError("config.json: info_sharing custom_positional_encoding (RoPE) is not supported")
+  views = kw.get("max_num_views", kw.get("max_num_views_for_pe", kw.get("num_views", 2)))
+  if kw.get("use_rand_idx_pe_for_non_reference_views") and views > 2:
+    raise ValueError("config.json: random view-index embeddings are not supported")
+  depth = _kw(kw, "depth", "info_sharing_kwargs", 12, required=False)
+  indices = kw.get("indices")
+  if indices is None:
+    indices = tuple(range(depth))
+  elif isinstance(indices, int):
+    indices = tuple(range(depth - indices, depth))
+  dim = _kw(kw, "dim", "info_sharing_kwargs", 768, required=False)
+  return info_sharing.InfoSharingConfig(
+      input_embed_dim=_kw(kw, "input_embed_dim", "info_sharing_kwargs"), dim=dim, depth=depth,
+      num_heads=_kw(kw, "num_heads", "info_sharing_kwargs", 12, required=False),
+      mlp_ratio=float(kw.get("mlp_ratio", 4.0)), qkv_bias=bool(kw.get("qkv_bias", True)),
+      qk_norm=bool(kw.get("qk_norm", False)), init_values=kw.get("init_values"),
+      indices=tuple(indices), norm_intermediate=bool(kw.get("norm_intermediate", True)),
+      max_num_views=views)
+
+
+def dpt_config_from_official(kw: dict, where: str) -> dpt.DPTConfig:
+  feat, proc = kw.get("dpt_feature"), kw.get("dpt_processor")
+  if feat is None or proc is None:
+    raise ValueError(f"config.json: {where} needs dpt_feature and dpt_processor")
+  if feat.get("use_bn", False):
+    raise ValueError(f"config.json: {where}.dpt_feature.use_bn=True is not supported")
+  if feat.get("output_width_ratio", 1) != 1:
+    raise ValueError(f"config.json: {where}.dpt_feature.output_width_ratio != 1 is not supported")
+  dims = feat.get("input_feature_dims", 768)
+  dims = (dims,) * 4 if isinstance(dims, int) else tuple(dims)
+  if proc.get("input_feature_dim", feat.get("feature_dim", 256)) != feat.get("feature_dim", 256):
+    raise ValueError(f"config.json: {where} processor input dim != dpt_feature.feature_dim")
+  hidden = proc.get("hidden_dims")
+  return dpt.DPTConfig(
+      input_feature_dims=dims, layer_dims=tuple(feat.get("layer_dims", (96, 192, 384, 768))),
+      feature_dim=feat.get("feature_dim", 256), hooks=tuple(feat.get("hooks", (0, 1, 2, 3))),
+      output_dim=_kw(proc, "output_dim", f"{where}.dpt_processor"),
+      hidden_dims=tuple(hidden) if hidden else None)
+
+
+def flow_adaptor_from_official(adaptors: dict) -> dpt.FlowAdaptorConfig:
+  if set(adaptors) != {"flow"} or adaptors["flow"].get("class") != "FlowAdaptor":
+    raise ValueError(f"config.json: adaptors_kwargs {adaptors}; only a single FlowAdaptor named "
+                     "'flow' is supported")
+  kw = adaptors["flow"]["kwargs"]
+  return dpt.FlowAdaptorConfig(
+      flow_mean=tuple(float(v) for v in kw["flow_mean"]),
+      flow_std=tuple(float(v) for v in kw["flow_std"]),
+      base_shape=tuple(kw["base_shape"]),  # UniCeption's base_shape is already (H, W)
+      scale_strategy=kw["scale_strategy"],
+      output_normalized_coordinate=bool(kw.get("output_normalized_coordinate", False)))
+
+
+def ufm_config_from_official(cj: dict, shapes: dict) -> ufm.UFMConfig:
+  """UFMConfig from an official config.json (+ weight shapes for what it cannot say)."""
+  for key, want in (("encoder_str", "dinov2"), ("info_sharing_str", "global_attention"),
+                    ("head_type", "dpt"), ("uncertainty_head_type", "dpt"),
+                    ("info_sharing_and_head_structure", "dual+single")):
+    if cj.get(key, want) != want:
+      raise ValueError(f"config.json: {key}={cj[key]!r} is not supported (expected {want!r})")
+  unc = cj.get("uncertainty_adaptors_kwargs", {})
+  if set(unc) != {"non_occluded_mask"} or unc["non_occluded_mask"].get("class") != "MaskAdaptor":
+    raise ValueError(f"config.json: uncertainty_adaptors_kwargs {unc}; only a MaskAdaptor "
+                     "'non_occluded_mask' is supported")
+  w, h = cj.get("inference_resolution") or (560, 420)  # official order is (W, H)
+  return ufm.UFMConfig(
+      encoder=encoder_config_from_official(cj["encoder_kwargs"], shapes),
+      info_sharing=info_sharing_config_from_official(cj.get("info_sharing_kwargs", {}), shapes),
+      flow_head=dpt_config_from_official(cj["feature_head_kwargs"], "feature_head_kwargs"),
+      covisibility_head=dpt_config_from_official(cj["uncertainty_head_kwargs"],
+                                                 "uncertainty_head_kwargs"),
+      flow_adaptor=flow_adaptor_from_official(cj["adaptors_kwargs"]),
+      detach_uncertainty_head=bool(cj.get("detach_uncertainty_head", True)),
+      inference_resolution=(int(h), int(w)))
+
+
+def ufm_buffers(cfg: ufm.UFMConfig) -> Dict[str, np.ndarray]:
+  fa = cfg.flow_adaptor
+  return {
+      "info_sharing.view_pos_table": info_sharing.sinusoid_table(
+          cfg.info_sharing.max_num_views, cfg.info_sharing.dim),
+      "head1.1.adaptors.flow.flow_mean": np.array(fa.flow_mean, np.float32).reshape(1, 2, 1, 1),
+      "head1.1.adaptors.flow.flow_std": np.array(fa.flow_std, np.float32).reshape(1, 2, 1, 1),
+  }
+
+
+def official_config_dict(cfg: ufm.UFMConfig) -> dict:
+  """The official constructor kwargs (config.json) describing cfg; inverse of
+  ufm_config_from_official (used to export and to test the loader on unseen structures)."""
+  e, s, fa = cfg.encoder, cfg.info_sharing, cfg.flow_adaptor
+  size = {v[0]: k for k, v in dinov2.SIZES.items()}.get(e.embed_dim)
+  if size is None or dinov2.SIZES[size][2] != e.num_heads:
+    raise ValueError(f"encoder width {e.embed_dim} / {e.num_heads} heads is not a DINOv2 hub size")
+  full_depth = dinov2.SIZES[size][1]
+
+  def head(d: dpt.DPTConfig):
+    proc = {"input_feature_dim": d.feature_dim, "output_dim": d.output_dim}
+    if d.hidden_dims:
+      proc["hidden_dims"] = list(d.hidden_dims)
+    return {"dpt_feature": {"feature_dim": d.feature_dim, "hooks": list(d.hooks),
+                            "input_feature_dims": list(d.input_feature_dims),
+                            "layer_dims": list(d.layer_dims), "output_width_ratio": 1,
+                            "patch_size": e.patch_size, "use_bn": False},
+            "dpt_processor": proc}
+
+  enc = {"data_norm_type": "dinov2", "name": f"dinov2_{size}", "norm_intermediate":
+         e.norm_intermediate, "patch_size": e.patch_size, "pretrained_checkpoint_path": None,
+         "size": size, "with_registers": bool(e.num_register_tokens),
+         "indices": e.indices if isinstance(e.indices, int) else list(e.indices)}
+  if e.depth != full_depth:
+    enc["keep_first_n_layers"] = e.depth
+  return {
+      "adaptors_kwargs": {"flow": {"class": "FlowAdaptor", "kwargs": {
+          "base_shape": list(fa.base_shape), "flow_mean": list(fa.flow_mean),
+          "flow_std": list(fa.flow_std), "name": "flow",
+          "output_normalized_coordinate": fa.output_normalized_coordinate,
+          "scale_strategy": fa.scale_strategy}}},
+      "detach_uncertainty_head": cfg.detach_uncertainty_head,
+      "encoder_kwargs": enc, "encoder_str": "dinov2",
+      "feature_head_kwargs": head(cfg.flow_head), "head_type": "dpt",
+      "inference_resolution": [cfg.inference_resolution[1], cfg.inference_resolution[0]],
+      "info_sharing_and_head_structure": "dual+single",
+      "info_sharing_kwargs": {
+          "attn_drop": 0.0, "custom_positional_encoding": None, "depth": s.depth, "dim": s.dim,
+          "drop_path": 0.0, "indices": list(s.indices), "init_values": s.init_values,
+          "input_embed_dim": s.input_embed_dim, "max_num_views": s.max_num_views,
+          "mlp_ratio": s.mlp_ratio, "name": "info_sharing",
+          "norm_intermediate": s.norm_intermediate, "num_heads": s.num_heads,
+          "pretrained_checkpoint_path": None, "proj_drop": 0.0, "qk_norm": s.qk_norm,
+          "qkv_bias": s.qkv_bias, "use_rand_idx_pe_for_non_reference_views": False},
+      "info_sharing_str": "global_attention",
+      "pretrained_backbone_checkpoint_path": None, "pretrained_checkpoint_path": None,
+      "uncertainty_adaptors_kwargs": {"non_occluded_mask": {
+          "class": "MaskAdaptor", "kwargs": {"name": "non_occluded_mask"}}},
+      "uncertainty_head_kwargs": head(cfg.covisibility_head), "uncertainty_head_type": "dpt",
+  }
+
+
+def _is_base(cj: dict) -> bool:
+  return "uncertainty_head_kwargs" in cj and "refinement_range" not in cj
+
+
+def _build_base(cj: dict, shapes: dict) -> OfficialSpec:
+  cfg = ufm_config_from_official(cj, shapes)
+  return OfficialSpec(ufm.UFM(cfg), ufm_buffers(cfg), "UniFlowMatchConfidence")
+
+
+register_official_class(_is_base, _build_base, front=False)
+
+# ----------------------------------------------------------------------------- loading
+
+
+def _flatten(tree, prefix=()):
+  out = {}
+  for k, v in tree.items():
+    if isinstance(v, dict):
+      out.update(_flatten(v, prefix + (k,)))
+    else:
+      out[prefix + (k,)] = v
+  return out
+
+
+def _unflatten(flat):
+  tree: Dict[str, Any] = {}
+  for path, v in flat.items():
+    node = tree
+    for p in path[:-1]:
+      node = node.setdefault(p, {})
+    node[path[-1]] = v
+  return tree
+
+
+def expected_param_shapes(model) -> Dict[Tuple[str, ...], Tuple[int, ...]]:
+  p = model.config.encoder.patch_size
+  x = jax.ShapeDtypeStruct((1, 2 * p, 2 * p, 3), jnp.uint8)
+  tree = jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b), x, x)["params"]
+  return {k: tuple(v.shape) for k, v in _flatten(_unfreeze(tree)).items()}
+
+
+def _unfreeze(tree):
+  return {k: _unfreeze(v) for k, v in tree.items()} if hasattr(tree, "items") else tree
+
+
+def params_from_state_dict(state: Dict[str, np.ndarray], model, buffers: Dict[str, np.ndarray],
+                           source: str = "state dict"):
+  """Map a torch-named state dict onto the model's parameter tree; raise listing every problem."""
+  expected = expected_param_shapes(model)
+  flat: Dict[Tuple[str, ...], np.ndarray] = {}
+  origin: Dict[Tuple[str, ...], str] = {}
+  unexpected, misshaped, bad_buffers = [], [], []
+  for key in sorted(state):
+    value = np.asarray(state[key])
+    if key in buffers:
+      want = buffers[key]
+      if value.shape != want.shape or not np.allclose(value, want, rtol=0, atol=1e-6):
+        bad_buffers.append(f"{key} {value.shape} (differs from the value implied by config.json)")
+      continue
+    path = torch_key_to_path(key, value.ndim)
+    arr = torch_to_flax_array(key, value)
+    if path not in expected:
+      unexpected.append(f"{key} {tuple(value.shape)}")
+      continue
+    if path in flat:  # an alias of a tensor already read (shared module saved twice)
+      if not np.array_equal(flat[path], arr):
+        misshaped.append(f"{key}: differs from its alias {origin[path]}")
+      continue
+    if tuple(arr.shape) != expected[path]:
+      misshaped.append(f"{key}: file {tuple(value.shape)} -> {tuple(arr.shape)}, model expects "
+                       f"{expected[path]} at {'/'.join(path)}")
+      continue
+    flat[path], origin[path] = arr, key
+  missing = [f"{path_to_torch_key(p)} (Flax {'/'.join(p)} {expected[p]})"
+             for p in sorted(expected) if p not in flat and not any(
+                 m.startswith(path_to_torch_key(p) + ":") for m in misshaped)]
+  missing_buffers = [k for k in buffers if k not in state]
+  if unexpected or misshaped or missing or bad_buffers or missing_buffers:
+    lines = [f"{source} does not match the model built from its config:"]
+    for title, items in (("missing", missing + missing_buffers), ("unexpected", unexpected),
+                         ("mis-shaped", misshaped), ("wrong buffer values", bad_buffers)):
+      if items:
+        lines.append(f"  {title} ({len(items)}):")
+        lines.extend(f"    {s}" for s in items)
+    raise ValueError("\n".join(lines))
+  return _unflatten({k: jnp.asarray(v) for k, v in flat.items()})
+
+
+def state_dict_from_params(params, buffers: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
+  """Flax params -> torch-named state dict (canonical, de-duplicated names) plus buffers."""
+  out = {}
+  for path, v in _flatten(_unfreeze(params)).items():
+    key = path_to_torch_key(path)
+    out[key] = np.ascontiguousarray(flax_to_torch_array(key, np.asarray(v)))
+  out.update({k: np.asarray(v) for k, v in buffers.items()})
+  return out
+
+
+def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
+  from safetensors.numpy import load_file
+  d = pathlib.Path(snapshot_dir)
+  cfg_path, w_path = d / "config.json", d / "model.safetensors"
+  for p in (cfg_path, w_path):
+    if not p.is_file():
+      raise FileNotFoundError(f"{p} not found (expected a Hugging Face snapshot folder with "
+                              "config.json and model.safetensors)")
+  try:
+    cj = json.loads(cfg_path.read_text())
+  except json.JSONDecodeError as e:
+    raise ValueError(f"{cfg_path}: invalid JSON ({e})") from e
+  try:
+    state = load_file(str(w_path))
+  except Exception as e:  # safetensors raises its own error types
+    raise ValueError(f"{w_path}: cannot read safetensors ({e})") from e
+  return cj, state
+
+
+def official_spec(cj: dict, state: Dict[str, np.ndarray], where: str = "config.json"
+                  ) -> OfficialSpec:
+  shapes = {k: tuple(v.shape) for k, v in state.items()}
+  for detect, build in OFFICIAL_CLASSES:
+    if detect(cj):
+      return build(cj, shapes)
+  raise ValueError(f"{where}: no supported UFM model class matches this config (keys: "
+                   f"{sorted(cj)})")
+
+
+def load_official(snapshot_dir):
+  """(model, params) from a Hugging Face snapshot of an official UFM release."""
+  cj, state = read_snapshot(snapshot_dir)
+  spec = official_spec(cj, state, f"{snapshot_dir}/config.json")
+  params = params_from_state_dict(state, spec.model, spec.buffers,
+                                  f"{snapshot_dir}/model.safetensors")
+  return spec.model, params
+
+
+# ----------------------------------------------------------------------------- orbax format
+
+CONFIG_FILE = "model_config.json"
+PARAMS_DIR = "params"
+
+
+# Flax module class -> the official class name stored in model_config.json.
+CLASS_NAMES: Dict[type, str] = {ufm.UFM: "UniFlowMatchConfidence"}
+
+
+def _class_name(model) -> str:
+  if type(model) not in CLASS_NAMES:
+    raise ValueError(f"no checkpoint class name registered for {type(model).__name__}")
+  return CLASS_NAMES[type(model)]
+
+
+def save(out_dir, model, params, class_name: Optional[str] = None):
+  """Write params (orbax) + model_config.json into a new folder, atomically (temp + rename)."""
+  import orbax.checkpoint as ocp
+  out = pathlib.Path(out_dir).absolute()
+  if out.exists():
+    raise FileExistsError(f"{out} already exists; refusing to overwrite a checkpoint")
+  out.parent.mkdir(parents=True, exist_ok=True)
+  tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+  try:
+    ocp.PyTreeCheckpointer().save(tmp / PARAMS_DIR, jax.tree.map(np.asarray, params))
+    meta = {"class": class_name or _class_name(model), "config": dataclasses.asdict(model.config)}
+    (tmp / CONFIG_FILE).write_text(json.dumps(meta, indent=2))
+    os.replace(tmp, out)
+  except BaseException:
+    shutil.rmtree(tmp, ignore_errors=True)
+    raise
+
+
+def load(ckpt_dir):
+  """(model, params) from a folder written by `save` / `python -m ufm_jax.convert`."""
+  import orbax.checkpoint as ocp
+  d = pathlib.Path(ckpt_dir).absolute()
+  cfg_path = d / CONFIG_FILE
+  if not cfg_path.is_file():
+    raise FileNotFoundError(f"{cfg_path} not found (not a checkpoint written by "
+                            "`python -m ufm_jax.convert`)")
+  meta = json.loads(cfg_path.read_text())
+  if meta.get("class") not in SAVED_CLASSES:
+    raise ValueError(f"{cfg_path}: unknown model class {meta.get('class')!r}; known: "
+                     f"{sorted(SAVED_CLASSES)}")
+  from_dict, build = SAVED_CLASSES[meta["class"]]
+  model = build(from_dict(meta["config"]))
+  p = model.config.encoder.patch_size
+  x = jax.ShapeDtypeStruct((1, 2 * p, 2 * p, 3), jnp.uint8)
+  target = jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b), x, x)["params"]
+  target = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), _unfreeze(target))
+  params = ocp.PyTreeCheckpointer().restore(d / PARAMS_DIR, item=target)
+  params = jax.tree.map(jnp.asarray, params)
+  got = {k: tuple(v.shape) for k, v in _flatten(_unfreeze(params)).items()}
+  want = {k: tuple(v.shape) for k, v in _flatten(target).items()}
+  if got != want:
+    raise ValueError(f"{d / PARAMS_DIR}: parameter tree does not match {cfg_path}")
+  return model, params
+
+
+def main(argv=None):
+  argv = sys.argv[1:] if argv is None else argv
+  if len(argv) != 2 or argv[0] in ("-h", "--help"):
+    print("usage: python -m ufm_jax.convert SNAPSHOT_DIR OUT_DIR\n"
+          "  SNAPSHOT_DIR: Hugging Face snapshot (config.json + model.safetensors)\n"
+          "  OUT_DIR: new folder for the orbax params + model_config.json", file=sys.stderr)
+    return 2
+  model, params = load_official(argv[0])
+  save(argv[1], model, params)
+  n = sum(int(np.prod(v.shape)) for v in jax.tree.leaves(params))
+  print(f"wrote {argv[1]} ({type(model).__name__}, {n:,} parameters)")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

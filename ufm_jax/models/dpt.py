@@ -1,0 +1,207 @@
+"""DPT feature head, regression processor and output adaptors (UniCeption `DPTFeature`,
+`DPTRegressionProcessor`, `FlowAdaptor`, `MaskAdaptor`), NHWC.
+
+Module names follow the PyTorch ones with list indices joined by "_" (`input_process.0.0.1` ->
+`input_process_0_0_1`); `input_process_k_1` is the module UniCeption also registers as
+`scratch.layer{k+1}_rn` / `scratch.layer_rn.{k}`.
+"""
+
+import dataclasses
+from typing import Optional, Sequence, Tuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class DPTConfig:
+  input_feature_dims: Tuple[int, int, int, int] = (1024, 768, 768, 768)
+  layer_dims: Tuple[int, int, int, int] = (96, 192, 384, 768)
+  feature_dim: int = 256
+  hooks: Tuple[int, int, int, int] = (0, 1, 2, 3)
+  output_dim: int = 2
+  hidden_dims: Optional[Tuple[int, int]] = None  # processor widths; default feature_dim // 2
+
+
+@dataclasses.dataclass(frozen=True)
+class FlowAdaptorConfig:
+  flow_mean: Tuple[float, float] = (0.0, 0.0)
+  flow_std: Tuple[float, float] = (1.0, 1.0)
+  base_shape: Tuple[int, int] = (420, 560)  # (H, W)
+  scale_strategy: str = "scale_both"  # none | scale_width | scale_height | scale_both
+  output_normalized_coordinate: bool = False
+
+  def __post_init__(self):
+    if self.scale_strategy not in ("none", "scale_width", "scale_height", "scale_both"):
+      raise ValueError(f"invalid FlowAdaptor scale_strategy {self.scale_strategy!r}; expected "
+                       "none, scale_width, scale_height or scale_both")
+
+
+def _conv(features, k, stride=1, pad=0, bias=True, name=None, dtype=None):
+  return nn.Conv(features, (k, k), strides=(stride, stride), padding=((pad, pad), (pad, pad)),
+                 use_bias=bias, dtype=dtype, name=name)
+
+
+class ConvTranspose(nn.Module):
+  """torch ConvTranspose2d with kernel == stride, no padding: every input pixel writes one
+  disjoint k x k output block, out[i*k+a, j*k+b, o] = sum_c x[i, j, c] W[c, o, a, b] + bias.
+  kernel is stored [k, k, in, out]."""
+  features: int
+  k: int
+  dtype: Optional[jnp.dtype] = None
+
+  @nn.compact
+  def __call__(self, x):
+    b, h, w, c = x.shape
+    kernel = self.param("kernel", nn.initializers.lecun_normal(), (self.k, self.k, c, self.features))
+    bias = self.param("bias", nn.initializers.zeros, (self.features,))
+    dtype = self.dtype or jnp.promote_types(x.dtype, kernel.dtype)
+    y = jnp.einsum("nhwc,abco->nhawbo", x.astype(dtype), kernel.astype(dtype))
+    return y.reshape(b, h * self.k, w * self.k, self.features) + bias.astype(dtype)
+
+
+def _interp_axis(n_in: int, n_out: int, f=np.float32):
+  """torch bilinear align_corners=True along one axis: (i0, i1, w0, w1) in precision f."""
+  scale = f(n_in - 1) / f(n_out - 1) if n_out > 1 else f(0)
+  src = scale * np.arange(n_out, dtype=f)
+  i0 = np.floor(src).astype(np.int64)
+  i0 = np.minimum(i0, n_in - 1)
+  w1 = (src - i0.astype(f)).astype(f)
+  i1 = np.minimum(i0 + 1, n_in - 1)
+  return i0, i1, (f(1) - w1).astype(f), w1
+
+
+def resize_bilinear_align_corners(x: jax.Array, out_h: int, out_w: int) -> jax.Array:
+  """F.interpolate(mode='bilinear', align_corners=True) on NHWC.
+
+  Evaluated as torch's CPU kernel does, h0 * (w0 * x00 + w1 * x01) + h1 * (...), so the float32
+  rounding matches too.
+  """
+  _, h, w, _ = x.shape
+  f = np.float64 if x.dtype == jnp.float64 else np.float32
+  j0, j1, b0, b1 = _interp_axis(w, out_w, f)
+  x = (x[:, :, j0] * jnp.asarray(b0, x.dtype)[None, None, :, None]
+       + x[:, :, j1] * jnp.asarray(b1, x.dtype)[None, None, :, None])
+  i0, i1, a0, a1 = _interp_axis(h, out_h, f)
+  return (x[:, i0] * jnp.asarray(a0, x.dtype)[None, :, None, None]
+          + x[:, i1] * jnp.asarray(a1, x.dtype)[None, :, None, None])
+
+
+class ResidualConvUnit(nn.Module):
+  """x + conv2(relu(conv1(relu(x))))."""
+  features: int
+
+  @nn.compact
+  def __call__(self, x):
+    y = _conv(self.features, 3, pad=1, name="conv1")(jax.nn.relu(x))
+    y = _conv(self.features, 3, pad=1, name="conv2")(jax.nn.relu(y))
+    return x + y
+
+
+class FusionBlock(nn.Module):
+  """out_conv(up2(resConfUnit2(x0 [+ resConfUnit1(x1)]))), bilinear x2 align_corners=True."""
+  features: int
+  has_skip: bool = True  # refinenet4 has no second input (and no resConfUnit1 weights)
+
+  @nn.compact
+  def __call__(self, x0, x1=None):
+    out = x0
+    if self.has_skip:
+      out = out + ResidualConvUnit(self.features, name="resConfUnit1")(x1)
+    out = ResidualConvUnit(self.features, name="resConfUnit2")(out)
+    _, h, w, _ = out.shape
+    out = resize_bilinear_align_corners(out, 2 * h, 2 * w)
+    return _conv(self.features, 1, name="out_conv")(out)
+
+
+class Scratch(nn.Module):
+  feature_dim: int
+
+  def setup(self):
+    self.refinenet1 = FusionBlock(self.feature_dim)
+    self.refinenet2 = FusionBlock(self.feature_dim)
+    self.refinenet3 = FusionBlock(self.feature_dim)
+    self.refinenet4 = FusionBlock(self.feature_dim, has_skip=False)
+
+
+class DPTFeature(nn.Module):
+  """Four [B, h, w, C_k] maps at patch resolution -> [B, 8h, 8w, feature_dim]."""
+  config: DPTConfig
+
+  @nn.compact
+  def __call__(self, feats: Sequence[jax.Array]):
+    cfg = self.config
+    ld, fd = cfg.layer_dims, cfg.feature_dim
+    for k, hook in enumerate(cfg.hooks):
+      if feats[hook].shape[-1] != cfg.input_feature_dims[k]:
+        raise ValueError(f"DPT hook {hook}: got {feats[hook].shape[-1]} channels, expected "
+                         f"{cfg.input_feature_dims[k]}")
+    x = [feats[hook] for hook in cfg.hooks]
+    # Branch resampling: x4 (1x1, ConvT 4/4), x2 (1x1, ConvT 2/2), x1 (1x1), x1/2 (1x1, 3x3 s2).
+    x[0] = ConvTranspose(ld[0], 4, name="input_process_0_0_1")(
+        _conv(ld[0], 1, name="input_process_0_0_0")(x[0]))
+    x[1] = ConvTranspose(ld[1], 2, name="input_process_1_0_1")(
+        _conv(ld[1], 1, name="input_process_1_0_0")(x[1]))
+    x[2] = _conv(ld[2], 1, name="input_process_2_0_0")(x[2])
+    x[3] = _conv(ld[3], 3, stride=2, pad=1, name="input_process_3_0_1")(
+        _conv(ld[3], 1, name="input_process_3_0_0")(x[3]))
+    # layer{k}_rn: 3x3 to feature_dim, no bias.
+    x = [_conv(fd, 3, pad=1, bias=False, name=f"input_process_{k}_1")(x[k]) for k in range(4)]
+    for k in range(4):
+      self.sow("intermediates", f"layer{k}", x[k])
+    scratch = Scratch(fd, name="scratch")
+    path4 = scratch.refinenet4(x[3])
+    self.sow("intermediates", "refinenet4_out", path4)
+    path4 = path4[:, :x[2].shape[1], :x[2].shape[2]]  # top-left crop for odd grids
+    path3 = scratch.refinenet3(path4, x[2])
+    self.sow("intermediates", "refinenet3_out", path3)
+    path2 = scratch.refinenet2(path3, x[1])
+    self.sow("intermediates", "refinenet2_out", path2)
+    path1 = scratch.refinenet1(path2, x[0])
+    self.sow("intermediates", "refinenet1_out", path1)
+    return path1
+
+
+class DPTRegressionProcessor(nn.Module):
+  """conv3x3 -> bilinear (align_corners=True) resize to (H, W) -> conv3x3 -> ReLU -> conv1x1."""
+  config: DPTConfig
+
+  @nn.compact
+  def __call__(self, x, out_hw: Tuple[int, int]):
+    cfg = self.config
+    h1, h2 = cfg.hidden_dims or (cfg.feature_dim // 2,) * 2
+    x = _conv(h1, 3, pad=1, name="conv1")(x)
+    self.sow("intermediates", "conv1_out", x)
+    x = resize_bilinear_align_corners(x, *out_hw)
+    x = _conv(h2, 3, pad=1, name="conv2_0")(x)
+    x = jax.nn.relu(x)
+    return _conv(cfg.output_dim, 1, name="conv2_2")(x)
+
+
+def flow_adaptor(x: jax.Array, cfg: FlowAdaptorConfig) -> jax.Array:
+  """Normalised network output [B, H, W, 2] -> flow in pixels (UniCeption FlowAdaptor)."""
+  _, h, w, _ = x.shape
+  f32 = np.float32
+  if not cfg.output_normalized_coordinate:
+    if cfg.scale_strategy == "none":
+      sx, sy = 1.0, 1.0
+    elif cfg.scale_strategy == "scale_width":
+      sx = sy = w / cfg.base_shape[1]
+    elif cfg.scale_strategy == "scale_height":
+      sx = sy = h / cfg.base_shape[0]
+    else:  # scale_both
+      sx, sy = w / cfg.base_shape[1], h / cfg.base_shape[0]
+    # torch: float32 buffers times torch.tensor([sx, sy], float32); the mean is scaled too.
+    scale = np.array([sx, sy], f32)
+    std = jnp.asarray(np.array(cfg.flow_std, f32), x.dtype) * jnp.asarray(scale, x.dtype)
+    mean = jnp.asarray(np.array(cfg.flow_mean, f32), x.dtype) * jnp.asarray(scale, x.dtype)
+    return x * std + mean
+  # The network predicts normalised target coordinates in [-1, 1]; subtract the pixel centres.
+  wh = jnp.asarray(np.array([w, h], f32), x.dtype)
+  x = 0.5 * (x + 1) * wh + 0.5
+  xs = np.arange(w, dtype=f32) + f32(0.5)
+  ys = np.arange(h, dtype=f32) + f32(0.5)
+  coords = np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1)  # [H, W, 2]
+  return x - jnp.asarray(coords, x.dtype)

@@ -1,0 +1,91 @@
+"""The fused two-view global-attention transformer ("info sharing",
+UniCeption `MultiViewGlobalAttentionTransformerIFR`).
+
+Tokens of both views are concatenated [view1 (row-major y, x); view2], projected, tagged with a
+sinusoidal view embedding (row 0 for view 1, row 1 for view 2) and run through pre-norm
+self-attention blocks; the selected intermediate outputs and the final output all go through the
+same final `norm`.
+"""
+
+import dataclasses
+from typing import Optional, Sequence, Tuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ufm_jax.models import layers
+
+
+@dataclasses.dataclass(frozen=True)
+class InfoSharingConfig:
+  input_embed_dim: int = 1024
+  dim: int = 768
+  depth: int = 12
+  num_heads: int = 12
+  mlp_ratio: float = 4.0
+  qkv_bias: bool = True
+  qk_norm: bool = False
+  init_values: Optional[float] = None  # LayerScale when set
+  indices: Tuple[int, ...] = (5, 8)  # 0-based blocks whose (normed) output feeds the DPT heads
+  norm_intermediate: bool = True
+  max_num_views: int = 2
+
+  def take_indices(self) -> Tuple[int, ...]:
+    idx = tuple(sorted(i % self.depth if i < 0 else i for i in self.indices))
+    for i in idx:
+      if not 0 <= i < self.depth:
+        raise ValueError(f"info-sharing index {i} out of range for depth {self.depth}")
+    return idx
+
+
+def sinusoid_table(n_position: int, dim: int, base: float = 10000.0) -> np.ndarray:
+  """pe[p, j] = sin(p / base**(2*(j//2)/dim)) for even j, cos for odd j; float64 -> float32."""
+  j = np.arange(dim)
+  angle = np.arange(n_position)[:, None] / np.power(base, 2 * (j // 2) / dim)[None, :]
+  table = np.where(j % 2 == 0, np.sin(angle), np.cos(angle))
+  return table.astype(np.float32)
+
+
+class InfoSharing(nn.Module):
+  """Returns (final, [intermediates...]), each a pair (view1, view2) of [B, h, w, dim] maps."""
+  config: InfoSharingConfig
+  dtype: Optional[jnp.dtype] = None
+  remat: bool = False
+  activation_sharding: layers.ActivationHook = None
+
+  @nn.compact
+  def __call__(self, feat1: jax.Array, feat2: jax.Array):
+    cfg = self.config
+    b, h, w, c = feat1.shape
+    n = h * w
+    constrain = self.activation_sharding or layers.identity
+    x = jnp.concatenate([feat1.reshape(b, n, c), feat2.reshape(b, n, c)], axis=1)
+    if cfg.input_embed_dim != cfg.dim:
+      x = nn.Dense(cfg.dim, dtype=self.dtype, name="proj_embed")(x)
+    self.sow("intermediates", "proj_embed_out", x)
+    # A buffer in the PyTorch module, not a parameter: constant here (the loader checks it).
+    table = jnp.asarray(sinusoid_table(cfg.max_num_views, cfg.dim))
+    view_pe = jnp.repeat(table[:2], n, axis=0)  # [2n, dim]
+    x = x + view_pe.astype(jnp.promote_types(x.dtype, jnp.float32))
+    self.sow("intermediates", "tokens_in", x)
+    x = constrain(x)
+
+    block = layers.block_class(self.remat)
+    norm = layers.layer_norm("norm", self.dtype)
+    take = cfg.take_indices()
+    inters = []
+    for i in range(cfg.depth):
+      x = block(cfg.num_heads, cfg.mlp_ratio, cfg.qkv_bias, cfg.qk_norm, cfg.init_values, "mlp",
+                self.dtype, name=f"self_attention_blocks_{i}")(x)
+      x = constrain(x)
+      self.sow("intermediates", f"block{i}_out", x)
+      if i in take:
+        inters.append(norm(x) if cfg.norm_intermediate else x)
+
+    def split(t):
+      t = t.reshape(b, 2, h, w, cfg.dim)
+      return t[:, 0], t[:, 1]
+
+    return split(norm(x)), [split(t) for t in inters]

@@ -1,0 +1,132 @@
+"""Transformer building blocks shared by the DINOv2 encoder and the info-sharing transformer.
+
+Submodule and parameter names follow the PyTorch modules (timm / DINOv2 / UniCeption), so the
+weight conversion in `ufm_jax.convert` is a mechanical rename: `qkv`, `proj`, `fc1`, `fc2`,
+`norm1`, `norm2`, `ls1.gamma`, `ls2.gamma`, `q_norm`, `k_norm`, `w12`, `w3`.
+"""
+
+from typing import Any, Callable, Optional
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+Dtype = Any
+
+# Every LayerNorm of UFM uses eps 1e-6. Two-pass variance (as torch) instead of E[x^2]-E[x]^2.
+LN_EPS = 1e-6
+
+
+def layer_norm(name: str, dtype: Optional[Dtype] = None) -> nn.LayerNorm:
+  return nn.LayerNorm(epsilon=LN_EPS, use_fast_variance=False, dtype=dtype, name=name)
+
+
+def identity(x):
+  return x
+
+
+class LayerScale(nn.Module):
+  """x * gamma (the DINOv2 / timm LayerScale)."""
+  init_values: float = 1.0
+
+  @nn.compact
+  def __call__(self, x):
+    gamma = self.param("gamma", nn.initializers.constant(self.init_values), (x.shape[-1],))
+    return x * gamma.astype(x.dtype)
+
+
+class Attention(nn.Module):
+  """Multi-head self-attention: fused qkv projection, optional per-head q/k LayerNorm."""
+  num_heads: int
+  qkv_bias: bool = True
+  qk_norm: bool = False
+  dtype: Optional[Dtype] = None
+
+  @nn.compact
+  def __call__(self, x):
+    b, n, c = x.shape
+    head_dim = c // self.num_heads
+    qkv = nn.Dense(3 * c, use_bias=self.qkv_bias, dtype=self.dtype, name="qkv")(x)
+    # torch: reshape(B, N, 3, heads, head_dim); jax.nn.dot_product_attention wants [B, N, heads, hd].
+    qkv = qkv.reshape(b, n, 3, self.num_heads, head_dim)
+    q, k, v = qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]
+    if self.qk_norm:
+      q = layer_norm("q_norm", self.dtype)(q)
+      k = layer_norm("k_norm", self.dtype)(k)
+    if q.dtype == jnp.float64:
+      # jax.nn.dot_product_attention always takes the softmax in float32; keep float64 exact.
+      logits = jnp.einsum("bqhd,bkhd->bhqk", q, k) * head_dim ** -0.5
+      out = jnp.einsum("bhqk,bkhd->bqhd", jax.nn.softmax(logits, axis=-1), v)
+    else:
+      # XLA reference path on CPU/TPU; cuDNN (flash) kernels on GPU via `implementation`.
+      out = jax.nn.dot_product_attention(q, k, v, scale=head_dim ** -0.5)
+    out = out.reshape(b, n, c)
+    return nn.Dense(c, dtype=self.dtype, name="proj")(out)
+
+
+class Mlp(nn.Module):
+  """fc1 -> exact (erf) GELU -> fc2."""
+  hidden_dim: int
+  dtype: Optional[Dtype] = None
+
+  @nn.compact
+  def __call__(self, x):
+    c = x.shape[-1]
+    h = nn.Dense(self.hidden_dim, dtype=self.dtype, name="fc1")(x)
+    h = jax.nn.gelu(h, approximate=False)
+    return nn.Dense(c, dtype=self.dtype, name="fc2")(h)
+
+
+class SwiGLUFFN(nn.Module):
+  """DINOv2 ViT-g feed-forward: w12 -> (silu(x1) * x2) -> w3 (names as `SwiGLUFFNFused`)."""
+  hidden_dim: int
+  dtype: Optional[Dtype] = None
+
+  @nn.compact
+  def __call__(self, x):
+    c = x.shape[-1]
+    x12 = nn.Dense(2 * self.hidden_dim, dtype=self.dtype, name="w12")(x)
+    x1, x2 = jnp.split(x12, 2, axis=-1)
+    return nn.Dense(c, dtype=self.dtype, name="w3")(jax.nn.silu(x1) * x2)
+
+
+def swiglu_hidden_dim(dim: int, mlp_ratio: float) -> int:
+  """DINOv2's SwiGLUFFNFused rounds 2/3 of the MLP width up to a multiple of 8."""
+  hidden = int(dim * mlp_ratio)
+  return (int(hidden * 2 / 3) + 7) // 8 * 8
+
+
+class Block(nn.Module):
+  """Pre-norm transformer block: x + ls1(attn(norm1(x))); x + ls2(mlp(norm2(x)))."""
+  num_heads: int
+  mlp_ratio: float = 4.0
+  qkv_bias: bool = True
+  qk_norm: bool = False
+  init_values: Optional[float] = None  # LayerScale when set
+  ffn: str = "mlp"  # "mlp" or "swiglu"
+  dtype: Optional[Dtype] = None
+
+  @nn.compact
+  def __call__(self, x):
+    c = x.shape[-1]
+    ls = (lambda name: LayerScale(self.init_values, name=name)) if self.init_values else (
+        lambda name: identity)
+    y = layer_norm("norm1", self.dtype)(x)
+    y = Attention(self.num_heads, self.qkv_bias, self.qk_norm, self.dtype, name="attn")(y)
+    x = x + ls("ls1")(y)
+    y = layer_norm("norm2", self.dtype)(x)
+    if self.ffn == "mlp":
+      y = Mlp(int(c * self.mlp_ratio), self.dtype, name="mlp")(y)
+    elif self.ffn == "swiglu":
+      y = SwiGLUFFN(swiglu_hidden_dim(c, self.mlp_ratio), self.dtype, name="mlp")(y)
+    else:
+      raise ValueError(f"unknown ffn {self.ffn!r}; expected 'mlp' or 'swiglu'")
+    return x + ls("ls2")(y)
+
+
+def block_class(remat: bool) -> type:
+  """The Block class, wrapped in nn.remat (gradient checkpointing per block) when asked."""
+  return nn.remat(Block) if remat else Block
+
+
+ActivationHook = Optional[Callable[[jax.Array], jax.Array]]

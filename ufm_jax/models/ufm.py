@@ -1,0 +1,215 @@
+"""UFM (`UniFlowMatchConfidence`): DINOv2 encoder -> two-view info sharing -> DPT flow head and
+DPT covisibility head.
+
+Contract: `model.apply({"params": params}, source, target)` with [B, H, W, 3] uint8 (or float
+0..255) images, H and W multiples of the patch size, returns
+{"flow" [B, H, W, 2] (pixels, u then v), "covisibility" [B, H, W], "covisibility_logits" [B, H, W]}.
+ImageNet normalisation of x / 255 happens inside. Internals are sown into the "intermediates"
+collection (read them with `mutable=["intermediates"]`).
+"""
+
+import dataclasses
+import json
+from typing import Any, Dict, Optional, Tuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ufm_jax.models import dinov2, dpt, layers
+from ufm_jax.models import info_sharing as info_sharing_lib
+
+# UniCeption data_norm_type "dinov2" (ImageNet), float32 like the official tensors.
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+DTYPES = {"float32": jnp.float32, "bfloat16": jnp.bfloat16, "float64": jnp.float64}
+
+
+@dataclasses.dataclass(frozen=True)
+class UFMConfig:
+  """Structure of a UFM model plus compute options (dtype, remat) that do not change params."""
+  encoder: dinov2.DinoV2Config = dinov2.DinoV2Config()
+  info_sharing: info_sharing_lib.InfoSharingConfig = info_sharing_lib.InfoSharingConfig()
+  flow_head: dpt.DPTConfig = dpt.DPTConfig(output_dim=2)
+  covisibility_head: dpt.DPTConfig = dpt.DPTConfig(output_dim=1)
+  flow_adaptor: dpt.FlowAdaptorConfig = dpt.FlowAdaptorConfig()
+  detach_uncertainty_head: bool = True
+  inference_resolution: Tuple[int, int] = (420, 560)  # (H, W), used by ufm_jax.predict
+  # Compute dtype of encoder + info sharing: "float32", "bfloat16" (heads stay float32, as the
+  # official autocast does), or "float64" (everything; needs jax_enable_x64, for testing).
+  dtype: str = "float32"
+  remat: bool = False  # gradient checkpointing per transformer block
+
+  def __post_init__(self):
+    if self.dtype not in DTYPES:
+      raise ValueError(f"UFMConfig.dtype {self.dtype!r}; expected one of {sorted(DTYPES)}")
+    if len(self.info_sharing.indices) != 2:
+      raise ValueError("UFM feeds exactly two info-sharing intermediates to the DPT heads; "
+                       f"got info_sharing.indices={self.info_sharing.indices}")
+
+  def replace(self, **kw) -> "UFMConfig":
+    return dataclasses.replace(self, **kw)
+
+
+_SUB = {"encoder": dinov2.DinoV2Config, "info_sharing": info_sharing_lib.InfoSharingConfig,
+        "flow_head": dpt.DPTConfig, "covisibility_head": dpt.DPTConfig,
+        "flow_adaptor": dpt.FlowAdaptorConfig}
+
+
+def _tuplify(v):
+  return tuple(_tuplify(x) for x in v) if isinstance(v, (list, tuple)) else v
+
+
+def config_to_dict(cfg: UFMConfig) -> Dict[str, Any]:
+  return dataclasses.asdict(cfg)
+
+
+def config_from_dict(d: Dict[str, Any]) -> UFMConfig:
+  """Inverse of config_to_dict (JSON lists become tuples); unknown keys raise."""
+  kw = {}
+  for k, v in d.items():
+    if k in _SUB:
+      cls = _SUB[k]
+      names = {f.name for f in dataclasses.fields(cls)}
+      unknown = set(v) - names
+      if unknown:
+        raise ValueError(f"unknown keys {sorted(unknown)} in model config section {k!r}")
+      kw[k] = cls(**{kk: _tuplify(vv) for kk, vv in v.items()})
+    elif k in {f.name for f in dataclasses.fields(UFMConfig)}:
+      kw[k] = _tuplify(v)
+    else:
+      raise ValueError(f"unknown model config key {k!r}")
+  return UFMConfig(**kw)
+
+
+def config_to_json(cfg: UFMConfig) -> str:
+  return json.dumps(config_to_dict(cfg), indent=2)
+
+
+def config_from_json(text: str) -> UFMConfig:
+  return config_from_dict(json.loads(text))
+
+
+def check_images(source, target, patch_size: int, symmetrized: bool = False):
+  """ValueError naming the offending shape/dtype (the edge of the jitted model)."""
+  for name, x in (("source", source), ("target", target)):
+    if x.ndim != 4:
+      raise ValueError(f"{name} has shape {tuple(x.shape)} (rank {x.ndim}); expected rank 4 "
+                       "[B, H, W, 3]")
+    if x.shape[-1] != 3:
+      raise ValueError(f"{name} has shape {tuple(x.shape)}; expected 3 channels (RGB) last, "
+                       "[B, H, W, 3]")
+    if not (x.dtype == jnp.uint8 or jnp.issubdtype(x.dtype, jnp.floating)):
+      raise ValueError(f"{name} has dtype {x.dtype}; expected uint8 or float (0..255)")
+    h, w = x.shape[1:3]
+    if h % patch_size or w % patch_size or h == 0 or w == 0:
+      raise ValueError(f"{name} has shape {tuple(x.shape)}; H and W must be positive multiples "
+                       f"of the patch size {patch_size}")
+  if source.shape != target.shape:
+    raise ValueError(f"source shape {tuple(source.shape)} != target shape {tuple(target.shape)}; "
+                     "both views must have the same [B, H, W, 3]")
+  if symmetrized and source.shape[0] % 2:
+    raise ValueError(f"symmetrized=True needs an even batch of (a,b),(b,a) pairs; got batch "
+                     f"{source.shape[0]}")
+
+
+def _uint8_table() -> np.ndarray:
+  """[256, 3] float32: (v / 255 - mean) / std with IEEE divisions, as torch computes it."""
+  v = np.arange(256, dtype=np.float32)[:, None] / np.float32(255.0)
+  return ((v - np.array(IMAGENET_MEAN, np.float32)) / np.array(IMAGENET_STD, np.float32))
+
+
+_NORM_TABLE = _uint8_table()
+
+
+def normalize(x: jax.Array) -> jax.Array:
+  """(x / 255 - mean) / std in float32, the official uint8 branch.
+
+  uint8 goes through a 256-entry table so the result is bitwise the official one (XLA turns
+  divisions by constants into multiplications by reciprocals, which is off by an ulp).
+  """
+  if x.dtype == jnp.uint8:
+    table = jnp.asarray(_NORM_TABLE)
+    return jnp.stack([table[x[..., c].astype(jnp.int32), c] for c in range(3)], axis=-1)
+  x = x.astype(jnp.float32) / jnp.float32(255.0)
+  return (x - jnp.asarray(IMAGENET_MEAN, jnp.float32)) / jnp.asarray(IMAGENET_STD, jnp.float32)
+
+
+def _interleave(a, b):
+  """(a0, b0, a1, b1, ...) and (b0, a0, b1, a1, ...) along the batch axis."""
+  s = a.shape
+  return (jnp.stack([a, b], 1).reshape((2 * s[0],) + s[1:]),
+          jnp.stack([b, a], 1).reshape((2 * s[0],) + s[1:]))
+
+
+class UFM(nn.Module):
+  """UniFlowMatchConfidence. `activation_sharding` (optional) is applied to the token tensors at
+  every transformer block boundary (e.g. a with_sharding_constraint closure)."""
+  config: UFMConfig
+  activation_sharding: layers.ActivationHook = None
+
+  def setup(self):
+    cfg = self.config
+    compute = DTYPES[cfg.dtype]
+    bb_dtype = None if cfg.dtype == "float32" else compute
+    self.encoder = dinov2.DinoV2(cfg.encoder, bb_dtype, cfg.remat, self.activation_sharding)
+    self.info_sharing = info_sharing_lib.InfoSharing(cfg.info_sharing, bb_dtype, cfg.remat,
+                                                 self.activation_sharding)
+    # torch: head1 = Sequential(Sequential(DPTFeature, DPTRegressionProcessor), AdaptorMap).
+    self.head1_0_0 = dpt.DPTFeature(cfg.flow_head)
+    self.head1_0_1 = dpt.DPTRegressionProcessor(cfg.flow_head)
+    self.uncertainty_head_0_0 = dpt.DPTFeature(cfg.covisibility_head)
+    self.uncertainty_head_0_1 = dpt.DPTRegressionProcessor(cfg.covisibility_head)
+
+  def encode(self, source, target, symmetrized: bool = False):
+    """Normalised [B, H, W, 3] pair -> last encoder feature maps (view1, view2)."""
+    if symmetrized:
+      # (a,b),(b,a) interleaved: encode each image once, then interleave the features.
+      feats = self.encoder(jnp.concatenate([source[::2], target[::2]], axis=0))[-1]
+      f1, f2 = jnp.split(feats, 2, axis=0)
+      return _interleave(f1, f2)
+    feats = self.encoder(jnp.concatenate([source, target], axis=0))[-1]
+    return tuple(jnp.split(feats, 2, axis=0))
+
+  def __call__(self, source, target, symmetrized: bool = False) -> Dict[str, jax.Array]:
+    cfg = self.config
+    check_images(source, target, cfg.encoder.patch_size, symmetrized)
+    _, h, w, _ = source.shape
+    head_dtype = jnp.float64 if cfg.dtype == "float64" else jnp.float32
+    src, tgt = normalize(source), normalize(target)
+    if cfg.dtype == "float64":
+      src, tgt = src.astype(jnp.float64), tgt.astype(jnp.float64)
+
+    f1, f2 = self.encode(src, tgt, symmetrized)
+    (fin1, fin2), inters = self.info_sharing(f1, f2)
+    # Heads see view 1 only: [encoder last, intermediate 0, intermediate 1, final], in float32.
+    feats = [t.astype(head_dtype) for t in (f1, inters[0][0], inters[1][0], fin1)]
+
+    flow_norm = self.head1_0_1(self.head1_0_0(feats), (h, w))
+    self.sow("intermediates", "flow_decoded_channels", flow_norm)
+    flow = dpt.flow_adaptor(flow_norm, cfg.flow_adaptor)
+
+    cov_feats = [jax.lax.stop_gradient(t) for t in feats] if cfg.detach_uncertainty_head else feats
+    logits = self.uncertainty_head_0_1(self.uncertainty_head_0_0(cov_feats), (h, w))[..., 0]
+    return {"flow": flow, "covisibility": jax.nn.sigmoid(logits), "covisibility_logits": logits}
+
+
+def model_from_config(cfg: UFMConfig, **kw) -> UFM:
+  return UFM(cfg, **kw)
+
+
+def init_params(model: UFM, rng=None, image_hw: Optional[Tuple[int, int]] = None):
+  """Random parameters (float32). The parameter shapes do not depend on the image size."""
+  p = model.config.encoder.patch_size
+  hw = image_hw or (2 * p, 2 * p)
+  x = jnp.zeros((1,) + tuple(hw) + (3,), jnp.uint8)
+  rng = jax.random.PRNGKey(0) if rng is None else rng
+  return jax.jit(model.init)(rng, x, x)["params"]
+
+
+def param_shapes(model: UFM):
+  """Shape/dtype tree of the parameters, without allocating them (jax.eval_shape)."""
+  p = model.config.encoder.patch_size
+  x = jax.ShapeDtypeStruct((1, 2 * p, 2 * p, 3), jnp.uint8)
+  return jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b), x, x)["params"]
