@@ -103,11 +103,10 @@ def covisibility_from_points(points_world: np.ndarray, valid0: np.ndarray, depth
   return _correspond(*xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search)
 
 
-
-# ------------------------------------------------------------------------- fast float32 core
+# --------------------------------------------------------------------------- fast per-sample core
 # The reference helpers above work on [..., 3] stacks of any shape; the per-sample path below does
 # the same arithmetic on [H, W] planes (no [H, W, 3] stacks, no matmuls per pixel, poses composed
-# once, one clamp/floor per lookup), ~10x faster at the 560 training shape. Positions stay float64
+# once, one clamp/floor per lookup), ~5x faster at the 560 training shape. Positions stay float64
 # (a target landing exactly on a pixel centre must give its neighbours weight ~1e-15, not the
 # ~1e-6 of float32 rounding); the depth lookup (ranges, weights) is float32.
 _F = np.float32
