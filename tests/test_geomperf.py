@@ -11,6 +11,7 @@ import pytest
 
 from ufm_jax import geometry as g
 from ufm_jax.geometry import camera
+from ufm_jax.geometry import covisibility
 
 
 def _reference(points_world, valid0, depth1, K1, cam2world1, tau_d, tau_r, search=0.0):
@@ -96,13 +97,17 @@ def _compare(out, ref, flow_atol=1e-5):
   assert 0.2 < ref["covisibility"].mean() and (~ref["covisibility"] & ref["fov_mask"]).any()
 
 
-@pytest.mark.parametrize("seed,hw0,hw1,skew,search", [
-    (0, (30, 40), (30, 40), 0.0, 0.0),
-    (1, (33, 47), (21, 29), 0.7, 0.0),
-    (2, (40, 28), (40, 28), 0.0, 0.5),
-    (3, (1, 9), (2, 9), 0.0, 0.0),
+@pytest.mark.parametrize("seed,hw0,hw1,skew,search,block", [
+    (0, (30, 40), (30, 40), 0.0, 0.0, None),
+    (1, (33, 47), (21, 29), 0.7, 0.0, None),
+    (2, (40, 28), (40, 28), 0.0, 0.5, None),
+    (3, (1, 9), (2, 9), 0.0, 0.0, None),
+    (4, (33, 47), (30, 40), 0.0, 0.0, 100),  # several row blocks, the last one partial
+    (5, (40, 28), (40, 28), 0.0, 0.5, 60),
 ])
-def test_depth_matches_float64_reference(seed, hw0, hw1, skew, search):
+def test_depth_matches_float64_reference(seed, hw0, hw1, skew, search, block, monkeypatch):
+  if block:
+    monkeypatch.setattr(covisibility, "_BLOCK_PIXELS", block)
   rng = np.random.default_rng(seed)
   d0, K0, c2w0, d1, K1, c2w1 = _scene(rng, hw0, hw1, holes=hw0[0] > 1, skew=skew)
   tau = (0.05, 0.01)
@@ -120,7 +125,8 @@ def test_depth_matches_float64_reference(seed, hw0, hw1, skew, search):
   _compare(out2, ref)
 
 
-def test_rigid_matches_float64_reference():
+def test_rigid_matches_float64_reference(monkeypatch):
+  monkeypatch.setattr(covisibility, "_BLOCK_PIXELS", 200)  # several row blocks
   rng = np.random.default_rng(7)
   d0, K0, c2w0, d1, K1, c2w1 = _scene(rng, (36, 44), (36, 44))
   seg = np.zeros(d0.shape, np.int32)

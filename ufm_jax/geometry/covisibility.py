@@ -98,9 +98,13 @@ def covisibility_from_points(points_world: np.ndarray, valid0: np.ndarray, depth
   valid0 = np.asarray(valid0, bool)
   depth1 = _check_depth("depth1", depth1)
   w2c = camera.invert_pose(cam2world1)
-  p = [points_world[..., j] for j in range(3)]
-  xyz = [p[0] * w2c[i, 0] + p[1] * w2c[i, 1] + p[2] * w2c[i, 2] + w2c[i, 3] for i in range(3)]
-  return _correspond(*xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search)
+
+  def xyz(r0, r1):
+    p = [points_world[r0:r1, :, j] for j in range(3)]
+    with np.errstate(invalid="ignore", over="ignore"):
+      return [p[0] * w2c[i, 0] + p[1] * w2c[i, 1] + p[2] * w2c[i, 2] + w2c[i, 3] for i in range(3)]
+
+  return _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search)
 
 
 # --------------------------------------------------------------------------- fast per-sample core
@@ -196,45 +200,69 @@ class _Target:
     return value, ok, nearest_valid
 
 
-def _correspond(X, Y, Z, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0):
-  """Camera-2 coordinates X, Y, Z (float64 [H, W]) of the source points -> the output dict of
-  `covisibility_from_points`."""
+# Source rows are processed in blocks of about this many pixels: the dozens of temporaries of a
+# block stay in cache and in malloc's free lists instead of being page-faulted in per sample.
+_BLOCK_PIXELS = 1 << 15
+
+
+def _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0):
+  """xyz(r0, r1) -> camera-2 coordinates X, Y, Z (float64 [r1 - r0, W]) of source rows r0:r1
+  -> the output dict of `covisibility_from_points`."""
   h0, w0 = valid0.shape
   target = _Target(depth1, K1)
   h1, w1 = target.h, target.w
   fx, s, cx, fy, cy = _k_tuple(K1)
-  with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-    in_front = valid0 & (Z > MIN_Z)
-    inv_z = np.divide(1.0, Z)
-    y = Y * inv_z
-    u = X * inv_z
-    u *= fx
-    if s:
-      u += s * y
-    u += cx
-    v = y * fy
-    v += cy
-    in_front &= np.isfinite(u) & np.isfinite(v)
-    fov = in_front & (u >= -0.5) & (u < w1 - 0.5) & (v >= -0.5) & (v < h1 - 0.5)
-  # Outside in_front the lookup position is irrelevant (every output is masked there); putting
-  # the source pixel itself there makes the flow an exact +0.
-  grid_u, grid_v = np.arange(w0, dtype=np.float64)[None, :], np.arange(h0, dtype=np.float64)[:, None]
-  u = np.where(in_front, u, grid_u)
-  v = np.where(in_front, v, grid_v)
-  sampled, ok, nearest_valid = target.sample(u, v)
-  expected = X * X
-  expected += Y * Y
-  expected += Z * Z
-  np.sqrt(expected, out=expected)
-  expected = np.where(in_front, expected, 0.0).astype(_F)
-  evaluated = fov & ok
-  error = np.where(evaluated, np.abs(expected - sampled), _F(np.inf))
-  threshold = _F(tau_d) + _F(tau_r) * expected
-  covis = evaluated & (error < threshold)
-  if subpixel_search > 0:
+  flow = np.empty((h0, w0, 2), _F)
+  covis, fov, in_front, valid_other = (np.empty((h0, w0), bool) for _ in range(4))
+  error = np.empty((h0, w0), _F)
+  search = subpixel_search > 0
+  if search:
+    uv_all = np.empty((2, h0, w0))
+    expected_all = np.empty((h0, w0), _F)
+  grid_u = np.arange(w0, dtype=np.float64)[None, :]
+  step = max(1, _BLOCK_PIXELS // max(w0, 1))
+  for r0 in range(0, h0, step):
+    r1 = min(h0, r0 + step)
+    X, Y, Z = xyz(r0, r1)
+    grid_v = np.arange(r0, r1, dtype=np.float64)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+      front = valid0[r0:r1] & (Z > MIN_Z)
+      inv_z = np.divide(1.0, Z)
+      y = Y * inv_z
+      u = X * inv_z
+      u *= fx
+      if s:
+        u += s * y
+      u += cx
+      v = y * fy
+      v += cy
+      front &= np.isfinite(u) & np.isfinite(v)
+      view = front & (u >= -0.5) & (u < w1 - 0.5) & (v >= -0.5) & (v < h1 - 0.5)
+    # Outside in_front the lookup position is irrelevant (every output is masked there); putting
+    # the source pixel itself there makes the flow an exact +0.
+    u = np.where(front, u, grid_u)
+    v = np.where(front, v, grid_v)
+    sampled, ok, nearest_valid = target.sample(u, v)
+    expected = X * X
+    expected += Y * Y
+    expected += Z * Z
+    np.sqrt(expected, out=expected)
+    expected = np.where(front, expected, 0.0).astype(_F)
+    evaluated = view & ok
+    err = np.where(evaluated, np.abs(expected - sampled), _F(np.inf))
+    threshold = _F(tau_d) + _F(tau_r) * expected
+    np.logical_and(evaluated, err < threshold, out=covis[r0:r1])
+    np.logical_and(view, nearest_valid, out=valid_other[r0:r1])
+    fov[r0:r1], in_front[r0:r1], error[r0:r1] = view, front, err
+    np.subtract(u, grid_u, out=flow[r0:r1, :, 0])
+    np.subtract(v, grid_v, out=flow[r0:r1, :, 1])
+    if search:
+      uv_all[0, r0:r1], uv_all[1, r0:r1], expected_all[r0:r1] = u, v, expected
+  if search:
     todo = np.flatnonzero(fov & ~covis)
-    u_t, v_t = u.reshape(-1)[todo], v.reshape(-1)[todo]
-    want, thr = expected.reshape(-1)[todo], threshold.reshape(-1)[todo]
+    u_t, v_t = uv_all[0].reshape(-1)[todo], uv_all[1].reshape(-1)[todo]
+    want = expected_all.reshape(-1)[todo]
+    thr = _F(tau_d) + _F(tau_r) * want
     found = np.zeros(len(todo), bool)
     r = float(subpixel_search)
     for ox in (-r, 0.0, r):
@@ -243,21 +271,18 @@ def _correspond(X, Y, Z, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0):
           val, ok_t, _ = target.sample(u_t + ox, v_t + oy)
           found |= ok_t & (np.abs(want - val) < thr)
     covis.reshape(-1)[todo[found]] = True
-  valid_other = fov & nearest_valid
-  flow = np.empty((h0, w0, 2), _F)
-  np.subtract(u, grid_u, out=flow[..., 0])
-  np.subtract(v, grid_v, out=flow[..., 1])
   return dict(flow=flow, covisibility=covis, fov_mask=fov, valid=valid0,
               valid_other=valid_other, in_front=in_front, error=error)
 
 
-def _source_in_target(depth0, valid0, K0, rel):
-  """Camera-2 coordinates (float64 X, Y, Z planes) of the unprojected source depth under the
-  rigid transform rel [4, 4] (camera 1 -> camera 2)."""
+def _source_in_target(depth0, valid0, K0, rel, row0=0):
+  """Camera-2 coordinates (float64 X, Y, Z planes) of the unprojected source depth rows
+  (starting at image row `row0`) under the rigid transform rel [4, 4] (camera 1 -> camera 2)."""
   h, w = depth0.shape
-  d = np.where(valid0, depth0, 0.0)
+  with np.errstate(invalid="ignore"):
+    d = np.where(valid0, depth0, 0.0)
   u = np.arange(w, dtype=np.float64)[None, :]
-  v = np.arange(h, dtype=np.float64)[:, None]
+  v = np.arange(row0, row0 + h, dtype=np.float64)[:, None]
   M = rel[:3, :3] @ _k_inverse(K0)
   out = []
   for i in range(3):
@@ -293,5 +318,5 @@ def correspondence_from_depth(depth0, K0, cam2world0, depth1, K1, cam2world1,
       raise ValueError(f"{name} must be [4, 4], got shape {np.shape(T)}")
   valid0 = camera.valid_depth(depth0)
   rel = camera.invert_pose(cam2world1) @ np.asarray(cam2world0, np.float64)  # camera 1 -> 2
-  xyz = _source_in_target(depth0, valid0, K0, rel)
-  return _correspond(*xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search)
+  xyz = lambda r0, r1: _source_in_target(depth0[r0:r1], valid0[r0:r1], K0, rel, r0)
+  return _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search)

@@ -88,4 +88,5 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
     for i in range(3):
       xyz[i].reshape(-1)[others] = (coef[4 * i] * u + coef[4 * i + 1] * v + coef[4 * i + 2]) * d \
           + coef[4 * i + 3]
-  return _correspond(*xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search)
+  return _correspond(lambda r0, r1: [c[r0:r1] for c in xyz], valid0, depth1, K1, tau_d, tau_r,
+                     subpixel_search)
