@@ -164,3 +164,21 @@ def test_source_load_benchmark_covers_every_reader():
   assert set(times) == expected
   for name, (cpu, wall, hw) in times.items():
     assert cpu >= 0 and wall > 0 and hw == (28, 42), name
+
+
+def test_sceneflow_row_blocks_give_the_unblocked_result(monkeypatch):
+  from ufm_jax.geometry import sceneflow
+  rng = np.random.default_rng(3)
+  h, w = 37, 23
+  flow = rng.normal(0, 3, (h, w, 2)).astype(np.float32)
+  flow[0, :3] = np.nan
+  d0 = rng.uniform(5, 30, (h, w)).astype(np.float32)
+  d1 = d0 + rng.normal(0, 0.5, (h, w)).astype(np.float32)
+  d0[5, 5] = d1[7, 7] = 0
+  change = rng.normal(0, 0.3, (h, w)).astype(np.float32)
+  whole = sceneflow.sceneflow_covisibility(flow, d0, change, d1, 0.01, 0.001)
+  monkeypatch.setattr(sceneflow, "_BLOCK_PIXELS", 50)  # 2-row blocks
+  blocked = sceneflow.sceneflow_covisibility(flow, d0, change, d1, 0.01, 0.001)
+  assert whole["covisibility"].any() and not whole["covisibility"].all()
+  for key, value in whole.items():
+    np.testing.assert_array_equal(blocked[key], value, err_msg=key)
