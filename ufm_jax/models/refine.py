@@ -203,7 +203,9 @@ def _tap_products(f1, f2, x0, y0, ntaps):
   ys = jnp.clip(y0 + t, 0, h + t)
 
   def take(img, y, x):                                                   # -> [T, C]
-    return jax.lax.dynamic_slice(img, (y, x, 0), (1, t, c))[0]
+    zero = jnp.zeros((), jnp.int32)   # one index dtype, also under jax_enable_x64
+    return jax.lax.dynamic_slice(img, (y.astype(jnp.int32), x.astype(jnp.int32), zero),
+                                 (1, t, c))[0]
 
   take_all = jax.vmap(jax.vmap(jax.vmap(take, (None, 0, 0)), (None, 0, 0)), (0, 0, 0))
 
