@@ -466,6 +466,29 @@ PARAMS_DIR = "params"
 # Flax module class -> the official class name stored in model_config.json.
 CLASS_NAMES: Dict[type, str] = {ufm.UFM: "UniFlowMatchConfidence"}
 
+# ----------------------------------------------------------------------------- UFM-Refine
+# UniFlowMatchClassificationRefinement = the base model + refiner (ufm_jax/models/refine.py).
+# The refiner's keys follow the same rules; its U-Net up-convolutions are ConvTranspose2d.
+from ufm_jax.models import refine  # noqa: E402  (refine imports ufm; registered after the base)
+
+CONV_TRANSPOSE.append(re.compile(r"^unet_feature\.ups\.\d*[02468]\.weight$"))
+
+
+def _is_refine(cj: dict) -> bool:
+  return "refinement_range" in cj
+
+
+def _build_refine(cj: dict, shapes: dict) -> OfficialSpec:
+  base = ufm_config_from_official(cj, shapes)
+  cfg = refine.refine_config_from_official(cj, shapes, base)
+  return OfficialSpec(refine.UFMRefine(cfg), ufm_buffers(cfg), "UniFlowMatchClassificationRefinement")
+
+
+register_official_class(_is_refine, _build_refine)
+SAVED_CLASSES["UniFlowMatchClassificationRefinement"] = (refine.refine_config_from_dict,
+                                                         refine.refine_model_from_config)
+CLASS_NAMES[refine.UFMRefine] = "UniFlowMatchClassificationRefinement"
+
 
 def _class_name(model) -> str:
   if type(model) not in CLASS_NAMES:
