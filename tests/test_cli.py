@@ -78,7 +78,6 @@ def test_missing_inputs_give_clear_errors(pair_files, tmp_path):
 
 @pytest.mark.slow
 def test_infer_cli_on_fixture_snapshot(io, reference_dir, pair_files, tmp_path):
-  pytest.importorskip("ufm_jax.convert", reason="model/convert not merged yet")
   r = _run("infer", *pair_files, "--checkpoint", reference_dir / "base", "--snapshot",
            "--out", tmp_path / "o")
   assert r.returncode == 0, r.stderr
@@ -86,3 +85,41 @@ def test_infer_cli_on_fixture_snapshot(io, reference_dir, pair_files, tmp_path):
   np.testing.assert_allclose(flo, io["hl1_flow"][0].transpose(1, 2, 0), atol=1e-3)
   covis = np.load(tmp_path / "o" / "forward_covisibility.npy")
   np.testing.assert_allclose(covis, io["hl1_covisibility"][0], atol=5e-5)
+
+
+@pytest.mark.slow
+def test_convert_then_infer_from_converted_checkpoint(io, reference_dir, pair_files, tmp_path, capsys):
+  """`convert` delegates to ufm_jax.convert; `infer --checkpoint` then reads the orbax checkpoint."""
+  ckpt = tmp_path / "ckpt"
+  assert cli.main(["convert", str(reference_dir / "base"), str(ckpt)]) == 0
+  assert cli.main(["infer", *map(str, pair_files), "--checkpoint", str(ckpt), "--out",
+                   str(tmp_path / "o"), "--bidirectional"]) == 0
+  printed = capsys.readouterr().out
+  assert "backward_panel.png" in printed
+  flo = read_flo(tmp_path / "o" / "forward.flo")
+  np.testing.assert_allclose(flo, io["hl1_flow"][0].transpose(1, 2, 0), atol=1e-3)
+
+
+def test_load_train_workdir(tmp_path):
+  """A train.py workdir (config.json + orbax steps under checkpoints/) loads its latest step."""
+  import json
+
+  import jax
+  import jax.numpy as jnp
+
+  from ufm_jax import checkpoint
+
+  model = cli.model_from_name("tiny")
+  x = jnp.zeros((1, 28, 28, 3), jnp.uint8)
+  params = jax.jit(model.init)(jax.random.PRNGKey(1), x, x)["params"]
+  manager = checkpoint.make_manager(tmp_path, save_interval_steps=1, keep=2, async_save=False)
+  for step in (1, 2):
+    state = {"params": jax.tree.map(lambda p: p + step, params), "step": step}
+    checkpoint.save(manager, step, state, force=True)
+  manager.wait_until_finished()
+  (tmp_path / "config.json").write_text(json.dumps({"model_name": "tiny", "model": {}}))
+  assert cli.is_workdir(tmp_path)
+  loaded_model, loaded = cli.load_model(tmp_path)
+  assert loaded_model.config == model.config
+  for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params)):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b) + 2, rtol=0, atol=1e-6)  # latest step

@@ -70,7 +70,6 @@ def write_all(root):
 
 @pytest.fixture(scope="module")
 def snapshot(reference_dir):
-  pytest.importorskip("ufm_jax.convert", reason="model/convert not merged yet")
   return str(reference_dir / "base")
 
 

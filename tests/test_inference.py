@@ -123,7 +123,7 @@ def test_predict_input_errors():
 
 
 def _load_official(reference_dir):
-  convert = pytest.importorskip("ufm_jax.convert", reason="model/convert not merged yet")
+  from ufm_jax import convert
   return convert.load_official(reference_dir / "base")
 
 

@@ -31,20 +31,21 @@ def is_snapshot(path: str | os.PathLike) -> bool:
   return (p / "config.json").is_file() and (p / "model.safetensors").is_file()
 
 
-def model_from_name(name: str):
-  """A model (random weights not included) from a variant name of configs/models.py."""
+def model_from_name(name: str, **overrides):
+  """A model (no params) from a variant name of configs/models.py, with UFMConfig overrides
+  (e.g. dtype="bfloat16"); `ufm_jax.models.build_model` is used when it exists."""
   try:
     from ufm_jax.models import build_model
   except ImportError:
     build_model = None
   if build_model is not None:
-    return build_model(name)
+    return build_model(name, **overrides)
   from configs import models
   from ufm_jax.models import ufm
   fn = getattr(models, name, None)
   if not callable(fn):
     raise ValueError(f"unknown model config {name!r} in configs/models.py")
-  return ufm.model_from_config(fn())
+  return ufm.model_from_config(fn(**overrides))
 
 
 def is_workdir(path: str | os.PathLike) -> bool:
@@ -70,8 +71,7 @@ def load_workdir(path: str | os.PathLike, step: int | None = None):
   else:
     if not cfg.get("model_name"):
       raise ValueError(f"{p / 'config.json'}: neither model_fn nor model_name; cannot rebuild the model")
-    from ufm_jax.models import build_model
-    model = build_model(cfg["model_name"], **model_kw)
+    model = model_from_name(cfg["model_name"], **model_kw)
   state, _ = checkpoint.read_state_numpy(p, step)
   return model, state["params"]
 
