@@ -8,6 +8,10 @@ The base model (encoder, fusion transformer, DPT heads) is frozen: it gets no gr
 optimizer state; only the U-Net, classification head, combiners and the offset bias train, with
 the refinement cross-entropy (`ufm_jax.refine_training.refinement_loss`). 30 epochs, lr 1e-4,
 otherwise the 560 optimizer; BlendedMVS, MegaDepth, Habitat and ScanNet++ (Table 1 quotas).
+
+Smoke run on a fresh machine (tiny refine model, embedded synthetic pairs, random base):
+  python train.py --config=configs/ufm560_refine.py:model=tiny_refine,data=synthetic,steps=20 \
+      --workdir=DIR
 """
 
 import ml_collections
@@ -20,16 +24,28 @@ REFINER = ("unet_feature", "classification_head", "conv1", "conv2", "classificat
 
 
 def get_config(arg=None):
-  arg = cc.parse_arg(arg, model="ufm_refine")
+  arg = cc.parse_arg(arg, model="ufm_refine", data="refine", steps=0)
   c = ufm560.common(ml_collections.ConfigDict())
   c.num_epochs = 30
-  c.input = cc.input_config(cc.mixture(cc.REFINE), batch_size=96, longest_side=560)
+  if arg.data == "refine":
+    c.input = cc.input_config(cc.mixture(cc.REFINE), batch_size=96, longest_side=560)
+  elif arg.data == "synthetic":
+    c.input = cc.input_config(cc.synthetic_mixture(num_pairs=10_000, size=(56, 56)),
+                              batch_size=2, longest_side=56, aspect_ratios=(1.0,), num_workers=0)
+    c.log_training_steps = 1
+  else:
+    raise ValueError(f"configs/ufm560_refine.py: data={arg.data!r}; expected refine or synthetic")
+  if arg.steps:
+    c.total_steps = arg.steps
   c.model_name = arg.model
   c.model = ml_collections.ConfigDict({"dtype": "bfloat16", "remat": True})
+  if arg.data == "synthetic":
+    c.model = ml_collections.ConfigDict({"dtype": "float32", "remat": False})
   c.model_init = ml_collections.FieldReference(None, field_type=str)  # the UFM-560 base
   c.loss = "refine"
   c.loss_kwargs = {}
   c.optim = ufm560.ufm_optim(lr=1e-4, encoder_lr=1e-4)
   c.optim.trainable = r"^(" + "|".join(REFINER) + r")(/|$)"
-  c.evals = ml_collections.ConfigDict({"sintel": ufm560.sintel_eval()})
+  c.evals = ml_collections.ConfigDict(
+      {"sintel": ufm560.sintel_eval()} if arg.data == "refine" else {})
   return c

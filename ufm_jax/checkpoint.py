@@ -155,6 +155,11 @@ class InitReport:
     return "\n".join(lines)
 
 
+def _flat_any(tree) -> list:
+  """All array leaves of a restored tree (dicts/lists as orbax returns them)."""
+  return [x for x in jax.tree.leaves(tree) if hasattr(x, "ndim")]
+
+
 def _flat(tree) -> dict[str, Any]:
   return {"/".join(k): v for k, v in traverse_util.flatten_dict(dict(tree)).items()}
 
