@@ -104,6 +104,9 @@ class EvalResult:
 class HeldoutEval:
   """EPE and covisibility accuracy on fixed held-out pairs of a registered source.
 
+  epe / px1,3,5 (% of pixels with EPE > t) pool all covisible pixels with valid flow (the pixels
+  UFM is supervised on); epe_all pools every pixel with valid flow.
+
   Config: source, root, kwargs (source options), num_pairs, shape (H, W: centre crop, which keeps
   flow labels valid), batch_size, every, num_images (flow/covis pictures to TensorBoard).
   """
@@ -139,7 +142,7 @@ class HeldoutEval:
     from ufm_jax import sharding
     n, bs = len(self.samples), self.batch_size
     P, pid = jax.process_count(), jax.process_index()
-    epe_sum = valid_sum = acc_sum = cv_sum = 0.0
+    epe_sum = valid_sum = acc_sum = cv_sum = epe_all_sum = all_sum = 0.0
     px = {1: 0.0, 3: 0.0, 5: 0.0}
     images = {}
     for start in range(0, n, bs):
@@ -153,9 +156,12 @@ class HeldoutEval:
       flow = np.asarray(out["flow"], np.float64)[:real]
       covis = np.asarray(out["covisibility"])[:real]
       epe = np.linalg.norm(flow - batch["flow"][:real], axis=-1)
-      fv = batch["flow_valid"][:real]
+      fa = batch["flow_valid"][:real]
+      fv = fa & batch["covisibility"][:real]  # the model is supervised (and used) there only
       epe_sum += float(epe[fv].sum())
       valid_sum += float(fv.sum())
+      epe_all_sum += float(epe[fa].sum())
+      all_sum += float(fa.sum())
       for t in px:
         px[t] += float((epe[fv] > t).sum())
       cvv = batch["covis_valid"][:real]
@@ -172,7 +178,7 @@ class HeldoutEval:
               np.float32), covis[j])
           images[f"pair{i}_gt"] = viz.panel(batch["image0"][j], batch["image1"][j],
                                             batch["flow"][j], batch["covisibility"][j])
-    scalars = {"epe": epe_sum / max(valid_sum, 1.0),
+    scalars = {"epe": epe_sum / max(valid_sum, 1.0), "epe_all": epe_all_sum / max(all_sum, 1.0),
                **{f"px{t}": 100.0 * v / max(valid_sum, 1.0) for t, v in px.items()},
                "covis_acc": acc_sum / max(cv_sum, 1.0), "num_pairs": float(n)}
     return EvalResult(scalars, images)
@@ -250,8 +256,18 @@ class Writer:
       self.tb.flush()
 
   def image(self, tag, step, img):
-    if self.tb is not None:
-      self.tb.add_image(tag, img, step, dataformats="HWC")
+    """An RGB uint8 [H, W, 3] picture, PNG-encoded with OpenCV (tensorboardX's own add_image
+    needs PIL)."""
+    if self.tb is None:
+      return
+    import cv2
+    from tensorboardX.proto.summary_pb2 import Summary
+    ok, png = cv2.imencode(".png", img[..., ::-1])
+    if not ok:
+      return
+    summary = Summary(value=[Summary.Value(tag=tag, image=Summary.Image(
+        height=img.shape[0], width=img.shape[1], colorspace=3, encoded_image_string=png.tobytes()))])
+    self.tb._get_file_writer().add_summary(summary, step)  # pylint: disable=protected-access
 
   def close(self):
     if self.tb is not None:

@@ -77,10 +77,18 @@ def ufm_base_980(**kw) -> ufm.UFMConfig:
   return ufm_base(**{"inference_resolution": (742, 980), **kw})
 
 
-def ufm_refine(**kw) -> ufm.UFMConfig:
-  """The base part of UFM-Refine (UniFlowMatchClassificationRefinement): identical to UFM-Base;
-  the refiner's own structure (U-Net, classification head) is configured by ufm_jax.models.refine."""
-  return ufm_base(**kw)
+def ufm_refine(**kw) -> "refine.UFMRefineConfig":
+  """UFM-Refine (UniFlowMatchClassificationRefinement): UFM-Base plus the refiner: U-Net
+  [64, 128, 256, 512] (hard-coded in the official ufm.py), 16-channel refinement features from
+  the patch_mlp head on cat(encoder list[0], fusion final) (1024 + 768), a 7 x 7 window.
+  mlp_ratio and temperature follow the public fixture (2, 4.0); a release's config.json is
+  authoritative (`ufm_jax.load_official` reads it)."""
+  from ufm_jax.models import refine
+  base = ufm_base()   # encoder list[0] is then the last block's output (a single index)
+  fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(ufm.UFMConfig)}
+  cfg = refine.UFMRefineConfig(**fields, unet_features=(64, 128, 256, 512), refine_feature_dim=16,
+                               refine_mlp_ratio=2.0, refinement_range=7, temperature=4.0)
+  return cfg.replace(**kw)
 
 
 def fixture_small(**kw) -> ufm.UFMConfig:

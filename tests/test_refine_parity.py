@@ -1,11 +1,16 @@
 """UFM-Refine parity against the official PyTorch fixture (../shared/fixtures/ufm_reference/refine)."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from safetensors.numpy import load_file
 
+from ufm_jax import convert
 from ufm_jax.models import refine
+
+REFINER_PREFIXES = ("unet_feature.", "classification_head.", "conv1.", "conv2.",
+                    "classification_bias")
 
 
 def nhwc(a):
@@ -16,8 +21,16 @@ def nhwc(a):
 def fx(reference_dir):
   d = reference_dir / "refine"
   tensors = load_file(str(d / "model.safetensors"))
-  params, used = refine.refiner_params_from_torch(tensors)
-  return dict(dir=d, tensors=tensors, params=params, used=used,
+  # The refiner's tensors through the loader's key map (the whole model is loaded further down).
+  params = {}
+  for key, value in tensors.items():
+    if key.startswith(REFINER_PREFIXES):
+      path = convert.torch_key_to_path(key, value.ndim)
+      node = params
+      for part in path[:-1]:
+        node = node.setdefault(part, {})
+      node[path[-1]] = convert.torch_to_flax_array(key, value)
+  return dict(dir=d, tensors=tensors, params=params,
               io=dict(np.load(d / "io.npz")), it=dict(np.load(d / "intermediates.npz")))
 
 
@@ -40,7 +53,8 @@ def test_unet_widths_from_weights(fx):
 def test_unet_matches_fixture(fx, refiner):
   io, it = fx["io"], fx["it"]
   imgs = np.concatenate([nhwc(io["img1_norm"]), nhwc(io["img2_norm"])])
-  out = refiner.apply({"params": fx["params"]}, imgs, method=lambda m, x: m.unet_feature(x))
+  out = jax.jit(lambda p, x: refiner.apply({"params": p}, x, method=lambda m, x: m.unet_feature(x)))(
+      fx["params"], imgs)
   ref = np.concatenate([nhwc(it["unet_out_view1"]), nhwc(it["unet_out_view2"])])
   np.testing.assert_allclose(np.asarray(out), ref, atol=2e-4)
 
@@ -59,8 +73,8 @@ def test_feature_maps_match_fixture(fx, refiner):
   io, it = fx["io"], fx["it"]
   tokens = nhwc(it["cls_head_in"])
   imgs = np.concatenate([nhwc(io["img1_norm"]), nhwc(io["img2_norm"])])
-  feats = np.asarray(refiner.apply({"params": fx["params"]}, tokens, imgs,
-                                   method=lambda m, t, x: m.features(t, x)))
+  feats = np.asarray(jax.jit(lambda p, t, x: refiner.apply(
+      {"params": p}, t, x, method=lambda m, t, x: m.features(t, x)))(fx["params"], tokens, imgs))
   np.testing.assert_allclose(feats[:2], nhwc(io["feature_map_0"]), atol=2e-4)
   np.testing.assert_allclose(feats[2:], nhwc(io["feature_map_1"]), atol=2e-4)
 
@@ -70,12 +84,119 @@ def test_local_refinement_matches_fixture(fx, chunk):
   """The official features and regressed flow in; residual, log_softmax, refined flow out."""
   io = fx["io"]
   flow0 = nhwc(io["flow_before_refinement"])
-  res, log_p = refine.local_refinement(
-      jnp.asarray(nhwc(io["feature_map_0"])), jnp.asarray(nhwc(io["feature_map_1"])),
-      jnp.asarray(flow0), jnp.asarray(fx["params"]["classification_bias"]), temperature=4.0,
-      radius=3, chunk=chunk)
+  fn = jax.jit(lambda *a: refine.local_refinement(*a, temperature=4.0, radius=3, chunk=chunk))
+  res, log_p = fn(jnp.asarray(nhwc(io["feature_map_0"])), jnp.asarray(nhwc(io["feature_map_1"])),
+                  jnp.asarray(flow0), jnp.asarray(fx["params"]["classification_bias"]))
   np.testing.assert_allclose(np.asarray(res), nhwc(io["residual"]), atol=5e-3)
   np.testing.assert_allclose(np.asarray(log_p), io["log_softmax"], atol=1e-2)
   np.testing.assert_allclose(flow0 + np.asarray(res), nhwc(io["flow"]), atol=5e-3)
   # The official `regression_flow_output` holds the refined flow too.
   np.testing.assert_allclose(flow0 + np.asarray(res), nhwc(io["regression_flow_output"]), atol=5e-3)
+
+
+# ----------------------------------------------------------------------------------------------
+# The whole UFM-Refine model, loaded from the snapshot through load_official
+
+
+@pytest.fixture(scope="module")
+def full(fx):
+  from ufm_jax.convert import load_official
+  model, params = load_official(fx["dir"])
+  io = fx["io"]
+  out = jax.jit(model.apply)({"params": params}, io["img1_uint8"], io["img2_uint8"])
+  return model, params, {k: np.asarray(v) for k, v in out.items()}
+
+
+def test_load_official_recognises_refine(full):
+  model, params, _ = full
+  assert type(model).__name__ == "UFMRefine"
+  assert model.config.unet_features == (8, 16, 32, 64)
+  assert model.config.refinement_range == 7 and model.config.temperature == 4.0
+  assert model.config.refine_mlp_ratio == 2.0 and model.config.refine_feature_dim == 16
+  for k in ("unet_feature", "classification_head", "conv1", "conv2", "classification_bias",
+            "encoder", "info_sharing"):
+    assert k in params
+
+
+def test_forward_matches_fixture(fx, full):
+  io = fx["io"]
+  _, _, out = full
+  assert set(out) >= {"flow", "covisibility", "covisibility_logits", "flow_before_refinement",
+                      "residual", "log_softmax", "feature_map_0", "feature_map_1"}
+  np.testing.assert_allclose(out["flow_before_refinement"], nhwc(io["flow_before_refinement"]),
+                             atol=1e-3)
+  np.testing.assert_allclose(out["flow"], nhwc(io["flow"]), atol=5e-3)
+  np.testing.assert_allclose(out["residual"], nhwc(io["residual"]), atol=5e-3)
+  np.testing.assert_allclose(out["log_softmax"], io["log_softmax"], atol=1e-2)
+  np.testing.assert_allclose(out["feature_map_0"], nhwc(io["feature_map_0"]), atol=2e-4)
+  np.testing.assert_allclose(out["feature_map_1"], nhwc(io["feature_map_1"]), atol=2e-4)
+  np.testing.assert_allclose(out["covisibility_logits"], io["covisibility_logits"][:, 0], atol=2e-4)
+  np.testing.assert_allclose(out["covisibility"], io["covisibility_mask"][:, 0], atol=5e-5)
+
+
+def test_symmetrized_forward_agrees(fx, full):
+  """(a,b),(b,a) batches: encoding each image (and U-Net) once equals the plain pass.
+  (Row chunking of the refinement is checked on the fixture in test_local_refinement_matches_fixture.)"""
+  model, params, _ = full
+  a, b = fx["io"]["img1_uint8"][0, :42, :70], fx["io"]["img2_uint8"][0, :42, :70]
+  src, tgt = np.stack([a, b]), np.stack([b, a])
+  fwd = jax.jit(lambda p, s, t: (model.apply({"params": p}, s, t),
+                                 model.apply({"params": p}, s, t, symmetrized=True)))
+  plain, sym = fwd(params, src, tgt)
+  for k in ("flow", "flow_before_refinement", "feature_map_0", "feature_map_1", "covisibility"):
+    np.testing.assert_allclose(np.asarray(sym[k]), np.asarray(plain[k]), atol=1e-4, err_msg=k)
+
+
+@pytest.mark.parametrize("pair", ["hl0", "hl1", "hl2"])
+def test_predict_high_level_pairs(fx, full, pair):
+  from ufm_jax import predict
+  model, params, _ = full
+  io = fx["io"]
+  out = predict(model, params, io[f"{pair}_src_uint8"], io[f"{pair}_tgt_uint8"])
+  np.testing.assert_allclose(out["flow"], nhwc(io[f"{pair}_flow"])[0], atol=5e-3)
+  np.testing.assert_allclose(out["covisibility"], io[f"{pair}_covisibility"][0], atol=5e-5)
+
+
+def test_convert_save_load_and_infer_cli(fx, full, tmp_path):
+  """The converted checkpoint reloads as UFMRefine with equal params, and the infer CLI on it
+  reproduces the official high-level output of pair hl1 (target smaller than the source)."""
+  import cv2
+  from ufm_jax import cli
+  from ufm_jax.convert import load, save
+  model, params, _ = full
+  save(tmp_path / "ckpt", model, params)
+  model2, params2 = load(tmp_path / "ckpt")
+  assert type(model2) is type(model) and model2.config == model.config
+  for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(params2)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  io = fx["io"]
+  cv2.imwrite(str(tmp_path / "src.png"), io["hl1_src_uint8"][..., ::-1])
+  cv2.imwrite(str(tmp_path / "tgt.png"), io["hl1_tgt_uint8"][..., ::-1])
+  assert cli.main(["infer", str(tmp_path / "src.png"), str(tmp_path / "tgt.png"),
+                   "--checkpoint", str(tmp_path / "ckpt"), "--out", str(tmp_path / "out")]) == 0
+  flow = np.load(tmp_path / "out" / "forward_flow.npy")
+  np.testing.assert_allclose(flow, nhwc(io["hl1_flow"])[0], atol=5e-3)
+
+
+def test_loader_rejects_wrong_refiner_weights(fx, tmp_path):
+  import json
+  import shutil
+  from safetensors.numpy import save_file
+  from ufm_jax.convert import load_official
+  d = tmp_path / "snap"
+  d.mkdir()
+  shutil.copy(fx["dir"] / "config.json", d / "config.json")
+  tensors = dict(fx["tensors"])
+  del tensors["conv2.bias"]
+  tensors["conv1.weight"] = tensors["conv1.weight"][:, :16]
+  save_file(tensors, str(d / "model.safetensors"))
+  with pytest.raises(ValueError) as e:
+    load_official(d)
+  msg = str(e.value)
+  assert "conv2.bias" in msg and "conv1.weight" in msg
+  cj = json.loads((fx["dir"] / "config.json").read_text())
+  del cj["temperature"]
+  (d / "config.json").write_text(json.dumps(cj))
+  save_file(dict(fx["tensors"]), str(d / "model.safetensors"))
+  with pytest.raises(ValueError, match="temperature"):
+    load_official(d)

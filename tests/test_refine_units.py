@@ -1,9 +1,11 @@
 """Unit tests of the refiner's pieces against independent numpy reimplementations of torch ops."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ufm_jax import convert
 from ufm_jax.models import refine
 
 A = -0.75
@@ -95,8 +97,8 @@ def test_local_refinement_matches_numpy_reference(radius, chunk):
   flow[0, :2] = np.round(flow[0, :2])
   bias = rng.normal(size=(2 * radius + 1) ** 2)
   ref_res, ref_lp = np_local_refinement(f1, f2, flow, bias, 0.7, radius)
-  res, lp = refine.local_refinement(*(jnp.asarray(a, jnp.float32) for a in (f1, f2, flow, bias)),
-                                    temperature=0.7, radius=radius, chunk=chunk)
+  fn = jax.jit(lambda *a: refine.local_refinement(*a, temperature=0.7, radius=radius, chunk=chunk))
+  res, lp = fn(*(jnp.asarray(a, jnp.float32) for a in (f1, f2, flow, bias)))
   assert lp.shape == (n, h, w, 2 * radius + 1, 2 * radius + 1)
   np.testing.assert_allclose(np.asarray(lp), ref_lp, atol=2e-4)
   np.testing.assert_allclose(np.asarray(res), ref_res, atol=2e-5)
@@ -107,9 +109,9 @@ def test_offset_convention_from_bias():
   n, h, w, c, r = 1, 4, 5, 3, 3
   bias = np.zeros(49, np.float32)
   bias[0 * 7 + 5] = 60.0
-  res, lp = refine.local_refinement(jnp.zeros((n, h, w, c)), jnp.ones((n, h, w, c)),
-                                    jnp.zeros((n, h, w, 2)), jnp.asarray(bias), temperature=4.0,
-                                    radius=r)
+  fn = jax.jit(lambda *a: refine.local_refinement(*a, temperature=4.0, radius=r))
+  res, lp = fn(jnp.zeros((n, h, w, c)), jnp.ones((n, h, w, c)), jnp.zeros((n, h, w, 2)),
+               jnp.asarray(bias))
   np.testing.assert_allclose(np.asarray(res)[..., 0], 2.0, atol=1e-5)
   np.testing.assert_allclose(np.asarray(res)[..., 1], -3.0, atol=1e-5)
   assert np.all(np.asarray(lp)[..., 0, 5] > -1e-5)
@@ -139,7 +141,7 @@ def test_up_conv_matches_conv_transpose_definition():
       for a in range(2):
         for bb in range(2):
           expected[0, 2 * i + a, 2 * j + bb] += x[0, i, j] @ w_torch[:, :, a, bb]
-  params = {"kernel": refine.convert_tensor(w_torch, "conv_transpose"), "bias": b}
+  params = {"kernel": convert.torch_to_flax_array("unet_feature.ups.2.weight", w_torch), "bias": b}
   out = refine.UpConv2x2(5).apply({"params": params}, jnp.asarray(x))
   np.testing.assert_allclose(np.asarray(out), expected, atol=1e-5)
 
@@ -153,21 +155,58 @@ def test_legacy_nearest_resize():
 
 def test_unet_handles_odd_sizes():
   m = refine.UNet(features=(2, 3), out_channels=4)
-  x = jnp.ones((1, 11, 13, 3))
-  import jax
-  params = m.init(jax.random.PRNGKey(0), x)["params"]
-  assert m.apply({"params": params}, x).shape == (1, 11, 13, 4)
+  x = jax.ShapeDtypeStruct((1, 11, 13, 3), jnp.float32)
+  params = jax.eval_shape(lambda x: m.init(jax.random.PRNGKey(0), x), x)["params"]
+  assert jax.eval_shape(lambda p, x: m.apply({"params": p}, x), params, x).shape == (1, 11, 13, 4)
   assert set(params) == {"downs_0", "downs_1", "bottleneck", "ups_0", "ups_1", "ups_2", "ups_3",
                          "final_conv"}
   assert set(params["downs_0"]) == {"conv_0", "conv_2"}
 
 
 def test_torch_key_mapping():
-  assert refine.torch_key_to_path("unet_feature.downs.3.conv.2.weight") == (
-      ("unet_feature", "downs_3", "conv_2", "kernel"), "auto")
-  assert refine.torch_key_to_path("unet_feature.ups.4.weight") == (
-      ("unet_feature", "ups_4", "kernel"), "conv_transpose")
-  assert refine.torch_key_to_path("unet_feature.ups.5.conv.0.weight")[1] == "auto"
-  assert refine.torch_key_to_path("classification_head.mlp.fc1.bias") == (
-      ("classification_head", "mlp", "fc1", "bias"), "copy")
-  assert refine.torch_key_to_path("classification_bias") == (("classification_bias",), "copy")
+  assert convert.torch_key_to_path("unet_feature.downs.3.conv.2.weight", 4) == (
+      "unet_feature", "downs_3", "conv_2", "kernel")
+  assert convert.torch_key_to_path("unet_feature.ups.4.weight", 4) == (
+      "unet_feature", "ups_4", "kernel")
+  assert convert.torch_key_to_path("classification_head.mlp.fc1.bias", 1) == (
+      "classification_head", "mlp", "fc1", "bias")
+  assert convert.torch_key_to_path("classification_bias", 1) == ("classification_bias",)
+  w = np.arange(2 * 3 * 2 * 2, dtype=np.float32).reshape(2, 3, 2, 2)
+  # ConvTranspose2d (even `ups` entries) [in, out, kh, kw]; the DoubleConvs are Conv2d [out, in, ...]
+  assert convert.torch_to_flax_array("unet_feature.ups.6.weight", w).shape == (2, 2, 2, 3)
+  assert convert.torch_to_flax_array("unet_feature.ups.7.conv.0.weight", w).shape == (2, 2, 3, 2)
+  assert convert.torch_to_flax_array("unet_feature.ups.10.weight", w).shape == (2, 2, 2, 3)
+
+
+def test_windows_far_outside_read_zeros():
+  # Every tap outside the target map reads 0 (zero padding), so only the bias remains, even for
+  # flows far beyond int32-safe pixel indices.
+  rng = np.random.default_rng(5)
+  f1 = rng.normal(size=(1, 3, 4, 6)).astype(np.float32)
+  f2 = rng.normal(size=(1, 3, 4, 6)).astype(np.float32)
+  flow = np.array([1e9, -1e9, 40.0, -3e10], np.float32)[[0, 1, 2, 3, 0, 1]].reshape(1, 3, 2, 1)
+  flow = np.concatenate([np.broadcast_to(flow, (1, 3, 2, 2))] * 2, 2)    # [1, 3, 4, 2]
+  bias = rng.normal(size=49).astype(np.float32)
+  fn = jax.jit(lambda *a: refine.local_refinement(*a, temperature=4.0, radius=3))
+  _, lp = fn(f1, f2, flow, bias)
+  want = bias - np.log(np.exp(bias.astype(np.float64)).sum())
+  np.testing.assert_allclose(np.asarray(lp).reshape(-1, 49), np.broadcast_to(want, (12, 49)),
+                             atol=1e-5)
+
+
+def test_refinement_memory_at_560():
+  """XLA's compiled temp memory of the refinement at 420 x 560, C=16 stays below 2x the 49-tap
+  sampled feature block [1, H, W, 49, C] (what grid_sample would materialise); row chunks bound
+  it further."""
+  h, w, c = 420, 560, 16
+  sds = lambda *s: jax.ShapeDtypeStruct(s, jnp.float32)
+  block = h * w * 49 * c * 4
+
+  def temp_bytes(chunk):
+    fn = jax.jit(lambda a, b, f, z: refine.local_refinement(a, b, f, z, temperature=4.0, radius=3,
+                                                             chunk=chunk))
+    return fn.lower(sds(1, h, w, c), sds(1, h, w, c), sds(1, h, w, 2),
+                    sds(49)).compile().memory_analysis().temp_size_in_bytes
+
+  assert temp_bytes(None) < 2 * block
+  assert temp_bytes(60) < 0.3 * block

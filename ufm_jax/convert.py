@@ -466,6 +466,29 @@ PARAMS_DIR = "params"
 # Flax module class -> the official class name stored in model_config.json.
 CLASS_NAMES: Dict[type, str] = {ufm.UFM: "UniFlowMatchConfidence"}
 
+# ----------------------------------------------------------------------------- UFM-Refine
+# UniFlowMatchClassificationRefinement = the base model + refiner (ufm_jax/models/refine.py).
+# The refiner's keys follow the same rules; its U-Net up-convolutions are ConvTranspose2d.
+from ufm_jax.models import refine  # noqa: E402  (refine imports ufm; registered after the base)
+
+CONV_TRANSPOSE.append(re.compile(r"^unet_feature\.ups\.\d*[02468]\.weight$"))
+
+
+def _is_refine(cj: dict) -> bool:
+  return "refinement_range" in cj
+
+
+def _build_refine(cj: dict, shapes: dict) -> OfficialSpec:
+  base = ufm_config_from_official(cj, shapes)
+  cfg = refine.refine_config_from_official(cj, shapes, base)
+  return OfficialSpec(refine.UFMRefine(cfg), ufm_buffers(cfg), "UniFlowMatchClassificationRefinement")
+
+
+register_official_class(_is_refine, _build_refine)
+SAVED_CLASSES["UniFlowMatchClassificationRefinement"] = (refine.refine_config_from_dict,
+                                                         refine.refine_model_from_config)
+CLASS_NAMES[refine.UFMRefine] = "UniFlowMatchClassificationRefinement"
+
 
 def _class_name(model) -> str:
   if type(model) not in CLASS_NAMES:
@@ -505,16 +528,16 @@ def load(ckpt_dir):
                      f"{sorted(SAVED_CLASSES)}")
   from_dict, build = SAVED_CLASSES[meta["class"]]
   model = build(from_dict(meta["config"]))
-  p = model.config.encoder.patch_size
-  x = jax.ShapeDtypeStruct((1, 2 * p, 2 * p, 3), jnp.uint8)
-  target = jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b), x, x)["params"]
-  target = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), _unfreeze(target))
-  params = ocp.PyTreeCheckpointer().restore(d / PARAMS_DIR, item=target)
-  params = jax.tree.map(jnp.asarray, params)
-  got = {k: tuple(v.shape) for k, v in _flatten(_unfreeze(params)).items()}
-  want = {k: tuple(v.shape) for k, v in _flatten(target).items()}
+  # Saved as numpy arrays: orbax restores them as numpy without a target tree.
+  params = _unfreeze(ocp.PyTreeCheckpointer().restore(d / PARAMS_DIR))
+  got = {k: tuple(np.shape(v)) for k, v in _flatten(params).items()}
+  want = expected_param_shapes(model)
   if got != want:
-    raise ValueError(f"{d / PARAMS_DIR}: parameter tree does not match {cfg_path}")
+    bad = sorted(set(got) ^ set(want)) + sorted(k for k in set(got) & set(want)
+                                                 if got[k] != want[k])
+    raise ValueError(f"{d / PARAMS_DIR}: parameters do not match the model of {cfg_path}: "
+                     + ", ".join("/".join(k) for k in bad[:20]))
+  params = jax.tree.map(jnp.asarray, params)
   return model, params
 
 

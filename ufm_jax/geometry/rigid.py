@@ -11,7 +11,7 @@ from typing import Mapping
 import numpy as np
 
 from ufm_jax.geometry import camera
-from ufm_jax.geometry.covisibility import covisibility_from_points
+from ufm_jax.geometry.covisibility import _check_depth, _correspond, _k_inverse, _source_in_target
 
 
 def _pose_table(poses, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -57,7 +57,8 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
   background (Kubric id 0) the identity (or any equal poses) at both times. Pixels whose id has
   no pose at either time get valid=False. Returns the dict of `covisibility_from_points`.
   """
-  depth0 = np.asarray(depth0)
+  depth0 = _check_depth("depth0", depth0)
+  depth1 = _check_depth("depth1", depth1)
   seg = np.asarray(segmentation0)
   if seg.shape != depth0.shape:
     raise ValueError(f"segmentation0 shape {seg.shape} differs from depth0 shape {depth0.shape}")
@@ -67,8 +68,25 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
   in_table = (seg >= 0) & (seg < len(motions))
   ids = np.where(in_table, seg, 0)
   valid0 = camera.valid_depth(depth0) & in_table & known[ids]
-  points = camera.transform(cam2world0, camera.unproject(np.where(valid0, depth0, 0.0), K0))
-  M = motions[ids]  # [H, W, 4, 4]
-  moved = np.einsum("hwij,hwj->hwi", M[..., :3, :3], points) + M[..., :3, 3]
-  return covisibility_from_points(moved, valid0, depth1, K1, cam2world1, tau_d, tau_r,
-                                  subpixel_search)
+  # Per object the whole chain camera 1 -> world -> moved -> camera 2 is one rigid transform
+  # (composed in float64). The most common object (usually the static background) is done on
+  # the dense grid; the other objects' pixels are gathered, transformed and scattered back.
+  rel = camera.invert_pose(cam2world1) @ motions @ np.asarray(cam2world0, np.float64)
+  ids = ids.reshape(-1).astype(np.intp, copy=False)
+  counts = np.bincount(ids, minlength=len(rel))
+  base = int(counts.argmax())
+  xyz = _source_in_target(depth0, valid0, K0, rel[base])
+  others = np.flatnonzero(ids != base) if counts[base] < ids.size else np.zeros(0, np.intp)
+  if others.size:
+    rows = rel[:, :3].copy()
+    rows[:, :, :3] = rows[:, :, :3] @ _k_inverse(K0)
+    table = np.ascontiguousarray(rows.reshape(len(rows), 12).T)  # [12, N] rows of [R K0^-1 | t]
+    coef = table[:, ids[others]]
+    w = depth0.shape[1]
+    u, v = (others % w).astype(np.float64), (others // w).astype(np.float64)
+    d = np.where(valid0.reshape(-1)[others], depth0.reshape(-1)[others], 0.0)
+    for i in range(3):
+      xyz[i].reshape(-1)[others] = (coef[4 * i] * u + coef[4 * i + 1] * v + coef[4 * i + 2]) * d \
+          + coef[4 * i + 3]
+  return _correspond(lambda r0, r1: [c[r0:r1] for c in xyz], valid0, depth1, K1, tau_d, tau_r,
+                     subpixel_search)

@@ -7,7 +7,6 @@ the selected block outputs go through the final `norm`, cls/register tokens are 
 """
 
 import dataclasses
-import math
 from typing import Optional, Sequence, Tuple, Union
 
 import flax.linen as nn
@@ -173,6 +172,7 @@ class DinoV2(nn.Module):
   dtype: Optional[jnp.dtype] = None  # compute dtype (bf16 option); params stay float32
   remat: bool = False
   activation_sharding: layers.ActivationHook = None
+  attention_impl: Optional[str] = None
 
   @nn.compact
   def __call__(self, images: jax.Array) -> Sequence[jax.Array]:
@@ -204,12 +204,12 @@ class DinoV2(nn.Module):
 
     take = cfg.take_indices()
     block = layers.block_class(self.remat)
-    norm = layers.layer_norm("norm", self.dtype)
+    norm = layers.layer_norm("norm")  # float32 out, as torch autocast runs LayerNorm
     outs = {}
     # Blocks after the last returned index cannot change any output, so they are not run.
     for i in range(max(take) + 1):
       x = block(cfg.num_heads, cfg.mlp_ratio, True, False, cfg.init_values, cfg.ffn, self.dtype,
-                name=f"blocks_{i}")(x)
+                self.attention_impl, name=f"blocks_{i}")(x)
       x = constrain(x)
       self.sow("intermediates", f"block{i}_out", x)
       if i in take:
@@ -219,10 +219,11 @@ class DinoV2(nn.Module):
     for i in take:
       y = norm(outs[i]) if cfg.norm_intermediate else outs[i]
       result.append(y[:, skip:].reshape(b, h, w, c))
+      self.sow("intermediates", f"out{len(result) - 1}", result[-1])
     # Parameters of blocks that are never run still exist in the checkpoint: create them so the
     # tree has the checkpoint's structure (init only; apply never touches them).
     if self.is_initializing():
       for i in range(max(take) + 1, cfg.depth):
         block(cfg.num_heads, cfg.mlp_ratio, True, False, cfg.init_values, cfg.ffn, self.dtype,
-              name=f"blocks_{i}")(x)
+              self.attention_impl, name=f"blocks_{i}")(x)
     return result

@@ -8,7 +8,7 @@ same final `norm`.
 """
 
 import dataclasses
-from typing import Optional, Sequence, Tuple
+from typing import Optional, Tuple
 
 import flax.linen as nn
 import jax
@@ -54,6 +54,7 @@ class InfoSharing(nn.Module):
   dtype: Optional[jnp.dtype] = None
   remat: bool = False
   activation_sharding: layers.ActivationHook = None
+  attention_impl: Optional[str] = None
 
   @nn.compact
   def __call__(self, feat1: jax.Array, feat2: jax.Array):
@@ -73,12 +74,12 @@ class InfoSharing(nn.Module):
     x = constrain(x)
 
     block = layers.block_class(self.remat)
-    norm = layers.layer_norm("norm", self.dtype)
+    norm = layers.layer_norm("norm")  # float32 out, as torch autocast runs LayerNorm
     take = cfg.take_indices()
     inters = []
     for i in range(cfg.depth):
       x = block(cfg.num_heads, cfg.mlp_ratio, cfg.qkv_bias, cfg.qk_norm, cfg.init_values, "mlp",
-                self.dtype, name=f"self_attention_blocks_{i}")(x)
+                self.dtype, self.attention_impl, name=f"self_attention_blocks_{i}")(x)
       x = constrain(x)
       self.sow("intermediates", f"block{i}_out", x)
       if i in take:
@@ -88,4 +89,8 @@ class InfoSharing(nn.Module):
       t = t.reshape(b, 2, h, w, cfg.dim)
       return t[:, 0], t[:, 1]
 
-    return split(norm(x)), [split(t) for t in inters]
+    final, inters = split(norm(x)), [split(t) for t in inters]
+    self.sow("intermediates", "final", final)
+    for k, t in enumerate(inters):
+      self.sow("intermediates", f"inter{k}", t)
+    return final, inters

@@ -14,6 +14,8 @@ import jax.numpy as jnp
 Dtype = Any
 
 # Every LayerNorm of UFM uses eps 1e-6. Two-pass variance (as torch) instead of E[x^2]-E[x]^2.
+# Block and final norms run in the residual dtype (float32) even in bf16 mode, as torch autocast
+# does; the following Dense casts to bf16.
 LN_EPS = 1e-6
 
 
@@ -41,6 +43,7 @@ class Attention(nn.Module):
   qkv_bias: bool = True
   qk_norm: bool = False
   dtype: Optional[Dtype] = None
+  implementation: Optional[str] = None  # jax.nn.dot_product_attention: None/"xla" or "cudnn"
 
   @nn.compact
   def __call__(self, x):
@@ -58,8 +61,9 @@ class Attention(nn.Module):
       logits = jnp.einsum("bqhd,bkhd->bhqk", q, k) * head_dim ** -0.5
       out = jnp.einsum("bhqk,bkhd->bqhd", jax.nn.softmax(logits, axis=-1), v)
     else:
-      # XLA reference path on CPU/TPU; cuDNN (flash) kernels on GPU via `implementation`.
-      out = jax.nn.dot_product_attention(q, k, v, scale=head_dim ** -0.5)
+      # XLA path by default; implementation="cudnn" selects the fused flash kernel on GPU.
+      out = jax.nn.dot_product_attention(q, k, v, scale=head_dim ** -0.5,
+                                         implementation=self.implementation)
     out = out.reshape(b, n, c)
     return nn.Dense(c, dtype=self.dtype, name="proj")(out)
 
@@ -105,16 +109,18 @@ class Block(nn.Module):
   init_values: Optional[float] = None  # LayerScale when set
   ffn: str = "mlp"  # "mlp" or "swiglu"
   dtype: Optional[Dtype] = None
+  attention_impl: Optional[str] = None
 
   @nn.compact
   def __call__(self, x):
     c = x.shape[-1]
     ls = (lambda name: LayerScale(self.init_values, name=name)) if self.init_values else (
         lambda name: identity)
-    y = layer_norm("norm1", self.dtype)(x)
-    y = Attention(self.num_heads, self.qkv_bias, self.qk_norm, self.dtype, name="attn")(y)
+    y = layer_norm("norm1")(x)
+    y = Attention(self.num_heads, self.qkv_bias, self.qk_norm, self.dtype, self.attention_impl,
+                  name="attn")(y)
     x = x + ls("ls1")(y)
-    y = layer_norm("norm2", self.dtype)(x)
+    y = layer_norm("norm2")(x)
     if self.ffn == "mlp":
       y = Mlp(int(c * self.mlp_ratio), self.dtype, name="mlp")(y)
     elif self.ffn == "swiglu":

@@ -9,12 +9,15 @@ where f_tgt is read with torch `grid_sample(mode="bicubic", padding_mode="zeros"
 Param names mirror the PyTorch modules (`unet_feature.downs.0.conv.0` -> `unet_feature/downs_0/conv_0`).
 """
 
-from typing import Any, Sequence
+import dataclasses
+from typing import Any, Optional, Sequence, Tuple
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from ufm_jax.models import dpt, ufm
 
 _A = -0.75  # torch's bicubic convolution constant
 
@@ -169,6 +172,8 @@ def _axis_weights(center, radius, size):
   p = 2 * radius + 1
   offsets = jnp.arange(-radius, radius + 1, dtype=center.dtype)
   pos = grid_sample_coordinate(center[..., None] + offsets, size)       # [..., P]
+  # Far outside the map every tap reads 0 wherever exactly; clipping keeps int32 indices sane.
+  pos = jnp.clip(pos, -(p + 8), size + p + 8)
   base = jnp.floor(pos)
   frac = pos - base
   start = base[..., 0] - 1                                               # tap of offset -R at -1
@@ -186,24 +191,28 @@ def _axis_weights(center, radius, size):
 def _tap_products(f1, f2, x0, y0, ntaps):
   """dots[i, n, y, x, j] = <f1[n, y, x], f2[n, y0 + i, x0 + j]> (0 outside f2) for i, j < ntaps.
 
-  One window row at a time (scan), so only [N, H, W, ntaps, C] gathered values are live at once.
+  One window row at a time (scan), so only [N, H, W, ntaps, C] gathered values are live at once;
+  each row of the window is one contiguous slice (a gather of ntaps * C values, not ntaps gathers).
+  The map is zero-padded by ntaps on every side, so a start index clamped into the padded map lands
+  either exactly (window partly inside) or wholly in zeros (window entirely outside).
   """
+  t = ntaps
   n, h, w, c = f2.shape
-  flat = f2.reshape(n, h * w, c)
-  cols = x0[..., None] + jnp.arange(ntaps)                              # [N, h1, w1, T]
-  col_ok = (cols >= 0) & (cols < w)
-  cols = jnp.clip(cols, 0, w - 1)
+  f2p = jnp.pad(f2, ((0, 0), (t, t), (t, t), (0, 0)))
+  xs = jnp.clip(x0 + t, 0, w + t)                                        # [N, h1, w1]
+  ys = jnp.clip(y0 + t, 0, h + t)
 
-  def row(_, i):
-    r = y0 + i                                                           # [N, h1, w1]
-    ok = col_ok & ((r >= 0) & (r < h))[..., None]
-    idx = jnp.clip(r, 0, h - 1)[..., None] * w + cols
-    vals = jax.vmap(lambda fl, ix: fl[ix])(flat, idx.reshape(n, -1))    # [N, h1*w1*T, C]
-    vals = vals.reshape(idx.shape + (c,))
-    dots = jnp.einsum("nyxc,nyxtc->nyxt", f1, vals, precision=jax.lax.Precision.HIGHEST)
-    return None, jnp.where(ok, dots, 0.0)
+  def take(img, y, x):                                                   # -> [T, C]
+    return jax.lax.dynamic_slice(img, (y, x, 0), (1, t, c))[0]
 
-  _, dots = jax.lax.scan(row, None, jnp.arange(ntaps))
+  take_all = jax.vmap(jax.vmap(jax.vmap(take, (None, 0, 0)), (None, 0, 0)), (0, 0, 0))
+
+  @jax.checkpoint   # backward re-gathers instead of storing [T, N, H, W, T, C]
+  def row(i):
+    vals = take_all(f2p, ys + i, xs)                                     # [N, h1, w1, T, C]
+    return jnp.einsum("nyxc,nyxtc->nyxt", f1, vals, precision=jax.lax.Precision.HIGHEST)
+
+  _, dots = jax.lax.scan(lambda carry, i: (carry, row(i)), None, jnp.arange(t))
   return dots                                                            # [T rows, N, h1, w1, T cols]
 
 
@@ -309,14 +318,23 @@ class Refiner(nn.Module):
     p = self.refinement_range
     self.classification_bias = self.param("classification_bias", nn.initializers.zeros, (p * p,))
 
-  def features(self, tokens, image_norm):
-    """tokens [N, h, w, C_enc + C_info] (concat of encoder list[0] and info-sharing final),
-    image_norm [N, H, W, 3] normalised image -> [N, H, W, feature_dim] float32."""
+  def unet(self, image_norm):
+    """[N, H, W, 3] normalised images -> U-Net features (None when the model has no U-Net)."""
+    if not self.use_unet_feature:
+      return None
+    return self.unet_feature(image_norm)
+
+  def combine(self, tokens, unet_out):
+    """tokens [N, h, w, C_enc + C_info] (concat of encoder list[0] and info-sharing final) and the
+    U-Net output -> [N, H, W, feature_dim] refinement features (float32, or float64)."""
     f = self.classification_head(tokens)
     if self.use_unet_feature:
-      u = self.unet_feature(image_norm).astype(jnp.float32)
+      u = unet_out.astype(f.dtype)
       f = self.conv2(nn.relu(self.conv1(jnp.concatenate([f, u], -1))))
     return f
+
+  def features(self, tokens, image_norm):
+    return self.combine(tokens, self.unet(image_norm))
 
   def refine(self, f1, f2, flow):
     return local_refinement(f1, f2, flow, self.classification_bias, temperature=self.temperature,
@@ -337,69 +355,149 @@ class Refiner(nn.Module):
 # PyTorch weights
 
 
-REFINE_PREFIXES = ("unet_feature.", "classification_head.", "conv1.", "conv2.", "classification_bias")
-
-
 def unet_widths(tensors, prefix="unet_feature."):
   """U-Net widths from the weight shapes (`downs.{i}.conv.0.weight.shape[0]`); () when absent."""
   widths = []
   while f"{prefix}downs.{len(widths)}.conv.0.weight" in tensors:
-    widths.append(int(tensors[f"{prefix}downs.{len(widths)}.conv.0.weight"].shape[0]))
+    w = tensors[f"{prefix}downs.{len(widths)}.conv.0.weight"]
+    widths.append(int(w[0] if isinstance(w, tuple) else w.shape[0]))   # shape tuple or tensor
   return tuple(widths)
 
 
-def torch_key_to_path(key):
-  """'unet_feature.ups.0.weight' -> ('unet_feature', 'ups_0', 'kernel') plus the layout tag.
 
-  Numbered children (`downs.0`, `conv.2`) become `downs_0`, `conv_2`, as Flax names list members.
+# ----------------------------------------------------------------------------------------------
+# UFM-Refine (UniFlowMatchClassificationRefinement): the base UFM plus the refiner
+
+
+@dataclasses.dataclass(frozen=True)
+class UFMRefineConfig(ufm.UFMConfig):
+  """UFMConfig plus the refiner's structure (U-Net widths come from the weights when loading)."""
+  unet_features: Tuple[int, ...] = (64, 128, 256, 512)
+  refine_feature_dim: int = 16          # classification_head_kwargs.output_dim
+  refine_mlp_ratio: float = 4.0         # classification_head_kwargs.mlp_ratio
+  use_unet_feature: bool = True
+  feature_combine_method: str = "conv"
+  refinement_range: int = 7             # P: the window is P x P
+  temperature: float = 4.0
+  # Source rows per refinement step (lax.map): bounds the refinement's memory at 980 px.
+  refine_chunk: Optional[int] = None
+
+
+def refine_config_from_dict(d):
+  """Inverse of dataclasses.asdict(UFMRefineConfig) (JSON lists become tuples)."""
+  base_names = {f.name for f in dataclasses.fields(ufm.UFMConfig)}
+  extra_names = {f.name for f in dataclasses.fields(UFMRefineConfig)} - base_names
+  unknown = set(d) - base_names - extra_names
+  if unknown:
+    raise ValueError(f"unknown refine model config keys {sorted(unknown)}")
+  base = ufm.config_from_dict({k: v for k, v in d.items() if k in base_names})
+  extra = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in extra_names}
+  return UFMRefineConfig(**{n: getattr(base, n) for n in base_names}, **extra)
+
+
+class UFMRefine(ufm.UFM):
+  """UniFlowMatchClassificationRefinement.
+
+  apply(...) returns the base contract with "flow" = refined flow, plus "flow_before_refinement",
+  "residual", "log_softmax" [B, H, W, P, P] ([..., a, b] <-> offset dy = a - R, dx = b - R) and the
+  refinement feature maps "feature_map_0" / "feature_map_1" [B, H, W, C].
   """
-  parts = key.split(".")
-  path = []
-  for part in parts[:-1]:
-    if part.isdigit() and path:
-      path[-1] = f"{path[-1]}_{part}"
+  config: UFMRefineConfig
+
+  def setup(self):
+    super().setup()
+    cfg = self.config
+    unet_dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16,
+                  "float64": jnp.float64}[cfg.dtype]
+    self.refiner = Refiner(
+        unet_features=tuple(cfg.unet_features), feature_dim=cfg.refine_feature_dim,
+        patch_size=cfg.encoder.patch_size, mlp_ratio=cfg.refine_mlp_ratio,
+        use_unet_feature=cfg.use_unet_feature, feature_combine_method=cfg.feature_combine_method,
+        refinement_range=cfg.refinement_range, temperature=cfg.temperature,
+        chunk=cfg.refine_chunk, unet_dtype=unet_dtype)
+    # The refiner's params sit at the root (unet_feature, classification_head, conv1, conv2,
+    # classification_bias), like the attributes of the PyTorch module.
+    nn.share_scope(self, self.refiner)
+
+  def __call__(self, source, target, symmetrized: bool = False):
+    cfg = self.config
+    ufm.check_images(source, target, cfg.encoder.patch_size, symmetrized)
+    _, h, w, _ = source.shape
+    head_dtype = jnp.float64 if cfg.dtype == "float64" else jnp.float32
+    src, tgt = ufm.normalize(source), ufm.normalize(target)
+    if cfg.dtype == "float64":
+      src, tgt = src.astype(jnp.float64), tgt.astype(jnp.float64)
+
+    # The refiner reads the encoder's first returned feature map as well as its last.
+    if symmetrized:   # (a,b),(b,a) interleaved: each image through the encoder / U-Net once
+      feats = self.encoder(jnp.concatenate([src[::2], tgt[::2]], axis=0))
+      first1, first2 = ufm._interleave(*jnp.split(feats[0], 2, axis=0))
+      last1, last2 = ufm._interleave(*jnp.split(feats[-1], 2, axis=0))
+      u = self.refiner.unet(jnp.concatenate([src[::2], tgt[::2]], axis=0))
+      u1, u2 = ufm._interleave(*jnp.split(u, 2, axis=0)) if u is not None else (None, None)
     else:
-      path.append(part)
-  leaf = parts[-1]
-  if key == "classification_bias":
-    return ("classification_bias",), "copy"
-  if leaf == "bias":
-    return tuple(path) + ("bias",), "copy"
-  if leaf != "weight":
-    raise KeyError(key)
-  # U-Net up-convolutions are ConvTranspose2d (even entries of `ups`).
-  last = path[-1]
-  if path[0] == "unet_feature" and last.startswith("ups_") and int(last[4:]) % 2 == 0:
-    return tuple(path) + ("kernel",), "conv_transpose"
-  return tuple(path) + ("kernel",), "auto"
+      feats = self.encoder(jnp.concatenate([src, tgt], axis=0))
+      first1, first2 = jnp.split(feats[0], 2, axis=0)
+      last1, last2 = jnp.split(feats[-1], 2, axis=0)
+      u = self.refiner.unet(jnp.concatenate([src, tgt], axis=0))
+      u1, u2 = jnp.split(u, 2, axis=0) if u is not None else (None, None)
+
+    (fin1, fin2), inters = self.info_sharing(last1, last2)
+    head_in = [t.astype(head_dtype) for t in (last1, inters[0][0], inters[1][0], fin1)]
+    flow_norm = self.head1_0_1(self.head1_0_0(head_in), (h, w))
+    flow = dpt.flow_adaptor(flow_norm, cfg.flow_adaptor)
+    cov_in = ([jax.lax.stop_gradient(t) for t in head_in] if cfg.detach_uncertainty_head
+              else head_in)
+    logits = self.uncertainty_head_0_1(self.uncertainty_head_0_0(cov_in), (h, w))[..., 0]
+
+    # Official: cat(encoder list[0], info-sharing final.float()) per view, both views as one batch.
+    tokens = jnp.concatenate([jnp.concatenate([first1, fin1], -1),
+                              jnp.concatenate([first2, fin2], -1)], 0).astype(head_dtype)
+    unet_out = None if u is None else jnp.concatenate([u1, u2], 0)
+    fmap = self.refiner.combine(tokens, unet_out)
+    f1, f2 = jnp.split(fmap, 2, axis=0)
+    residual, log_p = self.refiner.refine(f1, f2, flow)
+    return {"flow": flow + residual, "covisibility": jax.nn.sigmoid(logits),
+            "covisibility_logits": logits, "flow_before_refinement": flow, "residual": residual,
+            "log_softmax": log_p, "feature_map_0": f1, "feature_map_1": f2}
 
 
-def convert_tensor(value, layout):
-  value = np.asarray(value, np.float32)
-  if layout == "copy":
-    return value
-  if layout == "conv_transpose":           # torch [in, out, kh, kw] -> [kh, kw, in, out]
-    return value.transpose(2, 3, 0, 1)
-  if value.ndim == 4:                      # Conv2d [out, in, kh, kw] -> [kh, kw, in, out]
-    return value.transpose(2, 3, 1, 0)
-  if value.ndim == 2:                      # Linear [out, in] -> Dense [in, out]
-    return value.T
-  raise ValueError(f"unexpected weight rank {value.ndim}")
+def refine_model_from_config(cfg: UFMRefineConfig, **kw) -> UFMRefine:
+  return UFMRefine(cfg, **kw)
 
 
-def refiner_params_from_torch(tensors):
-  """The Refiner's param tree from a PyTorch state dict (only the refinement keys are read).
-
-  Returns (params, consumed_keys).
-  """
-  params, used = {}, []
-  for key, value in tensors.items():
-    if not key.startswith(REFINE_PREFIXES):
-      continue
-    path, layout = torch_key_to_path(key)
-    node = params
-    for p in path[:-1]:
-      node = node.setdefault(p, {})
-    node[path[-1]] = convert_tensor(value, layout)
-    used.append(key)
-  return params, used
+def refine_config_from_official(cj, shapes, base: ufm.UFMConfig) -> UFMRefineConfig:
+  """The refiner's part of an official config.json; U-Net widths from the weight shapes."""
+  if cj.get("classification_head_type", "patch_mlp") != "patch_mlp":
+    raise ValueError(f"config.json: classification_head_type={cj['classification_head_type']!r} "
+                     "is not supported (expected 'patch_mlp')")
+  head = cj.get("classification_head_kwargs")
+  if not head or "output_dim" not in head:
+    raise ValueError("config.json: classification_head_kwargs.output_dim is missing")
+  for key in ("refinement_range", "temperature"):
+    if key not in cj:
+      raise ValueError(f"config.json: {key} is missing (a UniFlowMatchClassificationRefinement "
+                       "config names it)")
+  patch = head.get("patch_size", base.encoder.patch_size)
+  if patch != base.encoder.patch_size:
+    raise ValueError(f"config.json: classification_head_kwargs.patch_size={patch} but the encoder "
+                     f"patch size is {base.encoder.patch_size}")
+  in_dim = head.get("input_feature_dim")
+  want = base.encoder.embed_dim + base.info_sharing.dim
+  if isinstance(in_dim, str):   # the official configs write e.g. "1024 + 768"
+    in_dim = sum(int(t) for t in in_dim.split("+"))
+  if in_dim is not None and in_dim != want:
+    raise ValueError(f"config.json: classification_head_kwargs.input_feature_dim={in_dim} but "
+                     f"encoder ({base.encoder.embed_dim}) + info sharing ({base.info_sharing.dim}) "
+                     f"= {want}")
+  use_unet = bool(cj.get("use_unet_feature", True))
+  widths = unet_widths(shapes) if use_unet else ()
+  if use_unet and not widths:
+    raise ValueError("config.json: use_unet_feature=True but model.safetensors has no "
+                     "unet_feature.downs.0.conv.0.weight")
+  fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(ufm.UFMConfig)}
+  return UFMRefineConfig(
+      **fields, unet_features=widths, refine_feature_dim=int(head["output_dim"]),
+      refine_mlp_ratio=float(head.get("mlp_ratio", 4.0)), use_unet_feature=use_unet,
+      feature_combine_method=cj.get("feature_combine_method", "conv"),
+      refinement_range=int(cj["refinement_range"]), temperature=float(cj["temperature"]))

@@ -40,6 +40,7 @@ class UFMConfig:
   # official autocast does), or "float64" (everything; needs jax_enable_x64, for testing).
   dtype: str = "float32"
   remat: bool = False  # gradient checkpointing per transformer block
+  attention_impl: Optional[str] = None  # None/"xla", or "cudnn" (fused flash attention on GPU)
 
   def __post_init__(self):
     if self.dtype not in DTYPES:
@@ -153,9 +154,10 @@ class UFM(nn.Module):
     cfg = self.config
     compute = DTYPES[cfg.dtype]
     bb_dtype = None if cfg.dtype == "float32" else compute
-    self.encoder = dinov2.DinoV2(cfg.encoder, bb_dtype, cfg.remat, self.activation_sharding)
+    self.encoder = dinov2.DinoV2(cfg.encoder, bb_dtype, cfg.remat, self.activation_sharding,
+                                 cfg.attention_impl)
     self.info_sharing = info_sharing_lib.InfoSharing(cfg.info_sharing, bb_dtype, cfg.remat,
-                                                 self.activation_sharding)
+                                                     self.activation_sharding, cfg.attention_impl)
     # torch: head1 = Sequential(Sequential(DPTFeature, DPTRegressionProcessor), AdaptorMap).
     self.head1_0_0 = dpt.DPTFeature(cfg.flow_head)
     self.head1_0_1 = dpt.DPTRegressionProcessor(cfg.flow_head)
@@ -172,40 +174,98 @@ class UFM(nn.Module):
     feats = self.encoder(jnp.concatenate([source, target], axis=0))[-1]
     return tuple(jnp.split(feats, 2, axis=0))
 
-  def __call__(self, source, target, symmetrized: bool = False) -> Dict[str, jax.Array]:
+  def backbone(self, source, target, symmetrized: bool = False) -> Dict[str, Any]:
+    """Checks and normalises the images, runs encoder + info sharing.
+
+    Returns {"encoder": (view1, view2) last encoder maps, "info_sharing": (view1, view2) final
+    fusion maps, "head_features": the 4 view-1 maps the DPT heads take (float32), "hw": (H, W)}.
+    Subclasses (the refinement model) reuse it.
+    """
     cfg = self.config
     check_images(source, target, cfg.encoder.patch_size, symmetrized)
-    _, h, w, _ = source.shape
     head_dtype = jnp.float64 if cfg.dtype == "float64" else jnp.float32
     src, tgt = normalize(source), normalize(target)
     if cfg.dtype == "float64":
       src, tgt = src.astype(jnp.float64), tgt.astype(jnp.float64)
-
     f1, f2 = self.encode(src, tgt, symmetrized)
     (fin1, fin2), inters = self.info_sharing(f1, f2)
     # Heads see view 1 only: [encoder last, intermediate 0, intermediate 1, final], in float32.
     feats = [t.astype(head_dtype) for t in (f1, inters[0][0], inters[1][0], fin1)]
+    return {"encoder": (f1, f2), "info_sharing": (fin1, fin2), "head_features": feats,
+            "hw": tuple(source.shape[1:3])}
 
-    flow_norm = self.head1_0_1(self.head1_0_0(feats), (h, w))
+  def heads(self, feats, hw) -> Dict[str, jax.Array]:
+    """DPT flow head + adaptor and the (gradient-stopped) covisibility head."""
+    cfg = self.config
+    flow_norm = self.head1_0_1(self.head1_0_0(feats), hw)
     self.sow("intermediates", "flow_decoded_channels", flow_norm)
     flow = dpt.flow_adaptor(flow_norm, cfg.flow_adaptor)
-
     cov_feats = [jax.lax.stop_gradient(t) for t in feats] if cfg.detach_uncertainty_head else feats
-    logits = self.uncertainty_head_0_1(self.uncertainty_head_0_0(cov_feats), (h, w))[..., 0]
+    logits = self.uncertainty_head_0_1(self.uncertainty_head_0_0(cov_feats), hw)[..., 0]
     return {"flow": flow, "covisibility": jax.nn.sigmoid(logits), "covisibility_logits": logits}
+
+  def __call__(self, source, target, symmetrized: bool = False) -> Dict[str, jax.Array]:
+    b = self.backbone(source, target, symmetrized)
+    return self.heads(b["head_features"], b["hw"])
 
 
 def model_from_config(cfg: UFMConfig, **kw) -> UFM:
   return UFM(cfg, **kw)
 
 
-def init_params(model: UFM, rng=None, image_hw: Optional[Tuple[int, int]] = None):
-  """Random parameters (float32). The parameter shapes do not depend on the image size."""
-  p = model.config.encoder.patch_size
-  hw = image_hw or (2 * p, 2 * p)
-  x = jnp.zeros((1,) + tuple(hw) + (3,), jnp.uint8)
-  rng = jax.random.PRNGKey(0) if rng is None else rng
-  return jax.jit(model.init)(rng, x, x)["params"]
+def init_params(model: UFM, seed: int = 0):
+  """Random float32 parameters, drawn on the host with numpy (no XLA compile: compiling
+  `model.init` for a many-module tree takes minutes on CPU).
+
+  The PyTorch defaults: Linear xavier-uniform / zero bias (UniCeption), Conv kaiming-uniform
+  with a=sqrt(5) and uniform bias (torch), LayerNorm ones/zeros, LayerScale `init_values`,
+  pos_embed trunc-normal(0.02), cls/register tokens normal(1e-6). Released models start from
+  pretrained weights instead (`ufm_jax.load_official`).
+  """
+  rng = np.random.default_rng(seed)
+  flat = {}
+  for path, leaf in _flat_items(param_shapes(model)):
+    shape, name = tuple(leaf.shape), path[-1]
+    if name == "kernel" and len(shape) == 2:
+      bound = np.sqrt(6.0 / (shape[0] + shape[1]))
+      v = rng.uniform(-bound, bound, shape)
+    elif name == "kernel":
+      fan_in = int(np.prod(shape[:-1]))
+      v = rng.uniform(-1, 1, shape) / np.sqrt(fan_in)
+    elif name == "bias" and any(p.startswith(("head1", "uncertainty_head")) for p in path):
+      v = rng.uniform(-0.1, 0.1, shape)
+    elif name == "bias":
+      v = np.zeros(shape)
+    elif name == "scale":
+      v = np.ones(shape)
+    elif name == "gamma":
+      v = np.full(shape, _layerscale_init(model, path))
+    elif name == "pos_embed":
+      v = np.clip(rng.normal(0, 0.02, shape), -0.04, 0.04)
+    else:  # cls_token, register_tokens
+      v = rng.normal(0, 1e-6, shape)
+    flat[path] = jnp.asarray(v, jnp.float32)
+  tree: Dict[str, Any] = {}
+  for path, v in flat.items():
+    node = tree
+    for p in path[:-1]:
+      node = node.setdefault(p, {})
+    node[path[-1]] = v
+  return tree
+
+
+def _layerscale_init(model: UFM, path) -> float:
+  cfg = model.config
+  v = cfg.encoder.init_values if path[0] == "encoder" else cfg.info_sharing.init_values
+  return float(v or 1.0)
+
+
+def _flat_items(tree, prefix=()):
+  for k, v in tree.items():
+    if hasattr(v, "items"):
+      yield from _flat_items(v, prefix + (k,))
+    else:
+      yield prefix + (k,), v
 
 
 def param_shapes(model: UFM):

@@ -43,9 +43,10 @@ def _parse_channels(value: bytes):
 
 def _unpredict(raw: bytes) -> bytes:
   """Undo ZIP pre-processing: running byte sum (offset 128) then de-interleave two halves."""
-  d = np.frombuffer(raw, np.uint8).astype(np.int64) - 128
-  d[0] = raw[0]
-  t = (np.cumsum(d) % 256).astype(np.uint8)
+  d = np.frombuffer(raw, np.uint8) - np.uint8(128)  # wraps mod 256, as the running sum does
+  if len(d):
+    d[0] = raw[0]
+  t = np.cumsum(d, dtype=np.uint8)
   half = (len(t) + 1) // 2
   out = np.empty_like(t)
   out[0::2] = t[:half]
@@ -113,6 +114,8 @@ def read_exr(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
   offsets = np.frombuffer(buf, "<u8", n_chunks, pos)
   dtypes = [_PIXEL_DTYPES[c[1]] for c in chans]
   ci = names.index(channel)
+  row_bytes = w * sum(d.itemsize for d in dtypes)
+  ci_start = w * sum(d.itemsize for d in dtypes[:ci])
   out = np.empty((h, w), np.float32)
   for k, off in enumerate(offsets):
     off = int(off)
@@ -120,6 +123,9 @@ def read_exr(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
       raise ValueError(f"{path}: EXR chunk {k} points past the end of the file")
     y, size = struct.unpack_from("<ii", buf, off)
     data = buf[off + 8:off + 8 + size]
+    if not y0 <= y <= y1:
+      raise ValueError(f"{path}: EXR chunk {k} starts at line {y}, outside the data window "
+                       f"{y0}..{y1}")
     rows = min(lpc, y1 + 1 - y)
     expected = rows * w * sum(d.itemsize for d in dtypes)
     if comp != 0 and size < expected:
@@ -129,13 +135,10 @@ def read_exr(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
         raise ValueError(f"{path}: corrupt ZIP data in EXR chunk {k} ({e})") from e
     if len(data) != expected:
       raise ValueError(f"{path}: EXR chunk {k} holds {len(data)} bytes, expected {expected}")
-    p = 0
-    for r in range(rows):
-      for j, dt in enumerate(dtypes):
-        n = w * dt.itemsize
-        if j == ci:
-          out[y - y0 + r] = np.frombuffer(data, dt, w, p)
-        p += n
+    # Each row holds the channels one after the other: take channel ci's bytes of every row.
+    block = np.frombuffer(data, np.uint8).reshape(rows, row_bytes)
+    out[y - y0:y - y0 + rows] = block[:, ci_start:ci_start + w * dtypes[ci].itemsize].view(
+        dtypes[ci])
   return out
 
 

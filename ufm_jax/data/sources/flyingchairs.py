@@ -75,7 +75,7 @@ class FlyingChairs:
                        f"{image1.shape[:2]} differ in size")
     with np.errstate(invalid="ignore"):
       flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)  # NaN fails
-    flow = np.where(flow_valid[..., None], flow, 0.0).astype(np.float32)
+    flow = sceneflow.fill_invalid(flow, flow_valid)
     covisibility = sceneflow.fov_mask(flow) & flow_valid
     return dict(image0=image0, image1=image1, flow=flow, covisibility=covisibility,
                 flow_valid=flow_valid, covis_valid=np.zeros_like(flow_valid),

@@ -153,10 +153,10 @@ class SceneFlowSource:
                          f"{scene}/{cam} (expected {'(H, W, 2)' if ndim == 3 else '(H, W)'})")
     with np.errstate(invalid="ignore"):
       flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)  # NaN fails
-    flow = np.where(flow_valid[..., None], flow, 0.0).astype(np.float32)
     K = sceneflow.sceneflow_intrinsics(h, w)
-    geo = sceneflow.sceneflow_covisibility(np.where(flow_valid[..., None], flow, np.nan), disp0,
+    geo = sceneflow.sceneflow_covisibility(sceneflow.fill_invalid(flow, flow_valid, np.nan), disp0,
                                            change, disp1, *self.tau, K=K)
+    flow = sceneflow.fill_invalid(flow, flow_valid)
     return dict(image0=image0, image1=image1, flow=flow,
                 covisibility=geo["covisibility"] & flow_valid, flow_valid=flow_valid,
                 covis_valid=geo["covis_valid"],

@@ -61,22 +61,22 @@ def read_index_png(path: str) -> np.ndarray:
       palette = np.frombuffer(buf[pos + 8:pos + 8 + n], np.uint8).reshape(-1, 3)
       break
     pos += 12 + n
-  if palette is None:
+  if palette is None or not len(palette):
     raise ValueError(f"{path}: colour segmentation without a palette (expected a palette or "
                      "grey PNG of object ids)")
-  rgb = raw[..., 2::-1].astype(np.int64)  # BGR(A) -> RGB
-  codes = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
-  pcodes = (palette[:, 0].astype(np.int64) << 16) | (palette[:, 1].astype(np.int64) << 8) | \
+  codes = raw[..., 2].astype(np.int32) << 16  # BGR(A): R << 16 | G << 8 | B
+  codes |= raw[..., 1].astype(np.int32) << 8
+  codes |= raw[..., 0]
+  pcodes = (palette[:, 0].astype(np.int32) << 16) | (palette[:, 1].astype(np.int32) << 8) | \
       palette[:, 2]
-  lookup = {}
-  for i, c in enumerate(pcodes):
-    lookup.setdefault(int(c), i)  # first index wins for duplicate colours
-  uniq, inv = np.unique(codes, return_inverse=True)
-  try:
-    ids = np.array([lookup[int(u)] for u in uniq], np.int32)
-  except KeyError as e:
-    raise ValueError(f"{path}: pixel colour {e} not in the PNG palette") from e
-  return ids[inv].reshape(codes.shape)
+  # Sorted unique palette colours, each with its first palette index (first wins for duplicates).
+  sorted_codes, first = np.unique(pcodes, return_index=True)
+  pos = np.searchsorted(sorted_codes, codes)
+  np.minimum(pos, len(sorted_codes) - 1, out=pos)
+  missing = sorted_codes[pos] != codes
+  if missing.any():
+    raise ValueError(f"{path}: pixel colour {int(codes[missing][0])} not in the PNG palette")
+  return first.astype(np.int32)[pos]
 
 
 def write_index_png(path: str, ids: np.ndarray, palette: np.ndarray) -> None:

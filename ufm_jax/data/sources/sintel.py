@@ -98,7 +98,7 @@ class Sintel:
         raise ValueError(f"{flow_path}: {what} map is {shape}, images of {scene} are {(h, w)}")
     with np.errstate(invalid="ignore"):
       flow_valid = (np.abs(flow[..., 0]) <= UNKNOWN_FLOW) & (np.abs(flow[..., 1]) <= UNKNOWN_FLOW)
-    flow = np.where(flow_valid[..., None], flow, 0.0).astype(np.float32)
+    flow = sceneflow.fill_invalid(flow, flow_valid)
     covisibility = ~occlusion & sceneflow.fov_mask(flow) & flow_valid
     u = np.arange(w)[None, :] + flow[..., 0]
     v = np.arange(h)[:, None] + flow[..., 1]

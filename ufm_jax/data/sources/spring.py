@@ -168,7 +168,7 @@ class Spring:
                        f"resolution {2 * h}x{2 * w} of the {h}x{w} frames")
     flow = np.ascontiguousarray(full[::2, ::2])
     flow_valid = np.isfinite(flow[..., 0]) & np.isfinite(flow[..., 1])
-    flow = np.where(flow_valid[..., None], flow, 0.0).astype(np.float32)
+    flow = sceneflow.fill_invalid(flow, flow_valid)
     mm_path = os.path.join(base, "maps", f"matchmap_flow_{fb}_{cam}",
                            f"matchmap_flow_{fb}_{cam}_{src:04d}.png")
     matched = self._matched(mm_path, h, w)

@@ -1,0 +1,127 @@
+"""Full-size configs checked without compute (jax.eval_shape) against closed-form counts."""
+
+import importlib.util
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ufm_jax import convert
+from ufm_jax.models import dinov2, ufm
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _configs_models():
+  spec = importlib.util.spec_from_file_location("configs_models", REPO / "configs" / "models.py")
+  mod = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(mod)
+  return mod
+
+
+def _count(model):
+  return sum(int(np.prod(s)) for s in convert.expected_param_shapes(model).values())
+
+
+# ---- closed-form counts of the official modules (torch Linear/Conv/LayerNorm parameter sizes)
+
+def linear(i, o, bias=True):
+  return i * o + (o if bias else 0)
+
+
+def conv(i, o, k, bias=True):
+  return i * o * k * k + (o if bias else 0)
+
+
+def vit_block(d, hidden, layerscale=True, swiglu=False):
+  ffn = linear(d, 2 * hidden) + linear(hidden, d) if swiglu else linear(d, hidden) + linear(hidden, d)
+  return 4 * d + linear(d, 3 * d) + linear(d, d) + ffn + (2 * d if layerscale else 0)
+
+
+def dinov2_count(d, depth, swiglu_hidden=None, patch=14, grid=37):
+  hidden = swiglu_hidden or 4 * d
+  return (conv(3, d, patch) + d + (1 + grid * grid) * d  # patch embed, cls, pos
+          + depth * vit_block(d, hidden, swiglu=swiglu_hidden is not None) + 2 * d)
+
+
+def dpt_count(in_dims, layer_dims, f, out):
+  n = conv(in_dims[0], layer_dims[0], 1) + conv(layer_dims[0], layer_dims[0], 4)
+  n += conv(in_dims[1], layer_dims[1], 1) + conv(layer_dims[1], layer_dims[1], 2)
+  n += conv(in_dims[2], layer_dims[2], 1)
+  n += conv(in_dims[3], layer_dims[3], 1) + conv(layer_dims[3], layer_dims[3], 3)
+  n += sum(conv(l, f, 3, bias=False) for l in layer_dims)  # layer{k}_rn
+  rcu = 2 * conv(f, f, 3)
+  n += 3 * (2 * rcu + conv(f, f, 1)) + (rcu + conv(f, f, 1))  # refinenet4 has one RCU
+  return n + conv(f, f // 2, 3) + conv(f // 2, f // 2, 3) + conv(f // 2, out, 1)
+
+
+def test_ufm_base_parameter_count():
+  cfg = _configs_models().ufm_base()
+  enc = dinov2_count(1024, 24)
+  fusion = linear(1024, 768) + 12 * vit_block(768, 3072, layerscale=False) + 2 * 768
+  heads = sum(dpt_count((1024, 768, 768, 768), (96, 192, 384, 768), 256, o) for o in (2, 1))
+  want = enc + fusion + heads
+  got = _count(ufm.model_from_config(cfg))
+  assert got == want
+  assert round(got / 1e6, 1) == 428.3  # "the official structure has about 428.3M parameters"
+
+
+def test_ufm_base_structure():
+  cfg = _configs_models().ufm_base()
+  assert cfg.encoder.embed_dim == 1024 and cfg.encoder.depth == 24 and cfg.encoder.patch_size == 14
+  s = cfg.info_sharing
+  assert (s.dim, s.depth, s.num_heads) == (768, 12, 12)
+  assert s.indices == (5, 8)  # layers 6 and 9 of 12 (1-based), then the final layer
+  assert cfg.flow_head.layer_dims == (96, 192, 384, 768) and cfg.flow_head.feature_dim == 256
+  shapes = convert.expected_param_shapes(ufm.model_from_config(cfg))
+  assert shapes[("encoder", "pos_embed")] == (1, 1370, 1024)
+  assert shapes[("info_sharing", "self_attention_blocks_11", "mlp", "fc1", "kernel")] == (768, 3072)
+  assert shapes[("head1_0_0", "input_process_3_0_1", "kernel")] == (3, 3, 768, 768)
+  # full-size forward shape inference at 420 x 560 without compute
+  x = jax.ShapeDtypeStruct((1, 420, 560, 3), jnp.uint8)
+  p = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s, jnp.float32),
+                   convert._unflatten(shapes), is_leaf=lambda s: isinstance(s, tuple))
+  out = jax.eval_shape(lambda p, a, b: ufm.model_from_config(cfg).apply({"params": p}, a, b), p, x, x)
+  assert out["flow"].shape == (1, 420, 560, 2) and out["covisibility"].shape == (1, 420, 560)
+
+
+@pytest.mark.parametrize("size,d,depth,swiglu", [
+    ("small", 384, 12, None), ("base", 768, 12, None), ("large", 1024, 24, None),
+    ("giant", 1536, 40, 4096)])
+def test_dinov2_sizes(size, d, depth, swiglu):
+  cfg = dinov2.dinov2_config(size)
+  model = dinov2.DinoV2(cfg)
+  x = jax.ShapeDtypeStruct((1, 28, 28, 3), jnp.float32)
+  shapes = jax.eval_shape(lambda a: model.init(jax.random.PRNGKey(0), a), x)["params"]
+  got = sum(int(np.prod(v.shape)) for v in jax.tree.leaves(shapes))
+  assert got == dinov2_count(d, depth, swiglu)
+  # the DINOv2 paper's sizes: 21M, 86M, 300M, 1.1B
+  assert round(got / 1e6) in {"small": (22,), "base": (86, 87), "large": (304,),
+                              "giant": (1136,)}[size]
+
+
+def test_fixture_small_is_the_fixture_structure(reference_dir):
+  model, params = convert.load_official(reference_dir / "base")
+  assert model.config == _configs_models().fixture_small()
+  assert _count(model) == sum(v.size for v in jax.tree.leaves(params))
+
+
+def test_variants_build():
+  cm = _configs_models()
+  for name in cm.VARIANTS:
+    cfg = cm.get(name)
+    assert ufm.config_from_json(ufm.config_to_json(cfg)) == cfg
+  with pytest.raises(ValueError, match="unknown model variant"):
+    cm.get("ufm_huge")
+
+
+def test_config_json_errors():
+  d = ufm.config_to_dict(_configs_models().tiny())
+  with pytest.raises(ValueError, match="unknown model config key 'depth'"):
+    ufm.config_from_dict({**d, "depth": 3})
+  with pytest.raises(ValueError, match=r"unknown keys \['width'\] in model config section 'encoder'"):
+    ufm.config_from_dict({**d, "encoder": {**d["encoder"], "width": 3}})
+  with pytest.raises(ValueError, match="UFMConfig.dtype 'float16'"):
+    ufm.config_from_dict({**d, "dtype": "float16"})
