@@ -24,7 +24,7 @@ def base(reference_dir):
   fwd = jax.jit(lambda p, a, b: model.apply({"params": p}, a, b, mutable=["intermediates"]))
   out, state = fwd(params, io["img1_uint8"], io["img2_uint8"])
   return dict(model=model, params=params, io=io, inter=inter, out=out,
-              sown=state["intermediates"], dir=d)
+              sown=state["intermediates"], dir=d, fwd=fwd)
 
 
 def _nchw(x):
@@ -108,6 +108,19 @@ def test_forward_outputs(base):
   _close("covisibility_logits", np.asarray(out["covisibility_logits"])[:, None],
          io["covisibility_logits"], 2e-4)
   _close("covisibility", np.asarray(out["covisibility"])[:, None], io["covisibility_mask"], 5e-5)
+
+
+def test_symmetrized_equals_plain(base):
+  # (a,b),(b,a),(c,d),(d,c): each image encoded once, features interleaved (official path)
+  model, params, io = base["model"], base["params"], base["io"]
+  a, b, c, d = io["img1_uint8"][0], io["img2_uint8"][0], io["img1_uint8"][1], io["img2_uint8"][1]
+  sym = jax.jit(lambda p, s, t: model.apply({"params": p}, s, t, symmetrized=True))(
+      params, np.stack([a, b, c, d]), np.stack([b, a, d, c]))
+  plain_fwd = base["out"]  # pairs (a,b), (c,d)
+  plain_bwd = base["fwd"](params, np.stack([b, d]), np.stack([a, c]))[0]  # pairs (b,a), (d,c)
+  for k in plain_fwd:
+    np.testing.assert_allclose(np.asarray(sym[k])[0::2], np.asarray(plain_fwd[k]), rtol=0, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(sym[k])[1::2], np.asarray(plain_bwd[k]), rtol=0, atol=1e-5)
 
 
 def test_float_input_normalisation(base):

@@ -47,7 +47,8 @@ class DinoV2Config:
   def take_indices(self) -> Tuple[int, ...]:
     if isinstance(self.indices, int):
       return tuple(range(self.depth - self.indices, self.depth))
-    idx = tuple(i % self.depth if i < 0 else i for i in self.indices)
+    # The hub appends block outputs in block order while running the blocks (`if i in n`).
+    idx = tuple(sorted({i % self.depth if i < 0 else i for i in self.indices}))
     for i in idx:
       if not 0 <= i < self.depth:
         raise ValueError(f"encoder index {i} out of range for depth {self.depth}")

@@ -33,7 +33,7 @@ class InfoSharingConfig:
   max_num_views: int = 2
 
   def take_indices(self) -> Tuple[int, ...]:
-    idx = tuple(sorted(i % self.depth if i < 0 else i for i in self.indices))
+    idx = tuple(sorted({i % self.depth if i < 0 else i for i in self.indices}))
     for i in idx:
       if not 0 <= i < self.depth:
         raise ValueError(f"info-sharing index {i} out of range for depth {self.depth}")
