@@ -120,8 +120,19 @@ def tiny(**kw) -> ufm.UFMConfig:
   return cfg.replace(**kw)
 
 
+def tiny_refine(**kw) -> "refine.UFMRefineConfig":
+  """`tiny` plus a small refiner (U-Net [8, 16], 8 feature channels, 7 x 7 window): smoke tests
+  and synthetic refine-stage training."""
+  from ufm_jax.models import refine
+  base = tiny()
+  fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(ufm.UFMConfig)}
+  cfg = refine.UFMRefineConfig(**fields, unet_features=(8, 16), refine_feature_dim=8,
+                               refine_mlp_ratio=2.0, refinement_range=7, temperature=4.0)
+  return cfg.replace(**kw)
+
+
 VARIANTS = {"fixture_small": fixture_small, "tiny": tiny, "ufm_base": ufm_base,
-            "ufm_base_980": ufm_base_980, "ufm_refine": ufm_refine}
+            "ufm_base_980": ufm_base_980, "ufm_refine": ufm_refine, "tiny_refine": tiny_refine}
 
 
 def get(name: str, **kw) -> ufm.UFMConfig:

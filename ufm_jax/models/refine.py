@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ufm_jax.models import dpt, ufm
+from ufm_jax.models import ufm
 
 _A = -0.75  # torch's bicubic convolution constant
 
@@ -203,7 +203,9 @@ def _tap_products(f1, f2, x0, y0, ntaps):
   ys = jnp.clip(y0 + t, 0, h + t)
 
   def take(img, y, x):                                                   # -> [T, C]
-    return jax.lax.dynamic_slice(img, (y, x, 0), (1, t, c))[0]
+    zero = jnp.zeros((), jnp.int32)   # one index dtype, also under jax_enable_x64
+    return jax.lax.dynamic_slice(img, (y.astype(jnp.int32), x.astype(jnp.int32), zero),
+                                 (1, t, c))[0]
 
   take_all = jax.vmap(jax.vmap(jax.vmap(take, (None, 0, 0)), (None, 0, 0)), (0, 0, 0))
 
@@ -382,6 +384,10 @@ class UFMRefineConfig(ufm.UFMConfig):
   # Source rows per refinement step (lax.map): bounds the refinement's memory at 980 px.
   refine_chunk: Optional[int] = None
 
+  def build_model(self, **kw) -> "UFMRefine":
+    """ufm.model_from_config dispatches here, so train.py / the CLI build the refine model."""
+    return UFMRefine(self, **kw)
+
 
 def refine_config_from_dict(d):
   """Inverse of dataclasses.asdict(UFMRefineConfig) (JSON lists become tuples)."""
@@ -428,7 +434,8 @@ class UFMRefine(ufm.UFM):
     if cfg.dtype == "float64":
       src, tgt = src.astype(jnp.float64), tgt.astype(jnp.float64)
 
-    # The refiner reads the encoder's first returned feature map as well as its last.
+    # UFM.backbone is not reused: the refiner also needs the encoder's FIRST returned map and the
+    # normalised images. The heads are shared (UFM.heads).
     if symmetrized:   # (a,b),(b,a) interleaved: each image through the encoder / U-Net once
       feats = self.encoder(jnp.concatenate([src[::2], tgt[::2]], axis=0))
       first1, first2 = ufm._interleave(*jnp.split(feats[0], 2, axis=0))
@@ -444,11 +451,8 @@ class UFMRefine(ufm.UFM):
 
     (fin1, fin2), inters = self.info_sharing(last1, last2)
     head_in = [t.astype(head_dtype) for t in (last1, inters[0][0], inters[1][0], fin1)]
-    flow_norm = self.head1_0_1(self.head1_0_0(head_in), (h, w))
-    flow = dpt.flow_adaptor(flow_norm, cfg.flow_adaptor)
-    cov_in = ([jax.lax.stop_gradient(t) for t in head_in] if cfg.detach_uncertainty_head
-              else head_in)
-    logits = self.uncertainty_head_0_1(self.uncertainty_head_0_0(cov_in), (h, w))[..., 0]
+    out = self.heads(head_in, (h, w))          # the base model's DPT heads + adaptors
+    flow = out["flow"]
 
     # Official: cat(encoder list[0], info-sharing final.float()) per view, both views as one batch.
     tokens = jnp.concatenate([jnp.concatenate([first1, fin1], -1),
@@ -457,9 +461,8 @@ class UFMRefine(ufm.UFM):
     fmap = self.refiner.combine(tokens, unet_out)
     f1, f2 = jnp.split(fmap, 2, axis=0)
     residual, log_p = self.refiner.refine(f1, f2, flow)
-    return {"flow": flow + residual, "covisibility": jax.nn.sigmoid(logits),
-            "covisibility_logits": logits, "flow_before_refinement": flow, "residual": residual,
-            "log_softmax": log_p, "feature_map_0": f1, "feature_map_1": f2}
+    return dict(out, flow=flow + residual, flow_before_refinement=flow, residual=residual,
+                log_softmax=log_p, feature_map_0=f1, feature_map_1=f2)
 
 
 def refine_model_from_config(cfg: UFMRefineConfig, **kw) -> UFMRefine:

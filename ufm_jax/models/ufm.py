@@ -210,6 +210,9 @@ class UFM(nn.Module):
 
 
 def model_from_config(cfg: UFMConfig, **kw) -> UFM:
+  # Config subclasses name their own module (refine.UFMRefineConfig -> UFMRefine).
+  if hasattr(cfg, "build_model"):
+    return cfg.build_model(**kw)
   return UFM(cfg, **kw)
 
 
