@@ -105,13 +105,14 @@ def test_load_train_workdir(tmp_path):
   import json
 
   import jax
-  import jax.numpy as jnp
 
   from ufm_jax import checkpoint
 
+  from ufm_jax.models import ufm
+
   model = cli.model_from_name("tiny")
-  x = jnp.zeros((1, 28, 28, 3), jnp.uint8)
-  params = jax.jit(model.init)(jax.random.PRNGKey(1), x, x)["params"]
+  rng = np.random.default_rng(0)  # shapes by eval_shape (no compile); values arbitrary
+  params = jax.tree.map(lambda s: rng.normal(size=s.shape).astype(np.float32), ufm.param_shapes(model))
   manager = checkpoint.make_manager(tmp_path, save_interval_steps=1, keep=2, async_save=False)
   for step in (1, 2):
     state = {"params": jax.tree.map(lambda p: p + step, params), "step": step}

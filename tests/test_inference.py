@@ -136,3 +136,18 @@ def test_predict_vs_reference(io, reference_dir):
     np.testing.assert_allclose(out["flow"], _hwc(io[f"{p}_flow"]), rtol=0, atol=1e-3, err_msg=p)
     np.testing.assert_allclose(out["covisibility"], io[f"{p}_covisibility"][0], rtol=0, atol=5e-5,
                                err_msg=p)
+
+
+@pytest.mark.slow
+def test_predict_refine_vs_reference(reference_dir):
+  """The same high-level path on the refine fixture. Its flow tolerance is the refiner's own
+  forward tolerance (5e-3, see test_refine_parity.py): the resize and unmap add < 1e-4."""
+  from ufm_jax import convert
+  io = dict(np.load(reference_dir / "refine" / "io.npz"))
+  model, params = convert.load_official(reference_dir / "refine")
+  outs = inference.predict(model, params, [io[f"{p}_src_uint8"] for p in PAIRS],
+                           [io[f"{p}_tgt_uint8"] for p in PAIRS])
+  for p, out in zip(PAIRS, outs):
+    np.testing.assert_allclose(out["flow"], _hwc(io[f"{p}_flow"]), rtol=0, atol=5e-3, err_msg=p)
+    np.testing.assert_allclose(out["covisibility"], io[f"{p}_covisibility"][0], rtol=0, atol=5e-5,
+                               err_msg=p)

@@ -40,7 +40,11 @@ def model_from_name(name: str, **overrides):
     build_model = None
   if build_model is not None:
     return build_model(name, **overrides)
-  from configs import models
+  try:
+    from configs import models
+  except ImportError:  # configs/ sits beside the package in a source checkout, not installed
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from configs import models
   from ufm_jax.models import ufm
   fn = getattr(models, name, None)
   if not callable(fn):

@@ -230,7 +230,7 @@ def _check_image(x, what: str) -> np.ndarray:
 
 
 def prepare_pair(source, target, resolutions):
-  """Normalise + resize one pair; returns the 0..255 float inputs and the bookkeeping."""
+  """Normalise + resize one pair: (normalised source, normalised target, bookkeeping dict)."""
   src_hw, tgt_hw = source.shape[:2], target.shape[:2]
   res = select_resolution(resolutions, src_hw, tgt_hw)
   src = resize_bilinear_aa(normalize(source), res)
