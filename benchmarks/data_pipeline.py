@@ -133,7 +133,14 @@ def main(argv=None):
   p.add_argument("--config", default=None, help="a training config file: benchmark its mixture")
   p.add_argument("--config_arg", default=None)
   p.add_argument("--data_root", default=None)
+  p.add_argument("--per_dataset", action="store_true",
+                 help="also print every reader's CPU ms per sample on 560-shape test trees "
+                      "(benchmarks/source_load.py)")
   args = p.parse_args(argv)
+  if args.per_dataset:
+    import source_load  # beside this file
+    print("CPU ms per sample, single thread, 420x560 test trees (budget < 50 ms)")
+    source_load.measure((420, 560))
   print(f"{'longest':>7} {'workers':>7} {'batch':>5} {'pairs/s':>9} {'batches/s':>9} "
         f"{'startup+warmup s':>16}")
   for side in (int(s) for s in args.longest_side.split(",")):

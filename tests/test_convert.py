@@ -8,6 +8,7 @@ import sys
 
 import jax
 import numpy as np
+from flax import traverse_util
 import pytest
 from safetensors.numpy import load_file, save_file
 
@@ -162,7 +163,7 @@ def _perturbed_params(model, seed):
         else (1.0 / fan_in) ** 0.5
     base = 1.0 if path[-1] in ("scale", "gamma") else 0.0
     flat[path] = (base + scale * rng.standard_normal(shape)).astype(np.float32)
-  return convert._unflatten(flat)
+  return traverse_util.unflatten_dict(flat)
 
 
 UNSEEN = {

@@ -7,6 +7,7 @@ import pathlib
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import traverse_util
 import pytest
 
 from ufm_jax import convert
@@ -83,7 +84,7 @@ def test_ufm_base_structure():
   # full-size forward shape inference at 420 x 560 without compute
   x = jax.ShapeDtypeStruct((1, 420, 560, 3), jnp.uint8)
   p = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s, jnp.float32),
-                   convert._unflatten(shapes), is_leaf=lambda s: isinstance(s, tuple))
+                   traverse_util.unflatten_dict(shapes), is_leaf=lambda s: isinstance(s, tuple))
   out = jax.eval_shape(lambda p, a, b: ufm.model_from_config(cfg).apply({"params": p}, a, b), p, x, x)
   assert out["flow"].shape == (1, 420, 560, 2) and out["covisibility"].shape == (1, 420, 560)
 

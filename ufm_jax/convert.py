@@ -32,6 +32,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import traverse_util
 
 from ufm_jax.models import dinov2, dpt, info_sharing, ufm
 
@@ -345,16 +346,6 @@ def _flatten(tree, prefix=()):
   return out
 
 
-def _unflatten(flat):
-  tree: Dict[str, Any] = {}
-  for path, v in flat.items():
-    node = tree
-    for p in path[:-1]:
-      node = node.setdefault(p, {})
-    node[path[-1]] = v
-  return tree
-
-
 def expected_param_shapes(model) -> Dict[Tuple[str, ...], Tuple[int, ...]]:
   p = model.config.encoder.patch_size
   x = jax.ShapeDtypeStruct((1, 2 * p, 2 * p, 3), jnp.uint8)
@@ -406,7 +397,7 @@ def params_from_state_dict(state: Dict[str, np.ndarray], model, buffers: Dict[st
         lines.append(f"  {title} ({len(items)}):")
         lines.extend(f"    {s}" for s in items)
     raise ValueError("\n".join(lines))
-  return _unflatten({k: jnp.asarray(v) for k, v in flat.items()})
+  return traverse_util.unflatten_dict({k: jnp.asarray(v) for k, v in flat.items()})
 
 
 def state_dict_from_params(params, buffers: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:

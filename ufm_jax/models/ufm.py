@@ -16,6 +16,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import traverse_util
 
 from ufm_jax.models import dinov2, dpt, layers
 from ufm_jax.models import info_sharing as info_sharing_lib
@@ -248,13 +249,7 @@ def init_params(model: UFM, seed: int = 0):
     else:  # cls_token, register_tokens
       v = rng.normal(0, 1e-6, shape)
     flat[path] = jnp.asarray(v, jnp.float32)
-  tree: Dict[str, Any] = {}
-  for path, v in flat.items():
-    node = tree
-    for p in path[:-1]:
-      node = node.setdefault(p, {})
-    node[path[-1]] = v
-  return tree
+  return traverse_util.unflatten_dict(flat)
 
 
 def _layerscale_init(model: UFM, path) -> float:

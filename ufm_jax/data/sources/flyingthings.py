@@ -28,6 +28,7 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
+from ufm_jax.data.sources._bidirectional import BidirectionalPairs
 from ufm_jax.geometry import sceneflow
 
 MAX_FLOW = 1000.0
@@ -42,7 +43,7 @@ def _thresholds(name: str) -> tuple[float, float]:
     return sceneflow.SCENEFLOW_THRESHOLDS[name]
 
 
-class SceneFlowSource:
+class SceneFlowSource(BidirectionalPairs):
   """FlyingThings3D / Monkaa pairs with scene-flow covisibility.
 
   Args:
@@ -101,28 +102,6 @@ class SceneFlowSource:
           self.pairs += [(dpass, scene, cam, a, b) for a, b in zip(frames, frames[1:]) if b == a + 1]
     if not self.pairs:
       raise FileNotFoundError(f"{frames_root}: no consecutive frame pairs found; {layout}")
-
-  def __len__(self):
-    return len(self.pairs) * (2 if self.directions == "both" else 1)
-
-  def __getitem__(self, index: int) -> dict:
-    if self.directions == "both":
-      return self._load(index // 2, reverse=bool(index % 2))
-    return self._load(index, reverse=False)
-
-  def reverse(self, index: int) -> dict:
-    """The pair of `index` with source and target swapped, labelled by the backward ground truth."""
-    if self.directions == "both":
-      return self._load(index // 2, reverse=not index % 2)
-    return self._load(index, reverse=True)
-
-  def both(self, index: int) -> tuple[dict, dict]:
-    """(`self[index]`, `self.reverse(index)`) reading each image once (for symmetrised batches)."""
-    k, rev = (index // 2, bool(index % 2)) if self.directions == "both" else (index, False)
-    first = self._load(k, reverse=rev)
-    second = self._load(k, reverse=not rev,
-                        images=(first["image1"].copy(), first["image0"].copy()))
-    return first, second
 
   def _load(self, k: int, reverse: bool, images=None) -> dict:
     dpass, scene, cam, a, b = self.pairs[k]

@@ -34,6 +34,7 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
+from ufm_jax.data.sources._bidirectional import BidirectionalPairs
 from ufm_jax.geometry import sceneflow
 
 LAYOUT = ("{train,test}/<seq>/frame_<cam>/frame_<cam>_%04d.png, flow_FW_<cam>/, flow_BW_<cam>/, "
@@ -54,7 +55,7 @@ def _read_lines(path: str, n_values: int) -> np.ndarray:
   return np.array(rows, np.float64).reshape(-1, n_values)
 
 
-class Spring:
+class Spring(BidirectionalPairs):
   """Random-access Spring source.
 
   Args:
@@ -94,20 +95,6 @@ class Spring:
       raise FileNotFoundError(f"{self.split_dir}: no consecutive frame pairs found; expected {LAYOUT}")
     self._cams: dict[str, tuple] = {}
 
-  def __len__(self):
-    return len(self.pairs) * (2 if self.directions == "both" else 1)
-
-  def __getitem__(self, index: int) -> dict:
-    if self.directions == "both":
-      return self._load(index // 2, reverse=bool(index % 2))
-    return self._load(index, reverse=False)
-
-  def reverse(self, index: int) -> dict:
-    """The pair of `index` with source and target swapped, labelled by the BW ground truth."""
-    if self.directions == "both":
-      return self._load(index // 2, reverse=not index % 2)
-    return self._load(index, reverse=True)
-
   def _camera_data(self, seq: str):
     if seq not in self._cams:
       cam_dir = os.path.join(self.split_dir, seq, "cam_data")
@@ -132,14 +119,6 @@ class Spring:
       if cam == "right":
         w2c[0, 3] -= BASELINE
       meta["cam2world" + suffix] = np.linalg.inv(w2c)
-
-  def both(self, index: int) -> tuple[dict, dict]:
-    """(`self[index]`, `self.reverse(index)`) reading each image once (for symmetrised batches)."""
-    k, rev = (index // 2, bool(index % 2)) if self.directions == "both" else (index, False)
-    first = self._load(k, reverse=rev)
-    second = self._load(k, reverse=not rev,
-                        images=(first["image1"].copy(), first["image0"].copy()))
-    return first, second
 
   def _load(self, k: int, reverse: bool, images=None) -> dict:
     seq, cam, a, b = self.pairs[k]
