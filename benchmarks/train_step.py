@@ -7,7 +7,10 @@ r"""Train-step benchmark: step time, pairs/s, peak memory; memory estimate of a 
 Timing runs the exact train.py step (same loss, optimizer, shardings, donation) on random batches
 of the config's model at --size/--batch. The estimate uses jax.eval_shape (params and optimizer
 state, no allocation) and XLA's memory analysis of the lowered and compiled (never run) step at
-the config's per-device batch, with and without remat. Prints figures; asserts nothing.
+the config's per-device batch, with and without remat, plus the bytes of the activations the
+backward pass keeps (JAX's saved residuals of the loss, traced abstractly). XLA:CPU's temp figure
+is a schedule of the whole step that ignores remat; the saved-residual figure is what remat
+changes and what dominates on accelerators. Prints figures; asserts nothing.
 """
 
 from __future__ import annotations
@@ -123,8 +126,26 @@ def time_steps(config, batch, hw, steps):
         f"XLA temp {_gib(ma.temp_size_in_bytes)} + args {_gib(ma.argument_size_in_bytes)}")
 
 
+def saved_activation_bytes(model, abstract_params, per_device_batch: int, hw) -> int:
+  """Bytes of the forward activations kept for the backward pass (abstract trace, no compute)."""
+  import jax
+  import jax.numpy as jnp
+  from jax._src.ad_checkpoint import saved_residuals  # also behind jax.ad_checkpoint.print_saved_residuals
+
+  x = jax.ShapeDtypeStruct((per_device_batch, *hw, 3), jnp.uint8)
+
+  def loss(params, a, b):
+    out = model.apply({"params": params}, a, b)
+    return jnp.mean(out["flow"]) + jnp.mean(out["covisibility_logits"])
+
+  residuals = saved_residuals(loss, abstract_params, x, x)
+  return sum(int(aval.size) * aval.dtype.itemsize for aval, why in residuals
+             if not why.startswith("from the argument"))
+
+
 def estimate(config, batch, hw, compile_step=True):
   import jax
+  import train
   from ufm_jax import sharding
   results = {}
   for remat in (False, True):
@@ -135,6 +156,8 @@ def estimate(config, batch, hw, compile_step=True):
     o_bytes = _tree_bytes(abstract_state.opt_state)
     per_dev = batch // sharding.batch_divisor(mesh)
     line = {"params": n_params, "param_bytes": p_bytes, "opt_bytes": o_bytes}
+    model = train.build_model(config)
+    line["saved"] = saved_activation_bytes(model, abstract_params, per_dev, hw)
     if compile_step:
       st = jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
                         abstract_state, state_sh)
@@ -151,6 +174,8 @@ def estimate(config, batch, hw, compile_step=True):
         f"batch {batch} at {hw[0]}x{hw[1]}, dtype {config.model.get('dtype', 'float32')}")
   print(f"  params {_gib(r['param_bytes'])} (f32 master), AdamW state {_gib(r['opt_bytes'])}")
   for remat, line in results.items():
+    print(f"  remat={remat}: activations kept for the backward pass {_gib(line['saved'])} at "
+          f"{per_dev} pairs/device (JAX saved residuals)")
     if "temp" in line:
       print(f"  remat={remat}: XLA temp (activations + workspace) {_gib(line['temp'])} at "
             f"{line['per_device_batch']} pairs/device; args {_gib(line['args'])}; "
