@@ -278,10 +278,12 @@ def write_float3(path: str | os.PathLike, array: np.ndarray) -> None:
 # Images, masks and 16-bit PNG depth
 
 
-def read_image(path: str | os.PathLike) -> np.ndarray:
+def read_image(path: str | os.PathLike, bgr: bool = False) -> np.ndarray:
   """Any OpenCV-readable image (PNG, JPEG, PPM, ...) -> [H, W, 3] uint8 RGB.
 
   Gray images are repeated to 3 channels, alpha is dropped, 16-bit images are scaled to 8 bits.
+  bgr=True keeps OpenCV's channel order (B, G, R) and skips the colour conversion of 3-channel
+  images (for label maps read channel by channel).
   """
   _require_file(path)
   img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
@@ -294,10 +296,10 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
   if img.ndim == 2:
     return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
   if img.shape[2] == 4:
-    return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR if bgr else cv2.COLOR_BGRA2RGB)
   if img.shape[2] != 3:
     raise ValueError(f"{path}: expected 1, 3 or 4 channels, got {img.shape[2]}")
-  return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+  return img if bgr else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:

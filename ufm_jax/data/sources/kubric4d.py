@@ -203,7 +203,7 @@ class Kubric4D(_posed.PosedPairSource):
   def metadata(self, scene, view):
     return read_metadata(os.path.join(self.root, scene, f"{scene}_p0_v{view}.json"))
 
-  def _view(self, scene, frame):
+  def _view(self, scene, frame, with_segmentation=True):
     v, t = (int(x) for x in frame.split("/"))
     meta = self.metadata(scene, v)
     d = os.path.join(self.root, scene, f"frames_p0_v{v}")
@@ -215,13 +215,16 @@ class Kubric4D(_posed.PosedPairSource):
       raise ValueError(f"{path}: expected a single-channel float32 TIFF")
     if t >= meta["num_frames"]:
       raise ValueError(f"{scene}_p0_v{v}.json: {meta['num_frames']} frames, asked for {t}")
-    depth = _posed.sanitize_depth(_posed.range_to_z(_posed.sanitize_depth(rng), meta["K"]))
-    seg = read_index_png(os.path.join(d, f"segmentation_{t:05d}.png"))
+    # Sanitised ranges are 0 or positive and finite, and so are their z-depths (range / ray norm,
+    # norm >= 1): one sanitize_depth suffices.
+    depth = _posed.range_to_z(_posed.sanitize_depth(rng), meta["K"])
+    seg = read_index_png(os.path.join(d, f"segmentation_{t:05d}.png")) \
+        if with_segmentation else None
     view = _posed.View(image, depth, meta["K"], meta["cam2world"][t])
     return view, seg, meta, t
 
   def load_view(self, scene, frame):
-    return self._view(scene, frame)[0]
+    return self._view(scene, frame, with_segmentation=False)[0]
 
   def __getitem__(self, i):
     scene, f0, f1 = self.pairs[i]
@@ -236,7 +239,7 @@ class Kubric4D(_posed.PosedPairSource):
   def _pair(self, scene, f0, f1):
     from ufm_jax import geometry
     v0, seg0, m0, t0 = self._view(scene, f0)
-    v1, _, m1, t1 = self._view(scene, f1)
+    v1, _, m1, t1 = self._view(scene, f1, with_segmentation=False)  # only the source's is used
     for v, f in ((v0, f0), (v1, f1)):
       _posed.check_view(v, f"kubric4d:{scene}/{f}")
     if seg0.shape != v0.depth.shape:

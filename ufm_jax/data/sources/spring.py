@@ -176,13 +176,13 @@ class Spring(BidirectionalPairs):
 
   @staticmethod
   def _matched(path: str, h: int, w: int) -> np.ndarray:
-    rgb = io.read_image(path)  # red: occluded, green: out of view
+    rgb = io.read_image(path, bgr=True)  # red: occluded, green: out of view
     if rgb.shape[:2] == (2 * h, 2 * w):
       rgb = rgb[::2, ::2]
     elif rgb.shape[:2] != (h, w):
       raise ValueError(f"{path}: matchmap is {rgb.shape[0]}x{rgb.shape[1]}, expected {h}x{w} or "
                        f"{2 * h}x{2 * w}")
-    return (rgb[..., 0] == 0) & (rgb[..., 1] == 0)
+    return (rgb[..., 2] == 0) & (rgb[..., 1] == 0)
 
 
 @register("spring")
