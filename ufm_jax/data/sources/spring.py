@@ -145,7 +145,7 @@ class Spring(BidirectionalPairs):
     if full.shape[:2] != (2 * h, 2 * w):
       raise ValueError(f"{flow_path}: flow is {full.shape[0]}x{full.shape[1]}, expected the 2x "
                        f"resolution {2 * h}x{2 * w} of the {h}x{w} frames")
-    flow = np.ascontiguousarray(full[::2, ::2])
+    flow = full[::2, ::2]  # a view: fill_invalid below writes the contiguous copy
     flow_valid = np.isfinite(flow[..., 0]) & np.isfinite(flow[..., 1])
     flow = sceneflow.fill_invalid(flow, flow_valid)
     mm_path = os.path.join(base, "maps", f"matchmap_flow_{fb}_{cam}",
