@@ -80,13 +80,25 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
   if others.size:
     rows = rel[:, :3].copy()
     rows[:, :, :3] = rows[:, :, :3] @ _k_inverse(K0)
-    table = np.ascontiguousarray(rows.reshape(len(rows), 12).T)  # [12, N] rows of [R K0^-1 | t]
-    coef = table[:, ids[others]]
+    coef = rows.reshape(len(rows), 12)  # per id the rows of [R K0^-1 | t]
+    # Objects one at a time with scalar coefficients (the same float64 operations as a per-pixel
+    # coefficient gather, without the gather): pixels grouped by id with a stable sort.
+    present = np.flatnonzero(counts)
+    present = present[present != base]
+    if len(present) > 1:
+      order = np.argsort(ids[others], kind="stable")
+      ends = np.cumsum(counts[present])
+      groups = [(k, others[order[e - n:e]]) for k, n, e in zip(present, counts[present], ends)]
+    else:
+      groups = [(present[0], others)]
     w = depth0.shape[1]
-    u, v = (others % w).astype(np.float64), (others // w).astype(np.float64)
-    d = np.where(valid0.reshape(-1)[others], depth0.reshape(-1)[others], 0.0)
-    for i in range(3):
-      xyz[i].reshape(-1)[others] = (coef[4 * i] * u + coef[4 * i + 1] * v + coef[4 * i + 2]) * d \
-          + coef[4 * i + 3]
+    flat_valid, flat_depth = valid0.reshape(-1), depth0.reshape(-1)
+    for k, pix in groups:
+      c = coef[k]
+      u, v = (pix % w).astype(np.float64), (pix // w).astype(np.float64)
+      d = np.where(flat_valid[pix], flat_depth[pix], 0.0)
+      for i in range(3):
+        xyz[i].reshape(-1)[pix] = (c[4 * i] * u + c[4 * i + 1] * v + c[4 * i + 2]) * d \
+            + c[4 * i + 3]
   return _correspond(lambda r0, r1: [c[r0:r1] for c in xyz], valid0, depth1, K1, tau_d, tau_r,
                      subpixel_search)

@@ -14,6 +14,7 @@ import os
 import struct
 import zlib
 
+import cv2
 import numpy as np
 
 _MAGIC = 20000630
@@ -52,6 +53,31 @@ def _unpredict(raw: bytes) -> bytes:
   out[0::2] = t[:half]
   out[1::2] = t[half:]
   return out.tobytes()
+
+
+def _unpredict_rows(raw: np.ndarray) -> np.ndarray:
+  """`_unpredict` of every row of raw [N, L] uint8 (N chunks of one length) -> [N, L] uint8.
+
+  numpy's byte-wise running sum is one scalar add per byte. Cutting each row into b pieces of m
+  bytes and transposing (OpenCV's uint8 transpose is ~10x numpy's) makes the scan m vector adds
+  over all N * b pieces; the pieces' totals are then carried forward. All sums wrap mod 256, so
+  the bytes equal the sequential scan's (~2x faster on a 16-line float chunk of 560 px).
+  """
+  n, length = raw.shape
+  b = next((b for b in (256, 128, 64, 32, 16, 8, 4, 2) if length % b == 0), 0)
+  if not b:  # odd length: never for HALF/FLOAT/UINT rows
+    return np.stack([np.frombuffer(_unpredict(r.tobytes()), np.uint8) for r in raw])
+  m = length // b
+  cols = cv2.transpose(np.ascontiguousarray(raw).reshape(n * b, m))  # [m, N*b]: row j = byte j
+  cols -= np.uint8(128)                                              # of every piece
+  cols[0, 0::b] = raw[:, 0]
+  for j in range(1, m):
+    np.add(cols[j - 1], cols[j], out=cols[j])
+  carry = np.cumsum(cols[-1].reshape(n, b), axis=1, dtype=np.uint8)  # totals of pieces 0..k
+  cols.reshape(m, n, b)[:, :, 1:] += carry[None, :, :-1]
+  t = cv2.transpose(cols).reshape(n, length)
+  half = length // 2
+  return cv2.merge([t[:, :half], t[:, half:]]).reshape(n, length)  # interleave the two halves
 
 
 def _predict(data: bytes) -> bytes:
@@ -117,6 +143,8 @@ def read_exr(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
   row_bytes = w * sum(d.itemsize for d in dtypes)
   ci_start = w * sum(d.itemsize for d in dtypes[:ci])
   out = np.empty((h, w), np.float32)
+  row_size = sum(d.itemsize for d in dtypes)
+  stored, packed = [], {}  # (first row, rows, bytes) as stored; ZIP chunks by unpacked length
   for k, off in enumerate(offsets):
     off = int(off)
     if off + 8 > len(buf):
@@ -127,16 +155,24 @@ def read_exr(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
       raise ValueError(f"{path}: EXR chunk {k} starts at line {y}, outside the data window "
                        f"{y0}..{y1}")
     rows = min(lpc, y1 + 1 - y)
-    expected = rows * w * sum(d.itemsize for d in dtypes)
+    expected = rows * w * row_size
     if comp != 0 and size < expected:
       try:
-        data = _unpredict(zlib.decompress(data))
+        data = zlib.decompress(data, bufsize=expected)
       except zlib.error as e:
         raise ValueError(f"{path}: corrupt ZIP data in EXR chunk {k} ({e})") from e
+      if len(data) == expected:
+        packed.setdefault(expected, []).append((y, rows, data))
+        continue
     if len(data) != expected:
       raise ValueError(f"{path}: EXR chunk {k} holds {len(data)} bytes, expected {expected}")
+    stored.append((y, rows, np.frombuffer(data, np.uint8)))
+  for expected, chunks in packed.items():  # one vectorised un-prediction per chunk length
+    raw = np.frombuffer(b"".join(c[2] for c in chunks), np.uint8).reshape(len(chunks), expected)
+    stored += [(y, rows, a) for (y, rows, _), a in zip(chunks, _unpredict_rows(raw))]
+  for y, rows, data in stored:
     # Each row holds the channels one after the other: take channel ci's bytes of every row.
-    block = np.frombuffer(data, np.uint8).reshape(rows, row_bytes)
+    block = data.reshape(rows, row_bytes)
     out[y - y0:y - y0 + rows] = block[:, ci_start:ci_start + w * dtypes[ci].itemsize].view(
         dtypes[ci])
   return out

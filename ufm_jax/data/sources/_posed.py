@@ -22,6 +22,7 @@ Pair lists: every posed source reads `<root>/pairs_<split>.txt` when present (on
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import re
 from typing import Sequence
@@ -71,10 +72,18 @@ def require_file(path: str, what: str) -> str:
 def read_image(path: str) -> np.ndarray:
   """Colour image -> [H, W, 3] uint8 RGB (alpha dropped)."""
   require_file(path, "an RGB image")
+  if _IMREAD_RGB is not None:  # OpenCV >= 4.11 decodes straight to RGB (no extra pass)
+    img = cv2.imread(path, _IMREAD_RGB)
+    if img is None:
+      raise ValueError(f"{path}: not a decodable image")
+    return img
   img = cv2.imread(path, cv2.IMREAD_COLOR)
   if img is None:
     raise ValueError(f"{path}: not a decodable image")
   return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)  # a plain channel swap, ~20x faster than [..., ::-1]
+
+
+_IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)
 
 
 def read_pfm(path: str) -> np.ndarray:
@@ -253,17 +262,27 @@ def write_pair_list(path: str, pairs: Sequence[Sequence], header: str = "") -> N
 def sanitize_depth(depth: np.ndarray, scale: float = 1.0) -> np.ndarray:
   """NaN / inf / negative -> 0 (invalid), then multiply by `scale` (e.g. mm -> m)."""
   depth = np.asarray(depth, np.float32)
-  depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+  ok = depth > 0  # False for nan and -inf
+  ok &= depth < np.inf
+  depth = np.where(ok, depth, np.float32(0))  # a new array: the input is never modified
   return depth * np.float32(scale) if scale != 1.0 else depth
 
 
 def range_to_z(rng: np.ndarray, K: np.ndarray) -> np.ndarray:
   """Euclidean distance to the camera centre -> z-depth, using pixel centres at integers."""
-  h, w = rng.shape
-  u = (np.arange(w) - K[0, 2]) / K[0, 0]
-  v = (np.arange(h) - K[1, 2]) / K[1, 1]
-  norm = np.sqrt(1 + u[None, :] ** 2 + v[:, None] ** 2)
+  K = np.asarray(K, np.float64)
+  norm = _ray_norms(*rng.shape, float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]))
   return (rng / norm).astype(np.float32)
+
+
+@functools.lru_cache(maxsize=16)
+def _ray_norms(h: int, w: int, fx: float, cx: float, fy: float, cy: float) -> np.ndarray:
+  """Read-only float64 [H, W] ||(u, v, 1)|| of `range_to_z` (cached: a dataset has few K)."""
+  u = (np.arange(w) - cx) / fx
+  v = (np.arange(h) - cy) / fy
+  norm = np.sqrt(1 + u[None, :] ** 2 + v[:, None] ** 2)
+  norm.setflags(write=False)
+  return norm
 
 
 def check_view(v: View, where: str) -> View:

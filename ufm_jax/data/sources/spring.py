@@ -141,11 +141,14 @@ class Spring(BidirectionalPairs):
       return dict(image0=image0, image1=image1, flow=np.zeros((h, w, 2), np.float32),
                   covisibility=zeros, flow_valid=zeros.copy(), covis_valid=zeros.copy(), meta=meta)
     flow_path = os.path.join(base, gt_relpath.split("/", 1)[1])
-    full = io.read_flo5(flow_path)
-    if full.shape[:2] != (2 * h, 2 * w):
-      raise ValueError(f"{flow_path}: flow is {full.shape[0]}x{full.shape[1]}, expected the 2x "
+    if self.full_gt:
+      full = io.read_flo5(flow_path)
+      flow, full_hw = full[::2, ::2], full.shape[:2]  # a view: fill_invalid writes a copy
+    else:
+      flow, full_hw = io.read_flo5_strided(flow_path, 2)
+    if full_hw != (2 * h, 2 * w):
+      raise ValueError(f"{flow_path}: flow is {full_hw[0]}x{full_hw[1]}, expected the 2x "
                        f"resolution {2 * h}x{2 * w} of the {h}x{w} frames")
-    flow = np.ascontiguousarray(full[::2, ::2])
     flow_valid = np.isfinite(flow[..., 0]) & np.isfinite(flow[..., 1])
     flow = sceneflow.fill_invalid(flow, flow_valid)
     mm_path = os.path.join(base, "maps", f"matchmap_flow_{fb}_{cam}",
@@ -176,13 +179,13 @@ class Spring(BidirectionalPairs):
 
   @staticmethod
   def _matched(path: str, h: int, w: int) -> np.ndarray:
-    rgb = io.read_image(path)  # red: occluded, green: out of view
+    rgb = io.read_image(path, bgr=True)  # red: occluded, green: out of view
     if rgb.shape[:2] == (2 * h, 2 * w):
       rgb = rgb[::2, ::2]
     elif rgb.shape[:2] != (h, w):
       raise ValueError(f"{path}: matchmap is {rgb.shape[0]}x{rgb.shape[1]}, expected {h}x{w} or "
                        f"{2 * h}x{2 * w}")
-    return (rgb[..., 0] == 0) & (rgb[..., 1] == 0)
+    return (rgb[..., 2] == 0) & (rgb[..., 1] == 0)
 
 
 @register("spring")
