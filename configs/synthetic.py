@@ -23,7 +23,8 @@ from configs import ufm560
 
 
 def get_config(arg=None):
-  arg = cc.parse_arg(arg, pairs="flow", steps=300, batch=8, size=56, eval=True)
+  arg = cc.parse_arg(arg, pairs="flow", steps=300, batch=8, size=56, eval=True,
+                    model="tiny", lr=1e-3)
   hw = (arg.size, arg.size)
   c = ufm560.common(ml_collections.ConfigDict())
   c.seed = 0
@@ -33,10 +34,10 @@ def get_config(arg=None):
       cc.synthetic_mixture(num_pairs=100_000, size=hw, pair_type=arg.pairs),
       batch_size=arg.batch, longest_side=hw[1], aspect_ratios=(1.0,), num_workers=0,
       read_threads=2, prefetch_buffer_size=2)
-  c.model_name = "tiny"
+  c.model_name = arg.model
   c.model = ml_collections.ConfigDict({"dtype": "float32", "remat": False})
   c.model_init = None
-  c.optim = ufm560.ufm_optim(lr=1e-3, encoder_lr=1e-3)
+  c.optim = ufm560.ufm_optim(lr=arg.lr, encoder_lr=arg.lr)
   c.optim.warmup_frac = 0.05
   c.optim.grad_clip_norm = 1.0
   c.mesh = "data:-1,fsdp:1"
