@@ -76,6 +76,27 @@ def test_pair_types_and_moving_object(pairs):
   assert seg_pixels > 0
 
 
+def test_pan_pairs_rotate_in_range_and_warp():
+  # Pan pairs: the relative camera rotation is within pan_angle_deg (the eye moves < ~0.3), about
+  # an axis in the image plane (no roll), and the flow still reproduces image0 by warping.
+  c = S.SyntheticConfig(size=(64, 80), pair_type="pan", moving_object_prob=0.0,
+                        pan_angle_deg=(6.0, 9.0))
+  for i in range(3):
+    s = S.generate_pair(S.pair_seed(11, "train", i), c, directions=(0,))[0]
+    assert s["meta"]["pair_type"] == "pan"
+    r = s["meta"]["cam2world0"][:3, :3].T @ s["meta"]["cam2world1"][:3, :3]
+    angle = np.rad2deg(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1)))
+    assert 6.0 - 1e-6 <= angle <= 9.0 + 1e-6, angle
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    assert abs(axis[2]) < 1e-6 * np.linalg.norm(axis) + 1e-9, axis  # camera z: no roll
+    assert np.linalg.norm(s["meta"]["cam2world0"][:3, 3] - s["meta"]["cam2world1"][:3, 3]) < 0.3
+    cov = s["covisibility"]
+    smooth = cov & ~near_depth_edge_in_target(s)
+    assert np.median(warp_error(s)[cov]) < 2.0 and warp_error(s)[smooth].mean() < 3.0
+    # A pan of >= 6 degrees at a 50..70 degree field of view moves the image by several pixels.
+    assert np.median(np.linalg.norm(s["flow"], axis=-1)[cov]) > 3.0
+
+
 def test_occlusion_exists(pairs):
   # Somewhere a pixel is in view of camera 1 with valid depth there but hidden: not covisible.
   occluded = [((s["covis_valid"] & ~s["covisibility"]) &

@@ -7,7 +7,9 @@ supervision masks come from `ufm_jax.geometry` (static: `correspondence_from_dep
 object: `correspondence_from_rigid_objects`), exactly as for the posed real datasets.
 
 Pair types: "flow" (small camera motion, optical-flow-like), "wide" (the camera orbits the scene
-centre by 10..90 degrees of view change), "mixed" (either, half and half).
+centre by 10..90 degrees of view change), "mixed" (either, half and half), "pan" (the camera
+pans/tilts by `pan_angle_deg` with a small translation: a larger, mostly global image motion, the
+quick-to-learn pairs of configs/synthetic.py).
 
 Textures are smooth solid textures (sums of random 3D sinusoids) evaluated in each object's own
 frame, with the shading baked in the object frame, so a surface point looks the same in both
@@ -31,7 +33,7 @@ import numpy as np
 
 from ufm_jax import geometry as geo
 
-PAIR_TYPES = ("flow", "wide", "mixed")
+PAIR_TYPES = ("flow", "wide", "mixed", "pan")
 _SPLITS = {"train": 0, "val": 1, "test": 2}
 _EPS = 1e-6
 
@@ -43,6 +45,7 @@ class SyntheticConfig:
   moving_object_prob: float = 0.5
   max_view_angle_deg: float = 90.0        # wide pairs: view change drawn in [10, this]
   min_view_angle_deg: float = 10.0
+  pan_angle_deg: tuple[float, float] = (4.0, 10.0)  # pan pairs: rotation drawn in this range
   num_objects: tuple[int, int] = (3, 6)   # inclusive range
   # 0 = the paper's covisibility rule; 0.5 removes most of its silhouette/grazing-angle false
   # negatives (see ufm_jax.geometry.covisibility_from_points).
@@ -179,6 +182,13 @@ def _cameras(rng, pair_type, config):
   if pair_type == "flow":
     eye1 = c2w0[:3, 3] + rng.normal(0, 0.12, 3)
     c2w1 = geo.pose_from_rt(c2w0[:3, :3] @ _rotation(rng, np.deg2rad(3)), eye1)
+  elif pair_type == "pan":
+    eye1 = c2w0[:3, 3] + rng.normal(0, 0.05, 3)
+    # Axis in the camera's x-y plane (pan/tilt, no roll): the flow is close to a global shift.
+    phi = rng.uniform(0, 2 * np.pi)
+    angle = np.deg2rad(rng.uniform(*config.pan_angle_deg))
+    rot = geo.axis_angle_to_rotation([np.cos(phi), np.sin(phi), 0.0], angle)
+    c2w1 = geo.pose_from_rt(c2w0[:3, :3] @ rot, eye1)
   else:
     angle = np.deg2rad(rng.uniform(config.min_view_angle_deg, config.max_view_angle_deg))
     azim1 = azim + angle * rng.choice([-1, 1]) * rng.uniform(0.7, 1.0)

@@ -35,6 +35,9 @@ class DinoV2Config:
   ffn: str = "mlp"  # "swiglu" for ViT-g
   patch_size: int = 14
   pos_grid: int = 37  # pretraining grid (518 / 14)
+  # Initial position table when training from scratch: "trunc_normal" (DINOv2's, std 0.02) or
+  # "sincos" (fixed-frequency 2D sin-cos as in MAE, a usable position signal from step 0).
+  pos_embed_init: str = "trunc_normal"
   num_register_tokens: int = 0
   init_values: Optional[float] = 1.0  # LayerScale
   # The hub's *_reg models interpolate with antialias and no offset; the others with offset 0.1.
@@ -121,6 +124,21 @@ def _bicubic_aa_matrix(n_in: int, n_out: int) -> np.ndarray:
     total = w.sum()
     m[i, lo:hi] = w / total if total != 0 else w
   return m
+
+
+def sincos_pos_embed(grid: int, dim: int) -> np.ndarray:
+  """[1, 1 + grid*grid, dim] 2D sin-cos table (MAE's get_2d_sincos_pos_embed, cls row 0):
+  the first half encodes x (column), the second y (row), each as [sin | cos] of dim/4 freqs."""
+  if dim % 4:
+    raise ValueError(f"sincos position table needs embed_dim divisible by 4, got {dim}")
+  omega = 1.0 / 10000.0 ** (np.arange(dim // 4) / (dim // 4))
+  ys, xs = np.meshgrid(np.arange(grid, dtype=np.float64), np.arange(grid, dtype=np.float64),
+                       indexing="ij")
+  def axis(pos):
+    a = pos.reshape(-1)[:, None] * omega[None]
+    return np.concatenate([np.sin(a), np.cos(a)], axis=1)
+  table = np.concatenate([axis(xs), axis(ys)], axis=1)
+  return np.concatenate([np.zeros((1, dim)), table], axis=0)[None].astype(np.float32)
 
 
 def pos_embed_resize_matrices(cfg: DinoV2Config, h: int, w: int, f=np.float32):

@@ -223,9 +223,12 @@ def init_params(model: UFM, seed: int = 0):
 
   The PyTorch defaults: Linear xavier-uniform / zero bias (UniCeption), Conv kaiming-uniform
   with a=sqrt(5) and uniform bias (torch), LayerNorm ones/zeros, LayerScale `init_values`,
-  pos_embed trunc-normal(0.02), cls/register tokens normal(1e-6). Released models start from
+  pos_embed trunc-normal(0.02) (or the encoder config's sin-cos table), cls/register tokens normal(1e-6). Released models start from
   pretrained weights instead (`ufm_jax.load_official`).
   """
+  if model.config.encoder.pos_embed_init not in ("trunc_normal", "sincos"):
+    raise ValueError(f"encoder.pos_embed_init must be 'trunc_normal' or 'sincos', got "
+                     f"{model.config.encoder.pos_embed_init!r}")
   rng = np.random.default_rng(seed)
   flat = {}
   for path, leaf in _flat_items(param_shapes(model)):
@@ -244,6 +247,8 @@ def init_params(model: UFM, seed: int = 0):
       v = np.ones(shape)
     elif name == "gamma":
       v = np.full(shape, _layerscale_init(model, path))
+    elif name == "pos_embed" and model.config.encoder.pos_embed_init == "sincos":
+      v = dinov2.sincos_pos_embed(model.config.encoder.pos_grid, shape[-1])
     elif name == "pos_embed":
       v = np.clip(rng.normal(0, 0.02, shape), -0.04, 0.04)
     else:  # cls_token, register_tokens
