@@ -12,31 +12,22 @@ mutual covisibility above its --min_covis). See data/eth3d/README.md.
 
 from __future__ import annotations
 
-import functools
 import os
 
 from ufm_jax.data.registry import register
 from ufm_jax.data.sources import _posed
-from ufm_jax.data.sources.scannetpp import read_scene_meta, wai_view
+from ufm_jax.data.sources.scannetpp import WaiScenes, wai_view
 
 
 @register("eth3d")
-class ETH3D(_posed.PosedPairSource):
+class ETH3D(WaiScenes, _posed.PosedPairSource):
   name = "eth3d"
 
   def __init__(self, root, split="test", pairs=None, thresholds=None):
     super().__init__(root, split, pairs, thresholds)
 
   def scenes(self):
-    return sorted(s for s in os.listdir(self.root)
-                  if os.path.isfile(os.path.join(self.root, s, "scene_meta.json")))
-
-  @functools.lru_cache(maxsize=64)
-  def _meta(self, scene):
-    return read_scene_meta(os.path.join(self.root, scene, "scene_meta.json"))
-
-  def frames(self, scene):
-    return list(self._meta(scene)["frames"])
+    return self.wai_scenes()
 
   def default_pairs(self):
     raise FileNotFoundError(

@@ -56,15 +56,10 @@ def wai_view(scene_dir: str, meta: dict, frame: dict, depth_keys=("rendered_dept
   return _posed.View(image, depth, K, c2w)
 
 
-@register("scannetpp")
-class ScanNetPP(_posed.PosedPairSource):
-  name = "scannetpp"
+class WaiScenes:
+  """Scenes and frames of a WAI tree (one `scene_meta.json` per scene folder)."""
 
-  def scenes(self):
-    listed = os.path.join(self.root, f"scenes_{self.split}.txt")
-    if os.path.isfile(listed):
-      with open(listed) as f:
-        return [l.strip() for l in f if l.strip()]
+  def wai_scenes(self):
     return sorted(s for s in os.listdir(self.root)
                   if os.path.isfile(os.path.join(self.root, s, "scene_meta.json")))
 
@@ -74,6 +69,18 @@ class ScanNetPP(_posed.PosedPairSource):
 
   def frames(self, scene):
     return list(self._meta(scene)["frames"])
+
+
+@register("scannetpp")
+class ScanNetPP(WaiScenes, _posed.PosedPairSource):
+  name = "scannetpp"
+
+  def scenes(self):
+    listed = os.path.join(self.root, f"scenes_{self.split}.txt")
+    if os.path.isfile(listed):
+      with open(listed) as f:
+        return [l.strip() for l in f if l.strip()]
+    return self.wai_scenes()
 
   def load_view(self, scene, frame):
     m = self._meta(scene)
