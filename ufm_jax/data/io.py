@@ -14,6 +14,8 @@ import re
 import cv2
 import numpy as np
 
+from ufm_jax.data import decode
+
 FLO_MAGIC = 202021.25  # Middlebury .flo tag ("PIEH" as little-endian float32)
 KITTI_FLOW_SCALE = 64.0  # KITTI / HD1K PNG: flow = (value - 2**15) / 64
 KITTI_FLOW_OFFSET = 2.0**15
@@ -84,7 +86,7 @@ def read_kitti_flow(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
   the channel axis is reversed here. Invalid pixels get flow 0.
   """
   _require_file(path)
-  raw = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  raw = decode.imread_unchanged(path)
   if raw is None:
     raise ValueError(f"{path}: not a readable PNG (expected a KITTI 3-channel uint16 flow PNG)")
   if raw.dtype != np.uint16 or raw.ndim != 3 or raw.shape[2] != 3:
@@ -204,7 +206,7 @@ def read_flo5_strided(path: str | os.PathLike, step: int) -> tuple[np.ndarray, t
   """(read_flo5(path)[::step, ::step] as a new contiguous array, the file's (H, W)).
 
   Spring readers keep every other GT pixel. For gzip-chunked float32 files (what Spring and
-  write_flo5 produce) the chunks are inflated here with zlib and only the kept rows/columns are
+  write_flo5 produce) the chunks are inflated here (decode.inflate) and only the kept rows/columns are
   copied: about half the time of HDF5's own read (whose deflate filter grows its buffer from the
   compressed size) plus the strided copy. Other layouts go through h5py.
   """
@@ -233,7 +235,6 @@ def read_flo5_strided(path: str | os.PathLike, step: int) -> tuple[np.ndarray, t
 def _inflate_strided(path, chunks, shape, chunk_shape, step):
   """Rows and columns 0, step, 2 step, ... of a gzip-chunked float32 [H, W, C] HDF5 dataset whose
   chunk list (offset, byte position, size) came from HDF5 (edge chunks are stored full size)."""
-  import zlib  # pylint: disable=g-import-not-at-top
   with open(path, "rb") as f:
     buf = f.read()
   h, w, nc = shape
@@ -243,8 +244,8 @@ def _inflate_strided(path, chunks, shape, chunk_shape, step):
   for c in chunks:
     r0, c0, k0 = c.chunk_offset
     try:
-      raw = zlib.decompress(buf[c.byte_offset:c.byte_offset + c.size], bufsize=nbytes)
-    except zlib.error as e:
+      raw = decode.inflate(buf[c.byte_offset:c.byte_offset + c.size], bufsize=nbytes)
+    except decode.INFLATE_ERRORS as e:
       raise ValueError(f"{path}: corrupt gzip chunk at {c.chunk_offset} ({e})") from None
     if len(raw) != nbytes:
       raise ValueError(f"{path}: chunk at {c.chunk_offset} inflates to {len(raw)} bytes, "
@@ -346,7 +347,7 @@ def read_image(path: str | os.PathLike, bgr: bool = False) -> np.ndarray:
   images (for label maps read channel by channel).
   """
   _require_file(path)
-  img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  img = decode.imread_unchanged(path, rgb=not bgr)  # already in the asked channel order
   if img is None:
     raise ValueError(f"{path}: not a readable image (expected PNG/JPEG/PPM)")
   if img.dtype == np.uint16:
@@ -356,10 +357,10 @@ def read_image(path: str | os.PathLike, bgr: bool = False) -> np.ndarray:
   if img.ndim == 2:
     return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
   if img.shape[2] == 4:
-    return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR if bgr else cv2.COLOR_BGRA2RGB)
+    return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)  # drops alpha, keeps the order
   if img.shape[2] != 3:
     raise ValueError(f"{path}: expected 1, 3 or 4 channels, got {img.shape[2]}")
-  return img if bgr else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+  return img
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
@@ -377,7 +378,7 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
 def read_mask(path: str | os.PathLike) -> np.ndarray:
   """Binary mask image (0/1 or 0/255; any channel set counts) -> [H, W] bool."""
   _require_file(path)
-  img = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  img = decode.imread_unchanged(path)
   if img is None:
     raise ValueError(f"{path}: not a readable mask image (expected a PNG)")
   return img.any(-1) if img.ndim == 3 else img > 0
@@ -399,7 +400,7 @@ def read_png_depth16(path: str | os.PathLike, scale: float) -> np.ndarray:
   E.g. scale=1000 for millimetre PNGs (ScanNet), 256 for KITTI disparity PNGs.
   """
   _require_file(path)
-  raw = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  raw = decode.imread_unchanged(path)
   if raw is None:
     raise ValueError(f"{path}: not a readable PNG (expected a single-channel uint16 depth PNG)")
   if raw.dtype != np.uint16 or raw.ndim != 2:

@@ -1,4 +1,4 @@
-"""Minimal OpenEXR reader/writer for single-part scanline depth maps (numpy + zlib only).
+"""Minimal OpenEXR reader/writer for single-part scanline depth maps (numpy + zlib).
 
 The OpenCV build we depend on has no OpenEXR codec, yet the DUSt3R-preprocessed datasets
 (Habitat, StaticThings, MegaDepth), the WAI format (ScanNet++ v2) and the TA-WB extraction store
@@ -16,6 +16,8 @@ import zlib
 
 import cv2
 import numpy as np
+
+from ufm_jax.data import decode
 
 _MAGIC = 20000630
 _PIXEL_DTYPES = {1: np.dtype("<f2"), 2: np.dtype("<f4"), 0: np.dtype("<u4")}
@@ -158,8 +160,8 @@ def read_exr(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
     expected = rows * w * row_size
     if comp != 0 and size < expected:
       try:
-        data = zlib.decompress(data, bufsize=expected)
-      except zlib.error as e:
+        data = decode.inflate(data, bufsize=expected)
+      except decode.INFLATE_ERRORS as e:
         raise ValueError(f"{path}: corrupt ZIP data in EXR chunk {k} ({e})") from e
       if len(data) == expected:
         packed.setdefault(expected, []).append((y, rows, data))

@@ -30,6 +30,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from ufm_jax.data import decode
+
 # Thresholds for the benchmark sets, which supplementary Table S1 does not list: the static-scene
 # values (tau_d scene units, tau_r relative) in the units each reader returns (metres for DTU and
 # ETH3D; TA-WB is TartanAir geometry and uses the TartanAir row).
@@ -72,18 +74,22 @@ def require_file(path: str, what: str) -> str:
 def read_image(path: str) -> np.ndarray:
   """Colour image -> [H, W, 3] uint8 RGB (alpha dropped)."""
   require_file(path, "an RGB image")
-  if _IMREAD_RGB is not None:  # OpenCV >= 4.11 decodes straight to RGB (no extra pass)
-    img = cv2.imread(path, _IMREAD_RGB)
-    if img is None:
-      raise ValueError(f"{path}: not a decodable image")
-    return img
-  img = cv2.imread(path, cv2.IMREAD_COLOR)
+  with open(path, "rb") as f:
+    buf = f.read()
+  img = decode.decode_png(buf, rgb=True)  # the common PNGs, ~2x faster than OpenCV here
+  if img is not None and img.dtype == np.uint8:
+    if img.ndim == 2:
+      return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    return img if img.shape[2] == 3 else cv2.cvtColor(img, cv2.COLOR_RGBA2RGB)
+  # IMREAD_COLOR (not UNCHANGED): JPEGs are turned by their EXIF orientation, as before.
+  img = cv2.imdecode(np.frombuffer(buf, np.uint8), _IMREAD_RGB or cv2.IMREAD_COLOR)
   if img is None:
     raise ValueError(f"{path}: not a decodable image")
-  return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)  # a plain channel swap, ~20x faster than [..., ::-1]
+  # cvtColor: a plain channel swap, ~20x faster than [..., ::-1]
+  return img if _IMREAD_RGB is not None else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-_IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)
+_IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)  # OpenCV >= 4.11 decodes straight to RGB
 
 
 def read_pfm(path: str) -> np.ndarray:

@@ -21,7 +21,7 @@ import re
 
 import numpy as np
 
-from ufm_jax.data import io
+from ufm_jax.data import decode, io
 from ufm_jax.data.registry import register
 
 LAYOUT = ("training/image_2/%06d_{10,11}.png, training/flow_occ/%06d_10.png, "
@@ -81,8 +81,7 @@ class Kitti2015:
                        f"match image {(h, w)}")
     obj_path = os.path.join(self.base, "obj_map", name)
     if os.path.isfile(obj_path):
-      import cv2
-      obj = cv2.imread(obj_path, cv2.IMREAD_UNCHANGED)
+      obj = decode.imread_unchanged(obj_path)
       if obj is None or obj.shape[:2] != (h, w):
         raise ValueError(f"{obj_path}: expected a {h}x{w} object map PNG (0 = background)")
       if obj.ndim == 2:

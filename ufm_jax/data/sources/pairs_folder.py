@@ -20,6 +20,7 @@ import os
 
 import numpy as np
 
+from ufm_jax.data import decode
 from ufm_jax.data.io import read_flo
 from ufm_jax.data.registry import register
 from ufm_jax.geometry.masks import fov_mask_from_flow
@@ -28,8 +29,7 @@ _ARRAY_META = ("K0", "K1", "cam2world0", "cam2world1")
 
 
 def _read_rgb(path):
-  import cv2
-  img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  img = decode.imread_unchanged(path, rgb=True)
   if img is None:
     raise ValueError(f"{path}: missing or unreadable image (expected an RGB PNG)")
   if img.dtype != np.uint8:
@@ -40,12 +40,11 @@ def _read_rgb(path):
     img = img[..., :3]
   if img.shape[2] != 3:
     raise ValueError(f"{path}: expected 3 channels, got shape {img.shape}")
-  return np.ascontiguousarray(img[..., ::-1])
+  return np.ascontiguousarray(img)
 
 
 def _read_mask(path, shape):
-  import cv2
-  m = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  m = decode.imread_unchanged(path)
   if m is None:
     raise ValueError(f"{path}: unreadable mask PNG (expected 0/255 single channel)")
   if m.ndim == 3:

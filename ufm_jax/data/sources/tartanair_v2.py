@@ -26,6 +26,7 @@ import os
 import cv2
 import numpy as np
 
+from ufm_jax.data import decode
 from ufm_jax.data.registry import register
 from ufm_jax.data.sources import _posed
 
@@ -41,7 +42,7 @@ def tartanair_K(height: int, width: int) -> np.ndarray:
 
 def read_depth_png(path: str) -> np.ndarray:
   _posed.require_file(path, "a TartanAir V2 depth PNG (float32 bytes in 4 uint8 channels)")
-  raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+  raw = decode.imread_unchanged(path)  # OpenCV's BGRA byte order, as TartanAir's tools read it
   if raw is None or raw.dtype != np.uint8 or raw.ndim != 3 or raw.shape[2] != 4:
     raise ValueError(f"{path}: expected a 4-channel uint8 PNG holding float32 depth, got "
                      f"{None if raw is None else (raw.shape, raw.dtype)}")
