@@ -1,5 +1,6 @@
 """The `tiny_synth` variant of configs/synthetic.py: 7 px patches and a sin-cos position table."""
 
+import jax
 import numpy as np
 import pytest
 
@@ -39,3 +40,18 @@ def test_tiny_synth_init_and_forward():
                                                      "pos_embed_init": "zeros"}))
   with pytest.raises(ValueError, match="pos_embed_init"):
     ufm.init_params(ufm.model_from_config(bad))
+
+
+def test_flax_init_uses_the_configured_position_table():
+  # train.py initialises through `model.init`; it must give the same sin-cos table as the
+  # host-side `ufm.init_params` (it used to draw DINOv2's random table whatever the config said).
+  cfg = models.get("tiny_synth")
+  model = ufm.model_from_config(cfg)
+  img = np.zeros((1, 56, 56, 3), np.uint8)
+  params = jax.jit(model.init)(jax.random.PRNGKey(0), img, img)["params"]
+  np.testing.assert_array_equal(params["encoder"]["pos_embed"],
+                                dinov2.sincos_pos_embed(8, cfg.encoder.embed_dim))
+  tiny = ufm.model_from_config(models.get("tiny"))
+  table = np.asarray(jax.jit(tiny.init)(jax.random.PRNGKey(0), img, img)["params"]["encoder"][
+      "pos_embed"])
+  assert 0.015 < table.std() < 0.025  # DINOv2's trunc_normal(std=0.02)

@@ -141,6 +141,18 @@ def sincos_pos_embed(grid: int, dim: int) -> np.ndarray:
   return np.concatenate([np.zeros((1, dim)), table], axis=0)[None].astype(np.float32)
 
 
+def _pos_embed_init(cfg: DinoV2Config):
+  """The flax initializer of `pos_embed`, so `model.init` and `ufm.init_params` agree."""
+  if cfg.pos_embed_init == "sincos":
+    return lambda _key, shape, dtype=jnp.float32: jnp.asarray(
+        sincos_pos_embed(cfg.pos_grid, shape[-1]), dtype)
+  if cfg.pos_embed_init == "trunc_normal":
+    # torch trunc_normal_(std=0.02) truncates at +-2 absolute, i.e. 100 std: a plain normal.
+    return nn.initializers.normal(0.02)
+  raise ValueError(f"encoder.pos_embed_init must be 'trunc_normal' or 'sincos', got "
+                   f"{cfg.pos_embed_init!r}")
+
+
 def pos_embed_resize_matrices(cfg: DinoV2Config, h: int, w: int, f=np.float32):
   """(Mh [h, G], Mw [w, G]) resampling the G x G position grid to the h x w patch grid."""
   g = cfg.pos_grid
@@ -204,7 +216,7 @@ class DinoV2(nn.Module):
     constrain = self.activation_sharding or layers.identity
 
     cls_token = self.param("cls_token", nn.initializers.normal(1e-6), (1, 1, c))
-    pos_embed = self.param("pos_embed", nn.initializers.normal(0.02), (1, 1 + cfg.pos_grid ** 2, c))
+    pos_embed = self.param("pos_embed", _pos_embed_init(cfg), (1, 1 + cfg.pos_grid ** 2, c))
     # The residual stream stays in the parameter dtype (float32), as under torch autocast where
     # cat(cls, patches) + pos promotes to float32; only the matmuls run in `dtype`.
     x = PatchEmbed(c, p, self.dtype, name="patch_embed")(images).astype(pos_embed.dtype)
