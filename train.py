@@ -105,7 +105,8 @@ class HeldoutEval:
   """EPE and covisibility accuracy on fixed held-out pairs of a registered source.
 
   epe / px1,3,5 (% of pixels with EPE > t) pool all covisible pixels with valid flow (the pixels
-  UFM is supervised on); epe_all pools every pixel with valid flow.
+  UFM is supervised on); epe_all pools every pixel with valid flow; epe_zero is the EPE that
+  predicting no motion would get on the `epe` pixels (the bar a model that matches must beat).
 
   Config: source, root, kwargs (source options), num_pairs, shape (H, W: centre crop, which keeps
   flow labels valid), batch_size, every, num_images (flow/covis pictures to TensorBoard).
@@ -142,7 +143,7 @@ class HeldoutEval:
     from ufm_jax import sharding
     n, bs = len(self.samples), self.batch_size
     P, pid = jax.process_count(), jax.process_index()
-    epe_sum = valid_sum = acc_sum = cv_sum = epe_all_sum = all_sum = 0.0
+    epe_sum = valid_sum = acc_sum = cv_sum = epe_all_sum = all_sum = zero_sum = 0.0
     px = {1: 0.0, 3: 0.0, 5: 0.0}
     images = {}
     for start in range(0, n, bs):
@@ -159,6 +160,7 @@ class HeldoutEval:
       fa = batch["flow_valid"][:real]
       fv = fa & batch["covisibility"][:real]  # the model is supervised (and used) there only
       epe_sum += float(epe[fv].sum())
+      zero_sum += float(np.linalg.norm(batch["flow"][:real], axis=-1)[fv].sum())
       valid_sum += float(fv.sum())
       epe_all_sum += float(epe[fa].sum())
       all_sum += float(fa.sum())
@@ -179,6 +181,7 @@ class HeldoutEval:
           images[f"pair{i}_gt"] = viz.panel(batch["image0"][j], batch["image1"][j],
                                             batch["flow"][j], batch["covisibility"][j])
     scalars = {"epe": epe_sum / max(valid_sum, 1.0), "epe_all": epe_all_sum / max(all_sum, 1.0),
+               "epe_zero": zero_sum / max(valid_sum, 1.0),
                **{f"px{t}": 100.0 * v / max(valid_sum, 1.0) for t, v in px.items()},
                "covis_acc": acc_sum / max(cv_sum, 1.0), "num_pairs": float(n)}
     return EvalResult(scalars, images)

@@ -1,19 +1,16 @@
 r"""Does a model learn to match from scratch? Held-out EPE against the zero-flow EPE, fast.
 
-  python benchmarks/synthetic_learning.py                                   # configs/synthetic.py
-  python benchmarks/synthetic_learning.py --arg model=tiny_synth,pairs=pan,steps=3000
-  python benchmarks/synthetic_learning.py --shift 10 --arg model=tiny_synth,steps=3000
+  python benchmarks/synthetic_learning.py                      # configs/synthetic.py as it is
+  python benchmarks/synthetic_learning.py --arg pairs=shift,model=synth,loss=l1,steps=2000
 
 The step is train.py's own (model, loss and optimizer built from the config by train.py's
-builders); the data is a fixed set rendered once into memory and sampled without augmentation,
-and the held-out EPE is printed as often as asked. Per step it costs what train.py costs once
-compiled (~0.1 s for `tiny` at 56 px, batch 8, on 2 cores; ~0.3 s for `tiny_synth`), so a
-3000-step probe takes minutes. The model's parameters come from `ufm.init_params` (the
-configured position table), which also starts the heads closer to zero flow than `model.init`.
-
-`--shift S` swaps the 3D scenes for the easiest matching task there is: a smooth random texture
-and the same texture translated by an integer (dx, dy) in [-S, S]^2 (flow constant, covisible
-where the shifted pixel stays inside). A model that cannot learn this cannot learn the scenes.
+builders); the data is a fixed set of the config's synthetic pairs made once into memory and
+sampled without augmentation, and the held-out EPE (on the config's held-out pairs) is printed as
+often as asked. Per step it costs what train.py costs once compiled (~0.1 s for `tiny` at 56 px,
+batch 8, on 2 cores; ~0.2 s for `synth`), so a 3000-step probe takes minutes. Parameters come
+from `ufm.init_params` (the configured position table), which also starts the heads closer to
+zero flow than `model.init`. `pairs=shift` (translated textures) is the easiest matching task:
+a model that cannot learn it cannot learn the scenes.
 
 Each line prints the held-out EPE on covisible pixels, the zero-flow EPE of the same pixels (the
 error of predicting no motion) and the ratio to the step-0 EPE. Prints figures, asserts nothing.
@@ -35,45 +32,15 @@ import numpy as np  # noqa: E402
 KEYS = ("image0", "image1", "flow", "covisibility", "flow_valid", "covis_valid")
 
 
-def shift_pair(seed, size, max_shift):
-  """(forward, backward) samples of one translated-texture pair (see the module docstring)."""
-  import cv2
-  rng = np.random.default_rng(seed)
-  h, w = size
-  pad = max_shift + 1
-  tex = np.zeros((h + 2 * pad, w + 2 * pad, 3), np.float32)
-  for sigma, amp in ((1.5, 30.0), (4.0, 50.0), (10.0, 60.0)):  # fine detail + blobs + shading
-    noise = cv2.GaussianBlur(rng.normal(size=tex.shape).astype(np.float32), (0, 0), sigma)
-    tex += amp * noise / (noise.std() + 1e-6)
-  tex = np.clip(128 + tex, 0, 255).astype(np.uint8)
-  d = rng.integers(-max_shift, max_shift + 1, 2)
-  img0 = tex[pad:pad + h, pad:pad + w]
-  img1 = tex[pad - d[1]:pad - d[1] + h, pad - d[0]:pad - d[0] + w]  # img1(p + d) = img0(p)
-  v, u = np.mgrid[0:h, 0:w]
-  out = []
-  for a, b, dd in ((img0, img1, d), (img1, img0, -d)):
-    covis = (u + dd[0] >= 0) & (u + dd[0] < w) & (v + dd[1] >= 0) & (v + dd[1] < h)
-    out.append(dict(image0=a, image1=b, covisibility=covis, covis_valid=np.ones((h, w), bool),
-                    flow=np.broadcast_to(dd.astype(np.float32), (h, w, 2)).copy(),
-                    flow_valid=np.ones((h, w), bool)))
-  return out
-
-
-def render_set(config, split, num_pairs, max_shift, both):
-  """Stacked arrays of `num_pairs` pairs (both directions, interleaved, when `both`)."""
+def render_set(options, seed, split, num_pairs, both):
+  """Stacked arrays of `num_pairs` synthetic pairs (both directions, interleaved, when `both`)."""
   from tqdm import tqdm
-  from ufm_jax.data import synthetic
-  syn = config.input.datasets.synthetic.options
-  size = tuple(syn["size"])
-  scene_cfg = synthetic.SyntheticConfig(size=size, pair_type=syn.get("pair_type", "mixed"))
+  from ufm_jax.data import get_source
+  src = get_source("synthetic", None, **{**options, "split": split, "num_pairs": num_pairs,
+                                        "seed": seed})
   samples = []
   for i in tqdm(range(num_pairs), desc=f"render {split}", unit="pair", leave=False):
-    seed = synthetic.pair_seed(config.seed, split, i)
-    if max_shift:
-      pair = shift_pair(seed, size, max_shift)
-    else:
-      pair = synthetic.generate_pair(seed, scene_cfg)
-    samples += pair if both else pair[:1]
+    samples += src.both(i) if both else [src[i]]
   return {k: np.stack([s[k] for s in samples]) for k in KEYS}
 
 
@@ -84,7 +51,6 @@ def main(argv=None):
                       help="the config arg, e.g. model=tiny_synth,steps=3000")
   parser.add_argument("--train_pairs", type=int, default=2000, help="rendered once, then reused")
   parser.add_argument("--val_pairs", type=int, default=32)
-  parser.add_argument("--shift", type=int, default=0, help="translated textures, |d| <= SHIFT px")
   parser.add_argument("--every", type=int, default=250)
   args = parser.parse_args(argv)
 
@@ -98,13 +64,14 @@ def main(argv=None):
   spec = args.config + (f":{args.arg}" if args.arg else "")
   config = load_config(spec)
   t0 = time.time()
-  tr = render_set(config, "train", args.train_pairs, args.shift, both=True)
-  va = render_set(config, "val", args.val_pairs, args.shift, both=False)
+  train_opts = dict(config.input.datasets.synthetic.options)
+  val_opts = dict(config.evals.heldout.kwargs) if "heldout" in config.evals else train_opts
+  tr = render_set(train_opts, config.seed, "train", args.train_pairs, both=True)
+  va = render_set(val_opts, config.seed, "val", args.val_pairs, both=False)
   mask = va["flow_valid"] & va["covisibility"]
   zero = float(np.linalg.norm(va["flow"], axis=-1)[mask].mean())
-  print(f"{spec}  {'shift<=%d' % args.shift if args.shift else 'scenes'}: {args.train_pairs} "
-        f"train pairs rendered in {time.time() - t0:.0f} s; held-out zero-flow EPE {zero:.3f} px",
-        flush=True)
+  print(f"{spec}: {args.train_pairs} {train_opts.get('pair_type')} training pairs made in "
+        f"{time.time() - t0:.0f} s; held-out zero-flow EPE {zero:.3f} px", flush=True)
 
   model = train.build_model(config)
   params = ufm.init_params(model, config.seed)  # the configured position table, no compile

@@ -116,3 +116,20 @@ def test_pairs_folder_on_disk_with_a_truncated_png(tmp_path, caplog):
   unsupervised = sum(int(not b["flow_valid"][r].any()) for b in batches for r in range(4))
   assert 1 <= unsupervised <= 2 and all(b["flow_valid"][::2].any(axis=(1, 2)).all()
                                         for b in batches)
+
+
+def test_synthetic_config_shift_args_reach_the_pipeline():
+  from configs import synthetic
+  c = synthetic.get_config("pairs=shift,loss=l1,steps=4,batch=4,size=28,max_shift=3,aligned=0.0")
+  assert dict(c.loss_kwargs)["alpha"] == 1.0 and dict(c.loss_kwargs)["c"] == 0.01
+  assert c.evals.heldout.kwargs.pair_type == "shift" and c.evals.heldout.kwargs.max_shift == 3
+  it, _ = pipeline.make_train_iterator(c.input, process_batch=4, seed=0)
+  b = next(it)
+  # No augmentation: every row is an untouched shift pair (constant flow, at most 3 px).
+  for k in range(4):
+    flow = b["flow"][k]
+    assert (flow == flow[0, 0]).all() and np.abs(flow).max() <= 3
+  np.testing.assert_array_equal(b["flow"][1], -b["flow"][0])  # symmetrized (a, b), (b, a)
+  assert dict(synthetic.get_config(None).loss_kwargs)["alpha"] == 0.5  # the paper's by default
+  with pytest.raises(ValueError, match="loss must be"):
+    synthetic.get_config("loss=huber")

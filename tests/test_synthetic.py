@@ -97,6 +97,47 @@ def test_pan_pairs_rotate_in_range_and_warp():
     assert np.median(np.linalg.norm(s["flow"], axis=-1)[cov]) > 3.0
 
 
+def test_shift_pairs_have_exact_labels():
+  # image1(p + d) == image0(p) bit for bit on covisible pixels, exactly the pixels whose p + d
+  # leaves the image are not covisible, and the backward pair is the forward one reversed.
+  c = S.SyntheticConfig(size=(28, 42), pair_type="shift", max_shift=6)
+  for i in range(5):
+    fwd, bwd = S.generate_pair(S.pair_seed(0, "train", i), c)
+    for s in (fwd, bwd):
+      d = s["flow"][0, 0].astype(int)
+      assert (s["flow"] == d).all() and np.abs(d).max() <= 6
+      assert s["meta"]["shift"] == d.tolist() and s["flow_valid"].all()
+      v, u = np.nonzero(s["covisibility"])
+      np.testing.assert_array_equal(s["image1"][v + d[1], u + d[0]], s["image0"][v, u])
+      assert s["covisibility"].sum() == (28 - abs(d[1])) * (42 - abs(d[0]))
+    np.testing.assert_array_equal(bwd["flow"], -fwd["flow"])
+    np.testing.assert_array_equal(bwd["image0"], fwd["image1"])
+
+
+def test_aligned_shift_fraction():
+  c = S.SyntheticConfig(size=(28, 28), pair_type="shift", max_shift=10, aligned_shift_frac=0.5,
+                        aligned_shift_step=7)
+  shifts = [S.generate_pair(S.pair_seed(0, "train", i), c, (0,))[0]["meta"]["shift"]
+            for i in range(200)]
+  aligned = [d for d in shifts if d[0] % 7 == 0 and d[1] % 7 == 0]
+  # Unaligned draws land on a multiple of 7 in both axes with probability (3/21)^2 ~ 2%.
+  assert 0.4 < len(aligned) / len(shifts) < 0.65
+  assert max(max(abs(x) for x in d) for d in aligned) == 14
+  with pytest.raises(ValueError, match="aligned_shift_frac"):
+    S.SyntheticConfig(pair_type="shift", aligned_shift_frac=1.5)
+
+
+def test_shift_pairs_through_the_source_and_writer(tmp_path):
+  src = data.get_source("synthetic", None, split="val", num_pairs=3, size=(28, 28),
+                        pair_type="shift", max_shift=4)
+  fwd, bwd = src.both(1)
+  S.write_pair(str(tmp_path / "p"), fwd, bwd)  # no scene, so no depth.npz
+  back = data.get_source("pairs_folder", str(tmp_path))[0]
+  np.testing.assert_array_equal(back["flow"], fwd["flow"])
+  np.testing.assert_array_equal(back["image1"], fwd["image1"])
+  assert not (tmp_path / "p" / "depth.npz").exists()
+
+
 def test_occlusion_exists(pairs):
   # Somewhere a pixel is in view of camera 1 with valid depth there but hidden: not covisible.
   occluded = [((s["covis_valid"] & ~s["covisibility"]) &

@@ -8,7 +8,8 @@
 `root` is ignored (nothing is read from disk). Pair i of a split is rendered from
 SeedSequence([seed, split, i]), so any index is reproducible on its own and the train, val and
 test streams never share a scene. meta holds K0, K1, cam2world0, cam2world1 (OpenCV c2w), depth0,
-depth1 (z-depth), segmentation0 (1 = the moving object), pair_type, view_angle_deg.
+depth1 (z-depth), segmentation0 (1 = the moving object), pair_type, view_angle_deg; that of
+`pair_type="shift"` pairs (translated textures, no scene) only pair_type and the shift (dx, dy).
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ class SyntheticSource:
 
   def __init__(self, root=None, split: str = "train", num_pairs: int | None = None, seed: int = 0,
                size=(112, 112), pair_type: str = "mixed", moving_object_prob: float = 0.5,
-               max_view_angle_deg: float = 90.0, subpixel_search: float = 0.0):
+               max_view_angle_deg: float = 90.0, subpixel_search: float = 0.0,
+               max_shift: int = 10, aligned_shift_frac: float = 0.0):
     del root  # generated, not read
     if num_pairs is None:
       num_pairs = 10000 if split == "train" else 200
@@ -33,7 +35,8 @@ class SyntheticSource:
     self.config = synthetic.SyntheticConfig(
         size=synthetic.parse_size(size), pair_type=pair_type,
         moving_object_prob=moving_object_prob, max_view_angle_deg=max_view_angle_deg,
-        subpixel_search=subpixel_search)
+        subpixel_search=subpixel_search, max_shift=int(max_shift),
+        aligned_shift_frac=float(aligned_shift_frac))
 
   def __len__(self):
     return self.num_pairs
