@@ -51,6 +51,8 @@ import ml_collections
 import configs.common as cc
 from configs import ufm560
 
+_NO_AUGMENT = {"zoom": (1.0, 1.0), "view_scale_jitter": 0.0, "color_prob": 0.0}
+
 
 def get_config(arg=None):
   arg = cc.parse_arg(arg, pairs="flow", steps=300, batch=8, size=56, eval=True,
@@ -60,10 +62,12 @@ def get_config(arg=None):
   c.seed = 0
   c.total_steps = arg.steps
   c.num_epochs = None
-  shift = {"max_shift": arg.max_shift} if arg.pairs == "shift" else {}
+  shift, train_shift = {}, {}  # source options of shift pairs; only training ones are aligned
+  if arg.pairs == "shift":
+    shift = {"max_shift": arg.max_shift}
+    train_shift = {**shift, "aligned_shift_frac": arg.aligned}
   c.input = cc.input_config(
-      cc.synthetic_mixture(num_pairs=100_000, size=hw, pair_type=arg.pairs,
-                           **(dict(shift, aligned_shift_frac=arg.aligned) if shift else {})),
+      cc.synthetic_mixture(num_pairs=100_000, size=hw, pair_type=arg.pairs, **train_shift),
       batch_size=arg.batch, longest_side=hw[1], aspect_ratios=(1.0,), num_workers=0,
       read_threads=2, prefetch_buffer_size=2,
       # Every shift pair is a fresh texture already; zoom or per-view scale would break its
@@ -92,5 +96,3 @@ def get_config(arg=None):
       "num_pairs": 32, "shape": hw, "batch_size": 16, "every": 100, "num_images": 2}})
   return c
 
-
-_NO_AUGMENT = {"zoom": (1.0, 1.0), "view_scale_jitter": 0.0, "color_prob": 0.0}

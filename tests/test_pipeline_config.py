@@ -123,6 +123,9 @@ def test_synthetic_config_shift_args_reach_the_pipeline():
   c = synthetic.get_config("pairs=shift,loss=l1,steps=4,batch=4,size=28,max_shift=3,aligned=0.0")
   assert dict(c.loss_kwargs)["alpha"] == 1.0 and dict(c.loss_kwargs)["c"] == 0.01
   assert c.evals.heldout.kwargs.pair_type == "shift" and c.evals.heldout.kwargs.max_shift == 3
+  # The curriculum (patch-aligned shifts) is for training only; the held-out pairs have none.
+  assert c.input.datasets.synthetic.options.aligned_shift_frac == 0.0
+  assert "aligned_shift_frac" not in c.evals.heldout.kwargs
   it, _ = pipeline.make_train_iterator(c.input, process_batch=4, seed=0)
   b = next(it)
   # No augmentation: every row is an untouched shift pair (constant flow, at most 3 px).
