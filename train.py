@@ -96,6 +96,22 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs):
   return train_step
 
 
+def make_predict(model, apply_kwargs):
+  """predict(params, batch) -> {"flow", "covisibility"} for evaluation batches.
+
+  Training batches are symmetrized ((a, b), (b, a) rows whose images are encoded once); evaluation
+  pairs are not, so `symmetrized` is dropped: with it every odd row would be predicted for the
+  reverse of the pair before it.
+  """
+  kwargs = {k: v for k, v in apply_kwargs.items() if k != "symmetrized"}
+
+  def predict(params, batch):
+    out = model.apply({"params": params}, batch["image0"], batch["image1"], **kwargs)
+    return {"flow": out["flow"], "covisibility": out["covisibility"]}
+
+  return predict
+
+
 class EvalResult:
   def __init__(self, scalars, images=None):
     self.scalars, self.images = scalars, images or {}
@@ -347,10 +363,8 @@ def main(argv):
   p_train_step = jax.jit(train_step, in_shardings=(state_sh, batch_sh),
                          out_shardings=(state_sh, repl), donate_argnums=(0,))
 
-  @functools.partial(jax.jit, in_shardings=(param_sh, batch_sh), out_shardings=repl)
-  def p_predict(params, batch):
-    out = model.apply({"params": params}, batch["image0"], batch["image1"], **apply_kwargs)
-    return {"flow": out["flow"], "covisibility": out["covisibility"]}
+  p_predict = jax.jit(make_predict(model, apply_kwargs), in_shardings=(param_sh, batch_sh),
+                      out_shardings=repl)
 
   # ---------------------------------------------------------------------------------- checkpoint
   manager = ckpt_lib.make_manager(workdir, config.ckpt_steps, config.keep_ckpt,

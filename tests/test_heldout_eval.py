@@ -45,3 +45,21 @@ def test_zero_flow_and_exact_predictions():
   res = ev.run(oracle, None).scalars
   assert res["epe"] == 0.0 and res["covis_acc"] == 1.0 and res["num_pairs"] == 5.0
   assert abs(res["epe_zero"] - zero_bar) < 1e-9
+
+
+def test_eval_predictions_ignore_the_symmetrized_training_kwarg():
+  # Training batches are (a, b), (b, a) rows encoded once (`symmetrized`); evaluation pairs are
+  # arbitrary, and predicting them with the training kwargs gives every odd row the reverse of
+  # the pair before it (train.py once logged such EPEs).
+  import jax
+  from configs import models
+  from ufm_jax.models import ufm
+  model = ufm.model_from_config(models.get("tiny"))
+  params = ufm.init_params(model, seed=0)
+  rng = np.random.default_rng(0)
+  batch = {k: rng.integers(0, 256, (4, 28, 28, 3), dtype=np.uint8) for k in ("image0", "image1")}
+  want = model.apply({"params": params}, batch["image0"], batch["image1"])["flow"]
+  got = jax.jit(train.make_predict(model, {"symmetrized": True}))(params, batch)["flow"]
+  np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+  mixed = model.apply({"params": params}, batch["image0"], batch["image1"], symmetrized=True)
+  assert np.abs(np.asarray(mixed["flow"][1::2]) - np.asarray(want[1::2])).max() > 1e-3
