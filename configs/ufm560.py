@@ -59,7 +59,9 @@ def get_config(arg=None):
   c.input = cc.input_config(cc.mixture(names[arg.data]), batch_size=96, longest_side=560)
   c.model_name = arg.model
   c.model = ml_collections.ConfigDict({"dtype": "bfloat16", "remat": True})
-  c.model_init = None  # dinov2:PATH (facebook/dinov2-large), snapshot:DIR or ckpt:WORKDIR
+  # dinov2:PATH (facebook/dinov2-large), snapshot:DIR or ckpt:WORKDIR; typed so that
+  # `--config.model_init=...` parses (a plain None field cannot be overridden from the flags).
+  c.model_init = ml_collections.FieldReference(None, field_type=str)
   c.optim = ufm_optim()
   c.evals = ml_collections.ConfigDict({"sintel": sintel_eval()})
   return c
