@@ -1,7 +1,7 @@
 r"""Does a model learn to match from scratch? Held-out EPE against the zero-flow EPE, fast.
 
   python benchmarks/synthetic_learning.py                      # configs/synthetic.py as it is
-  python benchmarks/synthetic_learning.py --arg pairs=shift,model=synth,loss=l1,steps=2000
+  python benchmarks/synthetic_learning.py --arg model=tiny,steps=3000     # the untied 14 px model
 
 The step is train.py's own (model, loss and optimizer built from the config by train.py's
 builders); the data is a fixed set of the config's synthetic pairs made once into memory and

@@ -133,6 +133,7 @@ def test_synthetic_config_shift_args_reach_the_pipeline():
     flow = b["flow"][k]
     assert (flow == flow[0, 0]).all() and np.abs(flow).max() <= 3
   np.testing.assert_array_equal(b["flow"][1], -b["flow"][0])  # symmetrized (a, b), (b, a)
-  assert dict(synthetic.get_config(None).loss_kwargs)["alpha"] == 0.5  # the paper's by default
+  assert dict(synthetic.get_config(None).loss_kwargs)["alpha"] == 1.0  # the README run's
+  assert dict(synthetic.get_config("loss=paper").loss_kwargs)["alpha"] == 0.5
   with pytest.raises(ValueError, match="loss must be"):
     synthetic.get_config("loss=huber")

@@ -55,3 +55,80 @@ def test_flax_init_uses_the_configured_position_table():
   table = np.asarray(jax.jit(tiny.init)(jax.random.PRNGKey(0), img, img)["params"]["encoder"][
       "pos_embed"])
   assert 0.015 < table.std() < 0.025  # DINOv2's trunc_normal(std=0.02)
+
+
+def _qkv_kernels(params):
+  """{path: fused qkv kernel} of every attention block."""
+  from flax import traverse_util
+  flat = traverse_util.flatten_dict(params, sep="/")
+  return {k: np.asarray(v) for k, v in flat.items() if k.endswith("attn/qkv/kernel")}
+
+
+@pytest.mark.parametrize("init", ["flax", "host"])
+def test_tied_qk_init_only_in_the_fusion_blocks(init):
+  cfg = models.get("synth")
+  assert cfg.info_sharing.tied_qk_init == 2.0
+  assert models.get("tiny").info_sharing.tied_qk_init is None
+  model = ufm.model_from_config(cfg)
+  img = np.zeros((1, 56, 56, 3), np.uint8)
+  params = (jax.jit(model.init)(jax.random.PRNGKey(0), img, img)["params"] if init == "flax"
+            else ufm.init_params(model, seed=0))
+  kernels = _qkv_kernels(params)
+  fusion = [k for k in kernels if k.startswith("info_sharing/")]
+  assert len(fusion) == cfg.info_sharing.depth and len(kernels) > len(fusion)
+  for path, w in kernels.items():
+    c = w.shape[0]
+    q, k, v = w[:, :c], w[:, c:2 * c], w[:, 2 * c:]
+    assert np.abs(q).max() > 0 and not np.allclose(q, v), path
+    assert np.array_equal(q, k) == path.startswith("info_sharing/"), path
+
+
+def test_tied_qkv_init_rejects_an_unfused_kernel():
+  from ufm_jax.models import layers
+  with pytest.raises(ValueError, match=r"\[c, 3c\]"):
+    layers.tied_qkv_init()(jax.random.PRNGKey(0), (8, 16))
+
+
+def _twin_attention(cfg, seed=0):
+  """Mean attention weight (in units of uniform attention) that a view-1 token gives, in the
+  first fusion block at init, to the view-2 token showing the same texture patch."""
+  from ufm_jax.data import synthetic
+  model = ufm.model_from_config(cfg)
+  img = np.zeros((1, 56, 56, 3), np.uint8)
+  params = jax.jit(model.init)(jax.random.PRNGKey(seed), img, img)["params"]
+  scfg = synthetic.SyntheticConfig(size=(56, 56), pair_type="shift", aligned_shift_frac=1.0)
+  pairs = [synthetic.generate_pair(synthetic.pair_seed(seed, "val", i), scfg, (0,))[0]
+           for i in range(8)]
+  im0, im1 = (np.stack([p[k] for p in pairs]) for k in ("image0", "image1"))
+  _, state = model.apply({"params": params}, im0, im1, mutable=["intermediates"])
+  x = np.asarray(state["intermediates"]["info_sharing"]["tokens_in"][0], np.float64)
+  block = jax.tree.map(lambda a: np.asarray(a, np.float64),
+                       params["info_sharing"]["self_attention_blocks_0"])
+  y = (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + 1e-6)
+  y = y * block["norm1"]["scale"] + block["norm1"]["bias"]
+  qkv = y @ block["attn"]["qkv"]["kernel"] + block["attn"]["qkv"]["bias"]
+  b, n2, c3 = qkv.shape
+  c, heads, n, g = c3 // 3, cfg.info_sharing.num_heads, n2 // 2, 8
+  q = qkv[..., :c].reshape(b, n2, heads, -1)
+  k = qkv[..., c:2 * c].reshape(b, n2, heads, -1)
+  logits = np.einsum("bqhd,bkhd->bhqk", q, k) / np.sqrt(q.shape[-1])
+  attn = np.exp(logits - logits.max(-1, keepdims=True))
+  attn = (attn / attn.sum(-1, keepdims=True)).mean(1)  # [b, 2n, 2n], mean over heads
+  weights = []
+  for i, p in enumerate(pairs):
+    dx, dy = (np.asarray(p["flow"][0, 0]) / 7).astype(int)  # whole-patch shifts
+    for t in range(n):
+      ty, tx = t // g + dy, t % g + dx
+      if 0 <= ty < g and 0 <= tx < g:
+        weights.append(attn[i, t, n + ty * g + tx])
+  return float(np.mean(weights)) * n2
+
+
+def test_tied_qk_init_starts_attention_on_the_matching_token():
+  # What the tie is for: at init a token already looks at its twin in the other view (measured
+  # ~5x uniform attention) where independent q/k projections give no preference (~1x).
+  tied = models.get("synth")
+  untied = tied.replace(info_sharing=tied.info_sharing.__class__(
+      **{**tied.info_sharing.__dict__, "tied_qk_init": None}))
+  assert _twin_attention(tied) > 3.0
+  assert _twin_attention(untied) < 1.5

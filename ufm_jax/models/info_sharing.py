@@ -31,6 +31,10 @@ class InfoSharingConfig:
   indices: Tuple[int, ...] = (5, 8)  # 0-based blocks whose (normed) output feeds the DPT heads
   norm_intermediate: bool = True
   max_num_views: int = 2
+  # From-scratch init only: every block's key projection starts equal to its query projection,
+  # both this scale x the default draw (layers.tied_qkv_init), so attention starts by matching
+  # look-alike tokens across the views. None: independent draws, as PyTorch.
+  tied_qk_init: Optional[float] = None
 
   def take_indices(self) -> Tuple[int, ...]:
     idx = tuple(sorted({i % self.depth if i < 0 else i for i in self.indices}))
@@ -79,7 +83,8 @@ class InfoSharing(nn.Module):
     inters = []
     for i in range(cfg.depth):
       x = block(cfg.num_heads, cfg.mlp_ratio, cfg.qkv_bias, cfg.qk_norm, cfg.init_values, "mlp",
-                self.dtype, self.attention_impl, name=f"self_attention_blocks_{i}")(x)
+                self.dtype, self.attention_impl, cfg.tied_qk_init,
+                name=f"self_attention_blocks_{i}")(x)
       x = constrain(x)
       self.sow("intermediates", f"block{i}_out", x)
       if i in take:

@@ -37,6 +37,24 @@ class LayerScale(nn.Module):
     return x * gamma.astype(x.dtype)
 
 
+def tied_qkv_init(scale: float = 1.0, base=nn.initializers.lecun_normal()):
+  """Initializer of a fused [c, 3c] qkv kernel whose key block starts equal to its query block,
+  both `scale` x a `base` draw (the value block is an independent `base` draw).
+
+  Attention logits then start as q.k = |W x|^2-like feature similarity (sharper for larger
+  `scale`), so a token attends to look-alike tokens from step 0. A from-scratch option:
+  pretrained weights replace it anyway.
+  """
+  def init(key, shape, dtype=jnp.float32):
+    c = shape[0]
+    if shape[-1] != 3 * c:
+      raise ValueError(f"tied_qkv_init needs a [c, 3c] qkv kernel, got shape {shape}")
+    kq, kv = jax.random.split(key)
+    wq = scale * base(kq, (c, c), dtype)
+    return jnp.concatenate([wq, wq, base(kv, (c, c), dtype)], axis=-1)
+  return init
+
+
 class Attention(nn.Module):
   """Multi-head self-attention: fused qkv projection, optional per-head q/k LayerNorm."""
   num_heads: int
@@ -44,12 +62,16 @@ class Attention(nn.Module):
   qk_norm: bool = False
   dtype: Optional[Dtype] = None
   implementation: Optional[str] = None  # jax.nn.dot_product_attention: None/"xla" or "cudnn"
+  tied_qk_init: Optional[float] = None  # from-scratch: W_k = W_q, this scale (tied_qkv_init)
 
   @nn.compact
   def __call__(self, x):
     b, n, c = x.shape
     head_dim = c // self.num_heads
-    qkv = nn.Dense(3 * c, use_bias=self.qkv_bias, dtype=self.dtype, name="qkv")(x)
+    kernel_init = (nn.initializers.lecun_normal() if self.tied_qk_init is None
+                   else tied_qkv_init(self.tied_qk_init))
+    qkv = nn.Dense(3 * c, use_bias=self.qkv_bias, dtype=self.dtype, kernel_init=kernel_init,
+                   name="qkv")(x)
     # torch: reshape(B, N, 3, heads, head_dim); jax.nn.dot_product_attention wants [B, N, heads, hd].
     qkv = qkv.reshape(b, n, 3, self.num_heads, head_dim)
     q, k, v = qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]
@@ -110,6 +132,7 @@ class Block(nn.Module):
   ffn: str = "mlp"  # "mlp" or "swiglu"
   dtype: Optional[Dtype] = None
   attention_impl: Optional[str] = None
+  tied_qk_init: Optional[float] = None
 
   @nn.compact
   def __call__(self, x):
@@ -118,7 +141,7 @@ class Block(nn.Module):
         lambda name: identity)
     y = layer_norm("norm1")(x)
     y = Attention(self.num_heads, self.qkv_bias, self.qk_norm, self.dtype, self.attention_impl,
-                  name="attn")(y)
+                  self.tied_qk_init, name="attn")(y)
     x = x + ls("ls1")(y)
     y = layer_norm("norm2")(x)
     if self.ffn == "mlp":

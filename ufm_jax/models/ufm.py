@@ -223,8 +223,10 @@ def init_params(model: UFM, seed: int = 0):
 
   The PyTorch defaults: Linear xavier-uniform / zero bias (UniCeption), Conv kaiming-uniform
   with a=sqrt(5) and uniform bias (torch), LayerNorm ones/zeros, LayerScale `init_values`,
-  pos_embed trunc-normal(0.02) (or the encoder config's sin-cos table), cls/register tokens normal(1e-6). Released models start from
-  pretrained weights instead (`ufm_jax.load_official`).
+  pos_embed trunc-normal(0.02) (or the encoder config's sin-cos table), cls/register tokens
+  normal(1e-6); with `info_sharing.tied_qk_init` (a scale) each fusion block's query kernel is
+  scaled by it and its key kernel starts as a copy of the query kernel. Released models start
+  from pretrained weights instead (`ufm_jax.load_official`).
   """
   if model.config.encoder.pos_embed_init not in ("trunc_normal", "sincos"):
     raise ValueError(f"encoder.pos_embed_init must be 'trunc_normal' or 'sincos', got "
@@ -253,6 +255,11 @@ def init_params(model: UFM, seed: int = 0):
       v = np.clip(rng.normal(0, 0.02, shape), -0.04, 0.04)
     else:  # cls_token, register_tokens
       v = rng.normal(0, 1e-6, shape)
+    tie = model.config.info_sharing.tied_qk_init
+    if name == "kernel" and path[0] == "info_sharing" and path[-2] == "qkv" and tie is not None:
+      c = shape[0]
+      v[:, :c] *= tie
+      v[:, c:2 * c] = v[:, :c]  # key block = query block (layers.tied_qkv_init)
     flat[path] = jnp.asarray(v, jnp.float32)
   return traverse_util.unflatten_dict(flat)
 
