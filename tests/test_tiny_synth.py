@@ -1,5 +1,8 @@
 """The `tiny_synth` variant of configs/synthetic.py: 7 px patches and a sin-cos position table."""
 
+import dataclasses
+import functools
+
 import jax
 import numpy as np
 import pytest
@@ -64,15 +67,28 @@ def _qkv_kernels(params):
   return {k: np.asarray(v) for k, v in flat.items() if k.endswith("attn/qkv/kernel")}
 
 
+def _synth(tied: bool):
+  cfg = models.get("synth")
+  if not tied:
+    cfg = cfg.replace(info_sharing=dataclasses.replace(cfg.info_sharing, tied_qk_init=None))
+  return cfg
+
+
+@functools.lru_cache(maxsize=None)
+def _flax_params(tied: bool):
+  """train.py's init (`model.init`) of `synth`, with or without the tie; shared by the tests."""
+  model = ufm.model_from_config(_synth(tied))
+  img = np.zeros((1, 14, 14, 3), np.uint8)  # the parameter shapes do not depend on the size
+  return jax.jit(model.init)(jax.random.PRNGKey(0), img, img)["params"]
+
+
 @pytest.mark.parametrize("init", ["flax", "host"])
 def test_tied_qk_init_only_in_the_fusion_blocks(init):
   cfg = models.get("synth")
   assert cfg.info_sharing.tied_qk_init == 2.0
   assert models.get("tiny").info_sharing.tied_qk_init is None
-  model = ufm.model_from_config(cfg)
-  img = np.zeros((1, 56, 56, 3), np.uint8)
-  params = (jax.jit(model.init)(jax.random.PRNGKey(0), img, img)["params"] if init == "flax"
-            else ufm.init_params(model, seed=0))
+  params = (_flax_params(True) if init == "flax"
+            else ufm.init_params(ufm.model_from_config(cfg), seed=0))
   kernels = _qkv_kernels(params)
   fusion = [k for k in kernels if k.startswith("info_sharing/")]
   assert len(fusion) == cfg.info_sharing.depth and len(kernels) > len(fusion)
@@ -89,18 +105,21 @@ def test_tied_qkv_init_rejects_an_unfused_kernel():
     layers.tied_qkv_init()(jax.random.PRNGKey(0), (8, 16))
 
 
-def _twin_attention(cfg, seed=0):
+def _twin_attention(tied: bool) -> float:
   """Mean attention weight (in units of uniform attention) that a view-1 token gives, in the
   first fusion block at init, to the view-2 token showing the same texture patch."""
   from ufm_jax.data import synthetic
+  cfg = _synth(tied)
   model = ufm.model_from_config(cfg)
-  img = np.zeros((1, 56, 56, 3), np.uint8)
-  params = jax.jit(model.init)(jax.random.PRNGKey(seed), img, img)["params"]
+  params = _flax_params(tied)
   scfg = synthetic.SyntheticConfig(size=(56, 56), pair_type="shift", aligned_shift_frac=1.0)
-  pairs = [synthetic.generate_pair(synthetic.pair_seed(seed, "val", i), scfg, (0,))[0]
+  pairs = [synthetic.generate_pair(synthetic.pair_seed(0, "val", i), scfg, (0,))[0]
            for i in range(8)]
   im0, im1 = (np.stack([p[k] for p in pairs]) for k in ("image0", "image1"))
-  _, state = model.apply({"params": params}, im0, im1, mutable=["intermediates"])
+  # Only the fusion input is needed: run the backbone, not the DPT heads.
+  _, state = jax.jit(lambda p, a, b: model.apply(
+      {"params": p}, a, b, method=lambda m, x, y: m.backbone(x, y), mutable=["intermediates"]))(
+          params, im0, im1)
   x = np.asarray(state["intermediates"]["info_sharing"]["tokens_in"][0], np.float64)
   block = jax.tree.map(lambda a: np.asarray(a, np.float64),
                        params["info_sharing"]["self_attention_blocks_0"])
@@ -127,8 +146,5 @@ def _twin_attention(cfg, seed=0):
 def test_tied_qk_init_starts_attention_on_the_matching_token():
   # What the tie is for: at init a token already looks at its twin in the other view (measured
   # ~5x uniform attention) where independent q/k projections give no preference (~1x).
-  tied = models.get("synth")
-  untied = tied.replace(info_sharing=tied.info_sharing.__class__(
-      **{**tied.info_sharing.__dict__, "tied_qk_init": None}))
-  assert _twin_attention(tied) > 3.0
-  assert _twin_attention(untied) < 1.5
+  assert _twin_attention(tied=True) > 3.0
+  assert _twin_attention(tied=False) < 1.5
