@@ -11,7 +11,7 @@ the flow loss L1-like (`loss=l1`). The held-out eval renders the synthetic `val`
 seen in training) and logs EPE and the zero-flow EPE before training (step 0), every 100 steps
 and at the end.
 
-Measured (2 CPU cores, ~55 pairs/s once compiled, 5.6 min in all): held-out covisible EPE
+Measured (2 CPU cores, ~59 pairs/s once compiled, 5.6 min in all): held-out covisible EPE
 7.88 -> 1.45 px after 2000 steps (2x by step 600; zero-flow EPE 7.48 px).
 
 How we got here (benchmarks/synthetic_learning.py runs train.py's step on a fixed set of pairs
@@ -33,7 +33,7 @@ and prints the held-out EPE against the zero-flow EPE):
   `synth` ends 1000 steps at 3.07 px. `tiny` on them for 300 steps (the former default):
   4.28 -> 3.09 px.
 Numbers logged by train.py before this version came from an evaluation that reused the
-symmetrized training kwargs on unsymmetrized eval pairs (fixed; tests/test_train_synthetic.py).
+symmetrized training kwargs on unsymmetrized eval pairs (fixed; tests/test_heldout_eval.py).
 
 Args (`configs/synthetic.py:steps=100,size=56`): pairs=flow|wide|mixed|pan|shift (pair types),
 steps, batch (global pairs per step, both directions of 4 unique pairs by default), size (square
