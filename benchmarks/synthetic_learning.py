@@ -5,8 +5,8 @@ r"""Does a model learn to match from scratch? Held-out EPE against the zero-flow
 
 The step is train.py's own (model, loss and optimizer built from the config by train.py's
 builders); the data is a fixed set of the config's synthetic pairs made once into memory and
-sampled without augmentation, and the held-out EPE (on the config's held-out pairs) is printed as
-often as asked. Per step it costs what train.py costs once compiled (~0.1 s for `tiny` at 56 px,
+sampled without augmentation, and the held-out EPE (train.py's own evaluator on the config's
+held-out pairs) is printed as often as asked. Per step it costs what train.py costs once compiled (~0.1 s for `tiny` at 56 px,
 batch 8, on 2 cores; ~0.2 s for `synth`), so a 3000-step probe takes minutes. Parameters come
 from `ufm.init_params` (the configured position table), which also starts the heads closer to
 zero flow than `model.init`. `pairs=shift` (translated textures) is the easiest matching task:
@@ -32,15 +32,15 @@ import numpy as np  # noqa: E402
 KEYS = ("image0", "image1", "flow", "covisibility", "flow_valid", "covis_valid")
 
 
-def render_set(options, seed, split, num_pairs, both):
-  """Stacked arrays of `num_pairs` synthetic pairs (both directions, interleaved, when `both`)."""
+def render_set(options, seed, split, num_pairs):
+  """Stacked arrays of `num_pairs` synthetic pairs, both directions of each, interleaved."""
   from tqdm import tqdm
   from ufm_jax.data import get_source
   src = get_source("synthetic", None, **{**options, "split": split, "num_pairs": num_pairs,
                                         "seed": seed})
   samples = []
   for i in tqdm(range(num_pairs), desc=f"render {split}", unit="pair", leave=False):
-    samples += src.both(i) if both else [src[i]]
+    samples += src.both(i)
   return {k: np.stack([s[k] for s in samples]) for k in KEYS}
 
 
@@ -58,20 +58,22 @@ def main(argv=None):
   from train_step import load_config  # the same config loader as the step benchmark
   import jax
   import train
-  from ufm_jax import optim
+  from ufm_jax import optim, sharding
   from ufm_jax.models import ufm
 
   spec = args.config + (f":{args.arg}" if args.arg else "")
   config = load_config(spec)
+  if "heldout" not in config.evals:
+    raise SystemExit(f"{spec}: the config has no held-out evaluation (evals.heldout)")
   t0 = time.time()
   train_opts = dict(config.input.datasets.synthetic.options)
-  val_opts = dict(config.evals.heldout.kwargs) if "heldout" in config.evals else train_opts
-  tr = render_set(train_opts, config.seed, "train", args.train_pairs, both=True)
-  va = render_set(val_opts, config.seed, "val", args.val_pairs, both=False)
-  mask = va["flow_valid"] & va["covisibility"]
-  zero = float(np.linalg.norm(va["flow"], axis=-1)[mask].mean())
+  tr = render_set(train_opts, config.seed, "train", args.train_pairs)
+  heldout = config.evals.heldout
+  heldout.num_pairs = heldout.kwargs.num_pairs = args.val_pairs
+  heldout.num_images = 0
+  evaluator = train.HeldoutEval(heldout, sharding.make_mesh(config.mesh))  # train.py's own
   print(f"{spec}: {args.train_pairs} {train_opts.get('pair_type')} training pairs made in "
-        f"{time.time() - t0:.0f} s; held-out zero-flow EPE {zero:.3f} px", flush=True)
+        f"{time.time() - t0:.0f} s", flush=True)
 
   model = train.build_model(config)
   params = ufm.init_params(model, config.seed)  # the configured position table, no compile
@@ -81,13 +83,13 @@ def main(argv=None):
   step_fn = jax.jit(train.make_train_step(model, train.build_loss(config), tx, labels,
                                           dict(config.get("apply_kwargs", {}))),
                     donate_argnums=(0,))
-  predict = jax.jit(lambda p, a, b: model.apply({"params": p}, a, b)["flow"])
+  predict = jax.jit(train.make_predict(model, dict(config.get("apply_kwargs", {}))))
 
   def heldout_epe(params):
-    flow = np.asarray(predict(params, va["image0"], va["image1"]), np.float64)
-    return float(np.linalg.norm(flow - va["flow"], axis=-1)[mask].mean())
+    scalars = evaluator.run(predict, params).scalars
+    return scalars["epe"], scalars["epe_zero"]
 
-  epe0 = heldout_epe(state.params)
+  epe0, zero = heldout_epe(state.params)
   print(f"step 0: held-out EPE {epe0:.3f} px (zero-flow {zero:.3f})", flush=True)
   rng = np.random.default_rng(config.seed)
   batch = int(config.input.batch_size)
@@ -104,7 +106,7 @@ def main(argv=None):
     if step % args.every == 0 or step == steps:
       m = jax.device_get(metrics)
       t = time.time()
-      epe = heldout_epe(state.params)
+      epe, _ = heldout_epe(state.params)
       t_eval += time.time() - t
       per_step = (time.time() - t0 - t_eval) / max(step - 1, 1)
       print(f"step {step}: held-out EPE {epe:.3f} px ({epe0 / epe:.2f}x of step 0; zero-flow "

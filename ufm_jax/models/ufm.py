@@ -228,10 +228,9 @@ def init_params(model: UFM, seed: int = 0):
   scaled by it and its key kernel starts as a copy of the query kernel. Released models start
   from pretrained weights instead (`ufm_jax.load_official`).
   """
-  if model.config.encoder.pos_embed_init not in ("trunc_normal", "sincos"):
-    raise ValueError(f"encoder.pos_embed_init must be 'trunc_normal' or 'sincos', got "
-                     f"{model.config.encoder.pos_embed_init!r}")
+  # param_shapes traces model.init, whose pos_embed initializer rejects an unknown choice.
   rng = np.random.default_rng(seed)
+  tie = model.config.info_sharing.tied_qk_init
   flat = {}
   for path, leaf in _flat_items(param_shapes(model)):
     shape, name = tuple(leaf.shape), path[-1]
@@ -255,7 +254,6 @@ def init_params(model: UFM, seed: int = 0):
       v = np.clip(rng.normal(0, 0.02, shape), -0.04, 0.04)
     else:  # cls_token, register_tokens
       v = rng.normal(0, 1e-6, shape)
-    tie = model.config.info_sharing.tied_qk_init
     if name == "kernel" and path[0] == "info_sharing" and path[-2] == "qkv" and tie is not None:
       c = shape[0]
       v[:, :c] *= tie
