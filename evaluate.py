@@ -21,29 +21,17 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
-import math
 import os
 import pathlib
 import sys
 import time
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-
-from ufm_jax import evaluators  # noqa: E402
-from ufm_jax.evaluators import base  # noqa: E402
+from ufm_jax import evaluators
+from ufm_jax.data import io
+from ufm_jax.evaluators import base, report
 
 DEFAULT_WORKDIR = "workdirs/synthetic"
-RANDOM_MODEL = "tiny"  # configs/models.py variant used when there is no checkpoint at all
-TABLE_COLUMNS = {  # the paper's column order per family (metric suffixes)
-    "flow": ["epe_covis", "epe_all", "px1", "px3", "px5", "fl_all", "fl_bg", "fl_fg",
-             "epe_matched", "epe_unmatched", "epe_s0-10", "epe_s10-40", "epe_s40+",
-             "epe_d0-10", "epe_d10-60", "epe_d60-140"],
-    "dense": ["epe", "px1", "px2", "px5", "epe_all"],
-    "pose": ["auc5", "auc10", "auc15", "auc20", "auc30", "acc5", "acc10", "acc15", "acc20", "acc30"],
-}
-
-
+RANDOM_MODEL = "tiny"  # ufm_jax.models.variants name used when there is no checkpoint at all
 def parse_args(argv=None):
   ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
@@ -85,55 +73,13 @@ def random_model(name: str = None):
   import jax
   import jax.numpy as jnp
 
-  from ufm_jax.cli import model_from_name
+  from ufm_jax.models import variants
   name = name or RANDOM_MODEL
   print(f"warning: no checkpoint given and no {DEFAULT_WORKDIR}/: evaluating a randomly "
         f"initialised {name!r} model (numbers are meaningless)", file=sys.stderr)
-  model = model_from_name(name)
+  model = variants.build_model(name)
   x = jnp.zeros((1, 28, 28, 3), jnp.uint8)
   return model, jax.jit(model.init)(jax.random.PRNGKey(0), x, x)["params"]
-
-
-def markdown_table(results: dict[str, float], benches: list[str], runtime: dict[str, float]) -> str:
-  lines = []
-  for family in ("flow", "dense", "pose"):
-    names = [b for b in benches if evaluators.BENCHES[b].family == family]
-    rows = {}
-    for b in names:
-      for s in evaluators.BENCHES[b].splits:
-        vals = {k.split("/", 1)[1]: v for k, v in results.items() if k.startswith(s.label + "/")}
-        if vals:
-          rows[s.label] = (vals, runtime.get(b, float("nan")))
-    if not rows:
-      continue
-    cols = [c for c in TABLE_COLUMNS[family] if any(c in v for v, _ in rows.values())]
-    lines.append("| split | " + " | ".join(cols) + " | ms/pair |")
-    lines.append("|---" * (len(cols) + 2) + "|")
-    for label, (vals, ms) in rows.items():
-      cells = [_fmt(vals.get(c)) for c in cols]
-      lines.append(f"| {label} | " + " | ".join(cells) + f" | {_fmt(ms, 1)} |")
-    lines.append("")
-  return "\n".join(lines)
-
-
-def _fmt(v, digits=2):
-  if v is None:
-    return "-"
-  return "nan" if isinstance(v, float) and math.isnan(v) else f"{v:.{digits}f}"
-
-
-def write_json_atomic(path: pathlib.Path, payload: dict) -> None:
-  path.parent.mkdir(parents=True, exist_ok=True)
-  tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-  tmp.write_text(json.dumps(payload, indent=1, sort_keys=False, default=_jsonable))
-  os.replace(tmp, path)
-
-
-def _jsonable(x):
-  try:
-    return float(x)
-  except (TypeError, ValueError):
-    return str(x)
 
 
 def main(argv=None) -> int:
@@ -188,8 +134,8 @@ def main(argv=None) -> int:
       "metrics": results,
   }
   out = pathlib.Path(args.out) / "results.json"
-  write_json_atomic(out, payload)
-  print(markdown_table(results, list(sources), runtime))
+  io.write_json_atomic(out, payload)
+  print(report.markdown_table(results, list(sources), runtime))
   for name, why in skipped.items():
     print(f"skipped {name}: {why}")
   print(f"wrote {out}")

@@ -19,13 +19,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from ufm_jax.data import pipeline  # pylint: disable=g-import-not-at-top
-from configs import common  # pylint: disable=g-import-not-at-top
+from ufm_jax.data import mixture, pipeline
 
 
 def _upsampled_pairs(cache_dir, side, n):
@@ -83,12 +79,12 @@ def _input_block(args, longest_side, workers):
       block.data_root = args.data_root
   elif longest_side <= args.render_max_side:
     options = {"size": (3 * longest_side // 4, longest_side), **json.loads(args.source_options)}
-    block = common.input_config(common.synthetic_mixture(args.quota, **options),
+    block = pipeline.input_config(mixture.synthetic_mixture(args.quota, **options),
                                 symmetrize=args.symmetrize)
   else:
     root = _upsampled_pairs(args.cache_dir, longest_side, args.disk_pairs)
     datasets = {"pairs_folder": {"quota": args.quota, "root": root, "options": {}}}
-    block = common.input_config(datasets, symmetrize=args.symmetrize)
+    block = pipeline.input_config(datasets, symmetrize=args.symmetrize)
   block.batch_size = args.batch_size
   block.longest_side = longest_side
   block.num_workers = workers

@@ -17,14 +17,11 @@ import json
 import os
 import pathlib
 import statistics
-import sys
 import time
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
+import jax
+import jax.numpy as jnp
+import numpy as np
 
 
 def _median_time(fn, runs: int, warmup: int) -> float:
@@ -61,9 +58,9 @@ def cost_flops(compiled) -> float:
 
 
 def build_model(config_name: str):
-  """A model from configs/models.py by name (e.g. fixture_small, ufm_base)."""
-  from ufm_jax.cli import model_from_name
-  return model_from_name(config_name)
+  """A model of ufm_jax.models.variants by name (e.g. fixture_small, ufm_base)."""
+  from ufm_jax.models import variants
+  return variants.build_model(config_name)
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -76,7 +73,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def main(argv=None) -> dict:
   ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-  ap.add_argument("--config", default="fixture_small", help="model config name in configs/models.py")
+  ap.add_argument("--config", default="fixture_small", help="model variant name (ufm_jax.models.variants)")
   ap.add_argument("--snapshot", default=None, help="official HF snapshot instead of a config")
   ap.add_argument("--size", type=parse_size, default=None, help="HxW (multiples of 14)")
   ap.add_argument("--batch", type=int, default=1)

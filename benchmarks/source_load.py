@@ -5,7 +5,7 @@
   python benchmarks/source_load.py --native          # flow readers at their datasets' real sizes
 
 Each reader gets a one-pair tree written in its dataset's on-disk format (the wide-baseline trees
-of tests/test_sources_wide_trees.py: a textured plane with depth holes; the flow trees below:
+of ufm_jax/testing/wide_trees.py: a textured plane with depth holes; the flow trees below:
 smooth textures and flow fields with invalid regions), then `source[0]` is timed: file decoding,
 depth conversion, flow/covisibility labels, everything the training pipeline pays per sample.
 The figure is CPU time (time.process_time) of a single-threaded process (OpenCV and BLAS threads
@@ -18,16 +18,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import tempfile
 import time
 
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
   os.environ.setdefault(_var, "1")
-
-_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, _ROOT)
-sys.path.insert(0, os.path.join(_ROOT, "tests"))
 
 import cv2  # pylint: disable=g-import-not-at-top
 import numpy as np  # pylint: disable=g-import-not-at-top
@@ -142,7 +137,7 @@ def flow_trees(hw, native=False):
 
 
 def all_trees(hw, native=False):
-  import test_sources_wide_trees as wide  # pylint: disable=g-import-not-at-top
+  from ufm_jax.testing import wide_trees as wide  # pylint: disable=g-import-not-at-top
   return [(n, w, k, "wide") for n, w, k in wide.timing_trees(hw)] + \
       [(n, w, k, "flow") for n, w, k in flow_trees(hw, native)]
 

@@ -8,8 +8,7 @@ builders); the data is a fixed set of the config's synthetic pairs made once int
 sampled without augmentation, and the held-out EPE (train.py's own evaluator on the config's
 held-out pairs) is printed as often as asked. Per step it costs what train.py costs once compiled (~0.1 s for `tiny` at 56 px,
 batch 8, on 2 cores; ~0.2 s for `synth`), so a 3000-step probe takes minutes. Parameters come
-from `ufm.init_params` (the configured position table), which also starts the heads closer to
-zero flow than `model.init`. `pairs=shift` (translated textures) is the easiest matching task:
+from train.py's init (`ufm_jax.trainer.init_params`, the modules' own initializers). `pairs=shift` (translated textures) is the easiest matching task:
 a model that cannot learn it cannot learn the scenes.
 
 Each line prints the held-out EPE on covisible pixels, the zero-flow EPE of the same pixels (the
@@ -21,13 +20,11 @@ from __future__ import annotations
 import argparse
 import os
 import pathlib
-import sys
 import time
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 KEYS = ("image0", "image1", "flow", "covisibility", "flow_valid", "covis_valid")
 
@@ -54,12 +51,10 @@ def main(argv=None):
   parser.add_argument("--every", type=int, default=250)
   args = parser.parse_args(argv)
 
-  sys.path.insert(0, str(REPO / "benchmarks"))
-  from train_step import load_config  # the same config loader as the step benchmark
   import jax
-  import train
-  from ufm_jax import optim, sharding
-  from ufm_jax.models import ufm
+  from ufm_jax import optim, sharding, trainer
+  from ufm_jax.config_lib import load_config
+  from ufm_jax.evaluators import train_evals
 
   spec = args.config + (f":{args.arg}" if args.arg else "")
   config = load_config(spec)
@@ -71,19 +66,20 @@ def main(argv=None):
   heldout = config.evals.heldout
   heldout.num_pairs = heldout.kwargs.num_pairs = args.val_pairs
   heldout.num_images = 0
-  evaluator = train.HeldoutEval(heldout, sharding.make_mesh(config.mesh))  # train.py's own
+  evaluator = train_evals.HeldoutEval(heldout, sharding.make_mesh(config.mesh))  # train.py's own
   print(f"{spec}: {args.train_pairs} {train_opts.get('pair_type')} training pairs made in "
         f"{time.time() - t0:.0f} s", flush=True)
 
-  model = train.build_model(config)
-  params = ufm.init_params(model, config.seed)  # the configured position table, no compile
+  model = trainer.build_model(config)
+  hw = tuple(heldout.shape)
+  params = jax.jit(lambda r: trainer.init_params(model, hw, r))(jax.random.PRNGKey(config.seed))
   steps = int(config.total_steps)
   tx, labels, _ = optim.make_optimizer(config.optim, params, steps)
   state = optim.TrainState.create(params, tx)
-  step_fn = jax.jit(train.make_train_step(model, train.build_loss(config), tx, labels,
+  step_fn = jax.jit(trainer.make_train_step(model, trainer.build_loss(config), tx, labels,
                                           dict(config.get("apply_kwargs", {}))),
                     donate_argnums=(0,))
-  predict = jax.jit(train.make_predict(model, dict(config.get("apply_kwargs", {}))))
+  predict = jax.jit(trainer.make_predict(model, dict(config.get("apply_kwargs", {}))))
 
   def heldout_epe(params):
     scalars = evaluator.run(predict, params).scalars

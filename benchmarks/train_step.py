@@ -1,22 +1,25 @@
-r"""Train-step benchmark: step time, pairs/s, peak memory; memory estimate of a full config.
+r"""Train-step benchmark: the exact train.py step (ufm_jax.trainer.setup), timed or compiled only.
 
-  python benchmarks/train_step.py --config synthetic               # time the tiny config here
-  python benchmarks/train_step.py --config ufm560 --estimate_only  # full UFM-Base, no compute
-  python benchmarks/train_step.py --config configs/ufm560.py:data=of --batch 8 --size 420x560
+  python benchmarks/train_step.py --config synthetic                 # time the tiny config here
+  python benchmarks/train_step.py --config ufm560 --model ufm_base --mesh data:2,fsdp:4 \
+      --devices 8 --batch 96 --size 420x560 --aot --hlo_out /tmp/ufm560.hlo.txt
+  python benchmarks/train_step.py --config ufm560 --estimate_only    # memory of the full config
 
-Timing runs the exact train.py step (same loss, optimizer, shardings, donation) on random batches
-of the config's model at --size/--batch. The estimate uses jax.eval_shape (params and optimizer
-state, no allocation) and XLA's memory analysis of the lowered and compiled (never run) step at
-the config's per-device batch, with and without remat, plus the bytes of the activations the
-backward pass keeps (JAX's saved residuals of the loss, traced abstractly). XLA:CPU's temp figure
-is a schedule of the whole step that ignores remat; the saved-residual figure is what remat
-changes and what dominates on accelerators. Prints figures; asserts nothing.
+--aot compiles (never runs) the step on --devices fake CPU devices (set before jax is imported)
+and prints: parameter bytes (total, per device), optimizer-state bytes per device, XLA's memory
+analysis per device, compile time, and the collectives of the compiled HLO by kind (executions,
+result bytes per device, the 5 largest with shapes; ufm_jax.hlo_stats). The last line is one JSON
+object. --estimate_only traces abstractly (no compile): params, AdamW state, and the activations
+the backward pass keeps (JAX's saved residuals) with and without remat at the per-device batch.
+Without either, random batches go through the compiled step and the step time is printed.
+Prints figures; asserts nothing.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import json
+import os
 import pathlib
 import resource
 import statistics
@@ -24,22 +27,10 @@ import sys
 import time
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-
-def load_config(spec: str):
-  path, _, arg = spec.partition(":")
-  p = pathlib.Path(path)
-  if not p.suffix:
-    p = REPO / "configs" / f"{path}.py"
-  module_spec = importlib.util.spec_from_file_location("bench_config", p)
-  module = importlib.util.module_from_spec(module_spec)
-  module_spec.loader.exec_module(module)
-  return module.get_config(arg or None)
 
 
 def _gib(n):
-  return f"{n / 2**30:.2f} GiB"
+  return f"{n / 2**30:.3f} GiB"
 
 
 def _tree_bytes(tree):
@@ -47,64 +38,108 @@ def _tree_bytes(tree):
   return sum(int(x.size) * x.dtype.itemsize for x in jax.tree.leaves(tree))
 
 
-def build(config, batch: int, hw):
-  """(step_fn jitted, abstract state, state shardings, batch sharding, mesh, model)."""
+def _per_device_bytes(tree, shardings):
+  """Bytes one device holds of `tree` under `shardings` (the largest shard per leaf)."""
   import jax
-  import jax.numpy as jnp
-  import train
-  from ufm_jax import optim, sharding
+  total = 0
+  for x, s in zip(jax.tree.leaves(tree), jax.tree.leaves(shardings)):
+    shape = s.shard_shape(x.shape) if len(x.shape) else ()
+    n = 1
+    for d in shape:
+      n *= d
+    total += n * x.dtype.itemsize
+  return total
 
+
+def load(args):
+  from ufm_jax import config_lib
+  spec = args.config
+  path, _, arg = spec.partition(":")
+  if not pathlib.Path(path).suffix:
+    spec = str(REPO / "configs" / f"{path}.py") + (f":{arg}" if arg else "")
+  config = config_lib.load_config(spec)
+  config.unlock()
+  if args.model:
+    config.model_name = args.model
+  if args.mesh:
+    config.mesh = args.mesh
+  if args.remat is not None:
+    config.model.remat = args.remat == "true"
+  batch = args.batch or int(config.input.batch_size)
+  if args.size:
+    hw = tuple(int(x) for x in args.size.lower().split("x"))
+  else:
+    side = int(config.input.get("longest_side", 112))
+    hw = (side, side) if "synthetic" in args.config else (side * 3 // 4 // 14 * 14, side)
+  return config, batch, hw
+
+
+def aot(config, batch, hw, hlo_out=None):
+  import jax
+  from ufm_jax import hlo_stats, sharding, trainer
   mesh = sharding.make_mesh(config.mesh)
-  model = train.build_model(config)
-  dummy = jax.ShapeDtypeStruct((1, *hw, 3), jnp.uint8)
-  abstract_params = jax.eval_shape(lambda r, x: model.init(r, x, x)["params"],
-                                   jax.random.PRNGKey(0), dummy)
-  tx, labels, _ = optim.make_optimizer(config.optim, abstract_params, 1000)
-  abstract_state = jax.eval_shape(lambda p: optim.TrainState.create(p, tx), abstract_params)
-  state_sh = sharding.tree_shardings(abstract_state, mesh, config.sharding_rules)
-  step = train.make_train_step(model, train.build_loss(config), tx, labels,
-                               dict(config.get("apply_kwargs", {})))
-  batch_sh = sharding.batch_sharding(mesh)
-  jitted = jax.jit(step, in_shardings=(state_sh, batch_sh),
-                   out_shardings=(state_sh, sharding.replicated(mesh)), donate_argnums=(0,))
-  return jitted, abstract_state, abstract_params, state_sh, batch_sh, mesh, model, tx
-
-
-def abstract_batch(batch, hw, refine=False):
-  import jax
-  import jax.numpy as jnp
-  h, w = hw
-  return {"image0": jax.ShapeDtypeStruct((batch, h, w, 3), jnp.uint8),
-          "image1": jax.ShapeDtypeStruct((batch, h, w, 3), jnp.uint8),
-          "flow": jax.ShapeDtypeStruct((batch, h, w, 2), jnp.float32),
-          "covisibility": jax.ShapeDtypeStruct((batch, h, w), jnp.bool_),
-          "flow_valid": jax.ShapeDtypeStruct((batch, h, w), jnp.bool_),
-          "covis_valid": jax.ShapeDtypeStruct((batch, h, w), jnp.bool_)}
-
-
-def random_batch(batch, hw, seed=0):
-  import numpy as np
-  rng = np.random.default_rng(seed)
-  h, w = hw
-  return {"image0": rng.integers(0, 256, (batch, h, w, 3), dtype=np.uint8),
-          "image1": rng.integers(0, 256, (batch, h, w, 3), dtype=np.uint8),
-          "flow": rng.normal(0, 5, (batch, h, w, 2)).astype(np.float32),
-          "covisibility": rng.random((batch, h, w)) < 0.7,
-          "flow_valid": np.ones((batch, h, w), bool), "covis_valid": np.ones((batch, h, w), bool)}
+  t0 = time.perf_counter()
+  ts = trainer.setup(config, mesh, hw, total_steps=1000)
+  lowered = ts.train_step.lower(ts.sharded_abstract_state(), ts.abstract_batch(batch, hw))
+  t_lower = time.perf_counter() - t0
+  t0 = time.perf_counter()
+  compiled = lowered.compile()
+  compile_s = time.perf_counter() - t0
+  text = compiled.as_text()
+  if hlo_out:
+    pathlib.Path(hlo_out).write_text(text)
+  colls = hlo_stats.collectives(text)
+  summ = hlo_stats.summary(colls)
+  p_bytes = _tree_bytes(ts.abstract_params)
+  p_dev = _per_device_bytes(ts.abstract_params, ts.param_sh)
+  opt_dev = _per_device_bytes(ts.abstract_state.opt_state, ts.state_sh.opt_state)
+  state_dev = _per_device_bytes(ts.abstract_state, ts.state_sh)
+  ma = compiled.memory_analysis()
+  n_params = sum(int(x.size) for x in jax.tree.leaves(ts.abstract_params))
+  print(f"config {config.get('model_name', config.get('model_fn'))}: {n_params / 1e6:.1f}M params, "
+        f"global batch {batch} at {hw[0]}x{hw[1]}, mesh {dict(mesh.shape)} on {len(jax.devices())} "
+        f"{jax.devices()[0].platform} devices, dtype {config.model.get('dtype', 'float32')}, "
+        f"remat {config.model.get('remat', False)}")
+  print(f"  params {_gib(p_bytes)} total, {_gib(p_dev)} per device; optimizer state "
+        f"{_gib(opt_dev)} per device (train state {_gib(state_dev)})")
+  print(f"  XLA memory per device: temp {_gib(ma.temp_size_in_bytes)}, args "
+        f"{_gib(ma.argument_size_in_bytes)}, out {_gib(ma.output_size_in_bytes)}, alias "
+        f"{_gib(ma.alias_size_in_bytes)}")
+  print(f"  trace+lower {t_lower:.1f} s, compile {compile_s:.1f} s")
+  total = hlo_stats.total_bytes(colls)
+  print(f"  collectives per device per step: {_gib(total)} ({total / max(p_bytes, 1):.2f}x the "
+        f"parameter bytes)")
+  print(hlo_stats.format_summary(summ))
+  result = {"param_bytes": p_bytes, "param_bytes_per_device": p_dev,
+            "state_bytes_per_device": state_dev, "opt_state_bytes_per_device": opt_dev,
+            "temp_bytes_per_device": ma.temp_size_in_bytes, "compile_s": round(compile_s, 1),
+            "lower_s": round(t_lower, 1),
+            "collective_bytes": {k: v["bytes"] for k, v in summ.items()},
+            "collective_count": {k: v["count"] for k, v in summ.items()},
+            "collective_bytes_total": total, "mesh": dict(mesh.shape), "batch": batch,
+            "size": list(hw), "devices": len(jax.devices())}
+  print(json.dumps(result))
+  return result
 
 
 def time_steps(config, batch, hw, steps):
   import jax
-  from ufm_jax import optim, sharding
-  jitted, abstract_state, _, state_sh, _, mesh, model, tx = build(config, batch, hw)
-  import jax.numpy as jnp
-  params = jax.jit(lambda r: model.init(r, jnp.zeros((1, *hw, 3), jnp.uint8),
-                                        jnp.zeros((1, *hw, 3), jnp.uint8))["params"])(
-                                            jax.random.PRNGKey(0))
-  state = jax.jit(lambda p: optim.TrainState.create(p, tx), out_shardings=state_sh)(params)
-  b = sharding.make_global_batch(random_batch(batch, hw), mesh)
+  import numpy as np
+  from ufm_jax import optim, sharding, trainer
+  mesh = sharding.make_mesh(config.mesh)
+  ts = trainer.setup(config, mesh, hw, total_steps=1000)
+  params = jax.jit(ts.init_fn, out_shardings=ts.param_sh)(jax.random.PRNGKey(0))
+  state = jax.jit(lambda p: optim.TrainState.create(p, ts.tx), out_shardings=ts.state_sh)(params)
+  rng = np.random.default_rng(0)
+  h, w = hw
+  host = {"image0": rng.integers(0, 256, (batch, h, w, 3), dtype=np.uint8),
+          "image1": rng.integers(0, 256, (batch, h, w, 3), dtype=np.uint8),
+          "flow": rng.normal(0, 5, (batch, h, w, 2)).astype(np.float32),
+          "covisibility": rng.random((batch, h, w)) < 0.7,
+          "flow_valid": np.ones((batch, h, w), bool), "covis_valid": np.ones((batch, h, w), bool)}
+  b = sharding.make_global_batch(host, mesh)
   t0 = time.perf_counter()
-  compiled = jitted.lower(state, b).compile()
+  compiled = ts.train_step.lower(state, b).compile()
   compile_s = time.perf_counter() - t0
   state, m = compiled(state, b)
   jax.block_until_ready(m)
@@ -117,13 +152,15 @@ def time_steps(config, batch, hw, steps):
   med = statistics.median(times)
   dev = jax.devices()[0].memory_stats() or {}
   ma = compiled.memory_analysis()
-  print(f"config {config_name}: batch {batch} at {hw[0]}x{hw[1]}, {len(jax.devices())} device(s) "
-        f"({jax.devices()[0].platform})")
+  print(f"config {config.get('model_name')}: batch {batch} at {h}x{w}, {len(jax.devices())} "
+        f"device(s) ({jax.devices()[0].platform})")
   print(f"  compile {compile_s:.1f} s; step median {med * 1e3:.1f} ms over {steps} "
         f"(min {min(times) * 1e3:.1f}); {batch / med:.1f} pairs/s; loss {float(m['loss']):.4f}")
   print(f"  peak host RSS {_gib(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)}; "
         f"device peak {_gib(dev['peak_bytes_in_use']) if 'peak_bytes_in_use' in dev else 'n/a (CPU)'}; "
         f"XLA temp {_gib(ma.temp_size_in_bytes)} + args {_gib(ma.argument_size_in_bytes)}")
+  print(json.dumps({"step_ms_median": med * 1e3, "step_ms_min": min(times) * 1e3,
+                    "pairs_per_s": batch / med, "compile_s": compile_s}))
 
 
 def saved_activation_bytes(model, abstract_params, per_device_batch: int, hw) -> int:
@@ -143,71 +180,53 @@ def saved_activation_bytes(model, abstract_params, per_device_batch: int, hw) ->
              if not why.startswith("from the argument"))
 
 
-def estimate(config, batch, hw, compile_step=True):
-  import jax
-  import train
-  from ufm_jax import sharding
-  results = {}
+def estimate(config, batch, hw):
+  from ufm_jax import sharding, trainer
+  mesh = sharding.make_mesh(config.mesh)
+  per_dev = batch // sharding.batch_divisor(mesh)
+  print(f"config {config.model_name}: batch {batch} at {hw[0]}x{hw[1]}, dtype "
+        f"{config.model.get('dtype', 'float32')}, {per_dev} pairs/device")
   for remat in (False, True):
     config.model.remat = remat
-    jitted, abstract_state, abstract_params, state_sh, batch_sh, mesh, _, _ = build(config, batch, hw)
-    n_params = sum(int(x.size) for x in jax.tree.leaves(abstract_params))
-    p_bytes = _tree_bytes(abstract_params)
-    o_bytes = _tree_bytes(abstract_state.opt_state)
-    per_dev = batch // sharding.batch_divisor(mesh)
-    line = {"params": n_params, "param_bytes": p_bytes, "opt_bytes": o_bytes}
-    model = train.build_model(config)
-    line["saved"] = saved_activation_bytes(model, abstract_params, per_dev, hw)
-    if compile_step:
-      st = jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
-                        abstract_state, state_sh)
-      bt = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=batch_sh),
-                        abstract_batch(batch, hw))
-      t0 = time.perf_counter()
-      ma = jitted.lower(st, bt).compile().memory_analysis()
-      line.update(temp=ma.temp_size_in_bytes, args=ma.argument_size_in_bytes,
-                  out=ma.output_size_in_bytes, alias=ma.alias_size_in_bytes,
-                  compile_s=time.perf_counter() - t0, per_device_batch=per_dev)
-    results[remat] = line
-  r = results[False]
-  print(f"config {config_name}: model {config.model_name} ({r['params'] / 1e6:.1f}M params), "
-        f"batch {batch} at {hw[0]}x{hw[1]}, dtype {config.model.get('dtype', 'float32')}")
-  print(f"  params {_gib(r['param_bytes'])} (f32 master), AdamW state {_gib(r['opt_bytes'])}")
-  for remat, line in results.items():
-    print(f"  remat={remat}: activations kept for the backward pass {_gib(line['saved'])} at "
-          f"{per_dev} pairs/device (JAX saved residuals)")
-    if "temp" in line:
-      print(f"  remat={remat}: XLA temp (activations + workspace) {_gib(line['temp'])} at "
-            f"{line['per_device_batch']} pairs/device; args {_gib(line['args'])}; "
-            f"total live ~{_gib(line['temp'] + line['args'] + line['out'] - line['alias'])} "
-            f"(compiled in {line['compile_s']:.0f} s, not run)")
+    ts = trainer.setup(config, mesh, hw, total_steps=1000)
+    if not remat:
+      n = sum(int(x.size) for x in __import__("jax").tree.leaves(ts.abstract_params))
+      print(f"  {n / 1e6:.1f}M params: {_gib(_tree_bytes(ts.abstract_params))} (f32 master), "
+            f"AdamW state {_gib(_tree_bytes(ts.abstract_state.opt_state))}")
+    saved = saved_activation_bytes(trainer.build_model(config), ts.abstract_params, per_dev, hw)
+    print(f"  remat={remat}: activations kept for the backward pass {_gib(saved)} "
+          f"(JAX saved residuals)")
 
 
 def main():
-  global config_name
   ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-  ap.add_argument("--config", default="synthetic")
+  ap.add_argument("--config", default="synthetic", help="configs/NAME.py[:arg] or a path")
+  ap.add_argument("--model", default=None, help="model variant (ufm_jax.models.variants)")
+  ap.add_argument("--mesh", default=None, help="e.g. data:2,fsdp:4 (default: the config's)")
+  ap.add_argument("--devices", type=int, default=None,
+                  help="fake CPU devices (--xla_force_host_platform_device_count)")
   ap.add_argument("--batch", type=int, default=None, help="global pairs per step")
   ap.add_argument("--size", default=None, help="HxW (multiples of 14)")
+  ap.add_argument("--remat", choices=("true", "false"), default=None)
   ap.add_argument("--steps", type=int, default=5)
-  ap.add_argument("--estimate_only", action="store_true", help="no compute: eval_shape + compile")
-  ap.add_argument("--no_compile", action="store_true", help="estimate params/opt state only")
+  ap.add_argument("--aot", action="store_true", help="compile only: memory, collectives, JSON")
+  ap.add_argument("--hlo_out", default=None, help="with --aot: write compiled.as_text() here")
+  ap.add_argument("--estimate_only", action="store_true", help="abstract trace, no compile")
   args = ap.parse_args()
-  config_name = args.config
-  config = load_config(args.config)
-  batch = args.batch or config.input.batch_size
-  if args.size:
-    hw = tuple(int(x) for x in args.size.lower().split("x"))
-  else:
-    side = int(config.input.get("longest_side", 112))
-    hw = (side, side) if "synthetic" in args.config else (side * 3 // 4 // 14 * 14, side)
-  if args.estimate_only:
-    estimate(config, batch, hw, compile_step=not args.no_compile)
+  if args.devices:
+    if "jax" in sys.modules:
+      raise SystemExit("--devices must be set before jax is imported")
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                               f" --xla_force_host_platform_device_count={args.devices}")
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+  config, batch, hw = load(args)
+  if args.aot:
+    aot(config, batch, hw, args.hlo_out)
+  elif args.estimate_only:
+    estimate(config, batch, hw)
   else:
     time_steps(config, batch, hw, args.steps)
 
-
-config_name = ""
 
 if __name__ == "__main__":
   main()

@@ -16,22 +16,24 @@ Smoke run on a fresh machine (tiny refine model, embedded synthetic pairs, rando
 
 import ml_collections
 
-import configs.common as cc
-from configs import ufm560
+from ufm_jax import config_lib
+from ufm_jax.data import mixture, pipeline
 
 # Top-level parameter collections of UFM-Refine that train (ufm_jax.refine_training.TRAINABLE).
 REFINER = ("unet_feature", "classification_head", "conv1", "conv2", "classification_bias")
 
 
 def get_config(arg=None):
-  arg = cc.parse_arg(arg, model="ufm_refine", data="refine", steps=0)
-  c = ufm560.common(ml_collections.ConfigDict())
+  arg = config_lib.parse_arg(arg, model="ufm_refine", data="refine", steps=0)
+  c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.num_epochs = 30
   if arg.data == "refine":
-    c.input = cc.input_config(cc.mixture(cc.REFINE), batch_size=96, longest_side=560)
+    c.input = pipeline.input_config(mixture.mixture(mixture.REFINE), batch_size=96,
+                                    longest_side=560)
   elif arg.data == "synthetic":
-    c.input = cc.input_config(cc.synthetic_mixture(num_pairs=10_000, size=(56, 56)),
-                              batch_size=2, longest_side=56, aspect_ratios=(1.0,), num_workers=0)
+    c.input = pipeline.input_config(mixture.synthetic_mixture(num_pairs=10_000, size=(56, 56)),
+                                    batch_size=2, longest_side=56, aspect_ratios=(1.0,),
+                                    num_workers=0)
     c.log_training_steps = 1
   else:
     raise ValueError(f"configs/ufm560_refine.py: data={arg.data!r}; expected refine or synthetic")
@@ -44,8 +46,8 @@ def get_config(arg=None):
   c.model_init = ml_collections.FieldReference(None, field_type=str)  # the UFM-560 base
   c.loss = "refine"
   c.loss_kwargs = {}
-  c.optim = ufm560.ufm_optim(lr=1e-4, encoder_lr=1e-4)
+  c.optim = config_lib.ufm_optim(lr=1e-4, encoder_lr=1e-4)
   c.optim.trainable = r"^(" + "|".join(REFINER) + r")(/|$)"
   c.evals = ml_collections.ConfigDict(
-      {"sintel": ufm560.sintel_eval()} if arg.data == "refine" else {})
+      {"sintel": config_lib.bench_eval("sintel")} if arg.data == "refine" else {})
   return c

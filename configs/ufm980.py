@@ -11,20 +11,21 @@ ones: `loss_kwargs.flow_pixels="all"`), longest side 980, 15 epochs.
 
 import ml_collections
 
-import configs.common as cc
-from configs import ufm560
+from ufm_jax import config_lib
+from ufm_jax.data import mixture, pipeline
 
 
 def get_config(arg=None):
-  arg = cc.parse_arg(arg, model="ufm_base")
-  c = ufm560.common(ml_collections.ConfigDict())
+  arg = config_lib.parse_arg(arg, model="ufm_base")
+  c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.num_epochs = 15
-  c.input = cc.input_config(cc.mixture(cc.OPTICAL_FLOW), batch_size=96, longest_side=980)
+  c.input = pipeline.input_config(mixture.mixture(mixture.OPTICAL_FLOW), batch_size=96,
+                                  longest_side=980)
   # Optical-flow benchmarks evaluate every pixel with valid flow, not just covisible ones.
   c.loss_kwargs.flow_pixels = "all"
   c.model_name = arg.model
   c.model = ml_collections.ConfigDict({"dtype": "bfloat16", "remat": True})
   c.model_init = ml_collections.FieldReference(None, field_type=str)  # required: the 560 run
-  c.optim = ufm560.ufm_optim(lr=1e-5, encoder_lr=5e-7)
-  c.evals = ml_collections.ConfigDict({"sintel": ufm560.sintel_eval(resolution="980")})
+  c.optim = config_lib.ufm_optim(lr=1e-5, encoder_lr=5e-7)
+  c.evals = ml_collections.ConfigDict({"sintel": config_lib.bench_eval("sintel", resolution="980")})
   return c

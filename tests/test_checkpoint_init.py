@@ -1,7 +1,6 @@
 """model_init end to end on real UFM structures: DINOv2 (HF safetensors) into the encoder of a
 tiny UFM, the official fixture snapshot, and a training checkpoint."""
 
-import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -9,11 +8,11 @@ import numpy as np
 import pytest
 from safetensors.numpy import save_file
 
-from configs import models as model_variants
+from ufm_jax.models import variants as model_variants
 from ufm_jax import checkpoint, optim
 from ufm_jax.models import ufm
 
-from test_checkpoint import _hf_dinov2
+from ufm_jax import testing
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +28,7 @@ def test_dinov2_hf_into_ufm_encoder(tmp_path, tiny):
   enc = template["encoder"]
   dim = enc["cls_token"].shape[-1]
   depth = sum(k.startswith("blocks_") for k in enc)
-  sd = _hf_dinov2(depth=depth, dim=dim, grid=4, seed=1)
+  sd = testing.hf_dinov2(depth=depth, dim=dim, grid=4, seed=1)
   save_file(sd, str(tmp_path / "model.safetensors"))
   (tmp_path / "config.json").write_text('{"model_type": "dinov2"}')
   params, rep = checkpoint.load_init_params(str(tmp_path), template)  # kind guessed: dinov2

@@ -110,7 +110,8 @@ def test_load_train_workdir(tmp_path):
 
   from ufm_jax.models import ufm
 
-  model = cli.model_from_name("tiny")
+  from ufm_jax.models import variants
+  model = variants.build_model("tiny")
   rng = np.random.default_rng(0)  # shapes by eval_shape (no compile); values arbitrary
   params = jax.tree.map(lambda s: rng.normal(size=s.shape).astype(np.float32), ufm.param_shapes(model))
   manager = checkpoint.make_manager(tmp_path, save_interval_steps=1, keep=2, async_save=False)

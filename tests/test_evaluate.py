@@ -5,15 +5,14 @@ that is a known constant at the native resolution, so every metric is computable
 """
 
 import json
-import pathlib
 
 import numpy as np
 import pytest
 
-import evaluate
 from ufm_jax import evaluators, metrics
 from ufm_jax.data.io import read_flo
-from ufm_jax.evaluators import base
+from ufm_jax.evaluators import base, report
+
 
 
 class ConstantFlow:
@@ -119,20 +118,19 @@ def test_resolution_modes():
   assert base.resolution_for(980, (375, 1242)) == (294, 980)
 
 
-def test_missing_data_names_layout_and_tool(tmp_path, capsys):
-  rc = evaluate.main(["--bench", "sintel", "--data_root", str(tmp_path), "--out", str(tmp_path / "o")])
-  err = capsys.readouterr().err
+def test_missing_data_names_layout_and_tool(tmp_path, run_evaluate):
+  rc, _, err = run_evaluate("--bench", "sintel", "--data_root", str(tmp_path), "--out",
+                            str(tmp_path / "o"))
   assert rc == 2 and "data/sintel/" in err and "training/" in err
-  rc = evaluate.main(["--bench", "kitti", "--out", str(tmp_path / "o")])
-  err = capsys.readouterr().err
+  rc, _, err = run_evaluate("--bench", "kitti", "--out", str(tmp_path / "o"))
   assert rc == 2 and "--data_root" in err and "data/kitti2015/" in err
-  rc = evaluate.main(["--bench", "nope"])
-  assert rc == 2 and "unknown bench" in capsys.readouterr().err
+  rc, _, err = run_evaluate("--bench", "nope")
+  assert rc == 2 and "unknown bench" in err
 
 
 def test_markdown_table_layout():
-  table = evaluate.markdown_table({"sintel_clean/epe_all": 1.234, "sintel_clean/epe_covis": 0.5,
-                                   "sintel_clean/px1": 10.0}, ["sintel"], {"sintel": 12.3})
+  table = report.markdown_table({"sintel_clean/epe_all": 1.234, "sintel_clean/epe_covis": 0.5,
+                                 "sintel_clean/px1": 10.0}, ["sintel"], {"sintel": 12.3})
   header = table.splitlines()[0]
   assert header.index("epe_covis") < header.index("epe_all") < header.index("px1")
   assert "| sintel_clean | 0.50 | 1.23 | 10.00 | 12.3 |" in table

@@ -12,11 +12,11 @@ import os
 import numpy as np
 import pytest
 
-import evaluate
-import test_sources_wide_trees as trees
-from ufm_jax import metrics
+from ufm_jax.testing import wide_trees as trees
+from ufm_jax import evaluators, metrics
 from ufm_jax.data import get_source, io
 from ufm_jax.evaluators import base
+
 
 
 def write_sintel(root, h=28, w=42, frames=3, scene="alley_1"):
@@ -74,17 +74,16 @@ def snapshot(reference_dir):
 
 
 @pytest.mark.slow
-def test_bench_all_on_tiny_trees(snapshot, tmp_path_factory, capsys):
+def test_bench_all_on_tiny_trees(snapshot, tmp_path_factory, run_evaluate):
   root = tmp_path_factory.mktemp("data")
   write_all(str(root))
   preds, out = root / "preds", root / "out"
-  rc = evaluate.main(["--bench", "all", "--snapshot", snapshot, "--data_root", str(root),
-                      "--max_pairs", "2", "--save_predictions", str(preds), "--num_panels", "1",
-                      "--out", str(out), "--no_progress"])
-  printed = capsys.readouterr().out
-  assert rc == 0
+  rc, printed, err = run_evaluate("--bench", "all", "--snapshot", snapshot, "--data_root",
+                                  str(root), "--max_pairs", "2", "--save_predictions", str(preds),
+                                  "--num_panels", "1", "--out", str(out), "--no_progress")
+  assert rc == 0, err[-3000:]
   res = json.loads((out / "results.json").read_text())
-  assert res["skipped"] == {} and sorted(res["benches_run"]) == sorted(evaluate.evaluators.BENCHES)
+  assert res["skipped"] == {} and sorted(res["benches_run"]) == sorted(evaluators.BENCHES)
   assert res["n_pairs"]["sintel_clean"] == 2 and res["n_pairs"]["kitti"] == 2
   assert res["n_pairs"]["eth3d"] == 1 and res["n_pairs"]["scannet1500"] == 1
   m = res["metrics"]
@@ -125,11 +124,11 @@ def test_bench_all_on_tiny_trees(snapshot, tmp_path_factory, capsys):
 
 
 @pytest.mark.slow
-def test_bench_all_skips_missing_data(snapshot, tmp_path, capsys):
-  rc = evaluate.main(["--bench", "all", "--snapshot", snapshot, "--data_root", str(tmp_path),
-                      "--max_pairs", "1", "--out", str(tmp_path / "o"), "--no_progress"])
-  out = capsys.readouterr().out
-  assert rc == 0
+def test_bench_all_skips_missing_data(snapshot, tmp_path, run_evaluate):
+  rc, out, err = run_evaluate("--bench", "all", "--snapshot", snapshot, "--data_root",
+                              str(tmp_path), "--max_pairs", "1", "--out", str(tmp_path / "o"),
+                              "--no_progress")
+  assert rc == 0, err[-3000:]
   res = json.loads((tmp_path / "o" / "results.json").read_text())
   assert res["benches_run"] == ["synthetic"]
   assert "data/sintel/" in res["skipped"]["sintel"] and "data/dtu/" in res["skipped"]["dtu"]

@@ -1,14 +1,10 @@
-"""train.py's held-out evaluator: EPE, the zero-flow bar and covisibility accuracy, by hand."""
-
-import pathlib
-import sys
+"""train.py's held-out evaluator (ufm_jax.evaluators.train_evals): EPE, the zero-flow bar and covisibility accuracy, by hand."""
 
 import ml_collections
 import numpy as np
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-import train  # noqa: E402
-from ufm_jax import sharding  # noqa: E402
+from ufm_jax import sharding, trainer
+from ufm_jax.evaluators import train_evals
 
 
 def _evaluator():
@@ -16,7 +12,7 @@ def _evaluator():
       "source": "synthetic", "root": None, "num_pairs": 5, "shape": (28, 28), "batch_size": 2,
       "kwargs": {"split": "val", "num_pairs": 5, "size": (28, 28), "pair_type": "shift",
                  "max_shift": 5}})
-  return train.HeldoutEval(cfg, sharding.make_mesh("data:-1,fsdp:1"))
+  return train_evals.HeldoutEval(cfg, sharding.make_mesh("data:-1,fsdp:1"))
 
 
 def test_zero_flow_and_exact_predictions():
@@ -52,12 +48,11 @@ def test_eval_predictions_ignore_the_symmetrized_training_kwarg():
   # arbitrary, and predicting them with the training kwargs gives every odd row the reverse of
   # the pair before it (train.py once logged such EPEs).
   import jax
-  from configs import models
-  from ufm_jax.models import ufm
-  model = ufm.model_from_config(models.get("tiny"))
+  from ufm_jax.models import ufm, variants
+  model = variants.build_model("tiny")
   params = ufm.init_params(model, seed=0)
   rng = np.random.default_rng(0)
   batch = {k: rng.integers(0, 256, (4, 28, 28, 3), dtype=np.uint8) for k in ("image0", "image1")}
   want = model.apply({"params": params}, batch["image0"], batch["image1"])["flow"]
-  got = jax.jit(train.make_predict(model, {"symmetrized": True}))(params, batch)["flow"]
+  got = jax.jit(trainer.make_predict(model, {"symmetrized": True}))(params, batch)["flow"]
   np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)

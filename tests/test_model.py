@@ -1,7 +1,5 @@
 """UFM module behaviour: symmetrized batches, input errors, bf16, remat, sharding hook."""
 
-import importlib.util
-import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -9,16 +7,8 @@ import numpy as np
 import pytest
 
 from ufm_jax import convert
-from ufm_jax.models import dinov2, info_sharing, ufm
+from ufm_jax.models import dinov2, info_sharing, ufm, variants
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
-
-
-def _configs_models():
-  spec = importlib.util.spec_from_file_location("configs_models", REPO / "configs" / "models.py")
-  mod = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(mod)
-  return mod
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +81,7 @@ def test_remat_same_values_and_gradients():
 
 def test_covisibility_head_is_gradient_stopped():
   # official detach_uncertainty_head: the covisibility loss trains only its own head
-  model = ufm.model_from_config(_configs_models().tiny())
+  model = ufm.model_from_config(variants.tiny())
   params = ufm.init_params(model)
   rng = np.random.default_rng(0)
   feats = [rng.standard_normal((1, 2, 2, 64)).astype(np.float32) for _ in range(4)]
@@ -110,7 +100,7 @@ def test_covisibility_head_is_gradient_stopped():
 
 
 def test_activation_sharding_hook_called_at_block_boundaries():
-  cfg = _configs_models().tiny()
+  cfg = variants.tiny()
   calls = []
 
   def hook(x):

@@ -1,8 +1,6 @@
 """Full-size configs checked without compute (jax.eval_shape) against closed-form counts."""
 
-import importlib.util
 import json
-import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -11,16 +9,8 @@ from flax import traverse_util
 import pytest
 
 from ufm_jax import convert
-from ufm_jax.models import dinov2, ufm
+from ufm_jax.models import dinov2, ufm, variants
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
-
-
-def _configs_models():
-  spec = importlib.util.spec_from_file_location("configs_models", REPO / "configs" / "models.py")
-  mod = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(mod)
-  return mod
 
 
 def _count(model):
@@ -60,7 +50,7 @@ def dpt_count(in_dims, layer_dims, f, out):
 
 
 def test_ufm_base_parameter_count():
-  cfg = _configs_models().ufm_base()
+  cfg = variants.ufm_base()
   enc = dinov2_count(1024, 24)
   fusion = linear(1024, 768) + 12 * vit_block(768, 3072, layerscale=False) + 2 * 768
   heads = sum(dpt_count((1024, 768, 768, 768), (96, 192, 384, 768), 256, o) for o in (2, 1))
@@ -71,7 +61,7 @@ def test_ufm_base_parameter_count():
 
 
 def test_ufm_base_structure():
-  cfg = _configs_models().ufm_base()
+  cfg = variants.ufm_base()
   assert cfg.encoder.embed_dim == 1024 and cfg.encoder.depth == 24 and cfg.encoder.patch_size == 14
   s = cfg.info_sharing
   assert (s.dim, s.depth, s.num_heads) == (768, 12, 12)
@@ -106,12 +96,12 @@ def test_dinov2_sizes(size, d, depth, swiglu):
 
 def test_fixture_small_is_the_fixture_structure(reference_dir):
   model, params = convert.load_official(reference_dir / "base")
-  assert model.config == _configs_models().fixture_small()
+  assert model.config == variants.fixture_small()
   assert _count(model) == sum(v.size for v in jax.tree.leaves(params))
 
 
 def test_variants_build():
-  cm = _configs_models()
+  cm = variants
   from ufm_jax.models import refine
   for name in cm.VARIANTS:
     cfg = cm.get(name)
@@ -126,7 +116,7 @@ def test_variants_build():
 
 
 def test_config_json_errors():
-  d = ufm.config_to_dict(_configs_models().tiny())
+  d = ufm.config_to_dict(variants.tiny())
   with pytest.raises(ValueError, match="unknown model config key 'depth'"):
     ufm.config_from_dict({**d, "depth": 3})
   with pytest.raises(ValueError, match=r"unknown keys \['width'\] in model config section 'encoder'"):

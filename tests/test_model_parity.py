@@ -45,22 +45,29 @@ def test_normalisation_matches_official(base):
   np.testing.assert_array_equal(got, io["img1_norm"])
 
 
+def _official_batch(x):
+  """Our encoder batch interleaves the views (s0, t0, s1, t1, ...: each pair's rows stay on one
+  device when sharded); the official one is [view1; view2]."""
+  x = np.asarray(x)
+  return np.concatenate([x[0::2], x[1::2]])
+
+
 def test_encoder_stages(base):
   e, ref = base["sown"]["encoder"], base["inter"]
-  _close("patch_embed", e["patch_embed_tokens"][0], ref["enc_patch_embed_tokens"], 1e-4)
+  _close("patch_embed", _official_batch(e["patch_embed_tokens"][0]), ref["enc_patch_embed_tokens"],
+         1e-4)
   _close("pos_embed_interp", e["pos_embed_interp"][0], ref["enc_pos_embed_interp"], 1e-6)
-  _close("tokens_in", e["tokens_in"][0], ref["enc_tokens_in"], 1e-4)
-  _close("block0", e["block0_out"][0], ref["enc_block0_out"], 1e-4)
-  _close("block1", e["block1_out"][0], ref["enc_block1_out"], 1e-4)
+  _close("tokens_in", _official_batch(e["tokens_in"][0]), ref["enc_tokens_in"], 1e-4)
+  _close("block0", _official_batch(e["block0_out"][0]), ref["enc_block0_out"], 1e-4)
+  _close("block1", _official_batch(e["block1_out"][0]), ref["enc_block1_out"], 1e-4)
 
 
 def test_encoder_outputs_with_final_norm(base):
   e, ref = base["sown"]["encoder"], base["inter"]
-  b = base["io"]["img1_uint8"].shape[0]
-  for i in range(2):  # encoder indices [0, 1]; both views encoded as one batch [view1; view2]
-    o = e[f"out{i}"][0]
-    _close(f"enc_out{i}_view1", _nchw(o[:b]), ref[f"enc_out{i}_view1"], 1e-4)
-    _close(f"enc_out{i}_view2", _nchw(o[b:]), ref[f"enc_out{i}_view2"], 1e-4)
+  for i in range(2):  # encoder indices [0, 1]; both views encoded as one (interleaved) batch
+    o = np.asarray(e[f"out{i}"][0])
+    _close(f"enc_out{i}_view1", _nchw(o[0::2]), ref[f"enc_out{i}_view1"], 1e-4)
+    _close(f"enc_out{i}_view2", _nchw(o[1::2]), ref[f"enc_out{i}_view2"], 1e-4)
 
 
 def test_info_sharing_stages(base):
@@ -118,9 +125,12 @@ def test_symmetrized_equals_plain(base):
       params, np.stack([a, b, c, d]), np.stack([b, a, d, c]))
   plain_fwd = base["out"]  # pairs (a,b), (c,d)
   plain_bwd = base["fwd"](params, np.stack([b, d]), np.stack([a, c]))[0]  # pairs (b,a), (d,c)
+  # The heads run on 4 rows here and 2 there: XLA:CPU's convolutions (XNNPACK since jax 0.10) round
+  # differently per batch size, so "equal" is float32 rounding relative to the output's scale.
   for k in plain_fwd:
-    np.testing.assert_allclose(np.asarray(sym[k])[0::2], np.asarray(plain_fwd[k]), rtol=0, atol=1e-5)
-    np.testing.assert_allclose(np.asarray(sym[k])[1::2], np.asarray(plain_bwd[k]), rtol=0, atol=1e-5)
+    for got, want in ((np.asarray(sym[k])[0::2], np.asarray(plain_fwd[k])),
+                      (np.asarray(sym[k])[1::2], np.asarray(plain_bwd[k]))):
+      np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * max(1.0, np.abs(want).max()))
 
 
 def test_float_input_normalisation(base):

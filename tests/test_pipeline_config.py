@@ -1,13 +1,20 @@
-"""configs/common.py: the Table 1 quotas and the input block the pipeline reads."""
+"""The Table 1 quotas (ufm_jax.data.mixture), the input block the pipeline reads, config args."""
 
 import logging
+import pathlib
 
 import ml_collections
 import numpy as np
 import pytest
 
-from configs import common
-from ufm_jax.data import pipeline, register
+from ufm_jax import config_lib
+from ufm_jax.data import mixture, pipeline, register
+
+SYNTHETIC = pathlib.Path(__file__).resolve().parents[1] / "configs" / "synthetic.py"
+
+
+def _synthetic_config(arg):
+  return config_lib.load_config(f"{SYNTHETIC}:{arg}" if arg else str(SYNTHETIC))
 
 
 class _Tiny:
@@ -35,22 +42,22 @@ register("_tpc_a", "_tpc_b")(_Tiny)
 
 def test_quota_table_is_paper_table1():
   # Paper Table 1, "Pairs in Epoch" column, in the table's order.
-  assert list(common.QUOTAS.items()) == [
+  assert list(mixture.QUOTAS.items()) == [
       ("blendedmvs", 100_000), ("megadepth", 100_000), ("tartanair_v2", 100_000),
       ("scannetpp", 100_000), ("habitat", 25_000), ("staticthings", 10_000),
       ("kubric4d", 50_000), ("flyingthings", 50_000), ("flyingchairs", 25_000),
       ("spring", 25_000), ("monkaa", 5_000), ("hd1k", 5_000)]
-  assert sum(common.QUOTAS.values()) == 595_000
-  assert set(common.WIDE_BASELINE) | set(common.OPTICAL_FLOW) == set(common.ALL)
-  assert not set(common.WIDE_BASELINE) & set(common.OPTICAL_FLOW)
+  assert sum(mixture.QUOTAS.values()) == 595_000
+  assert set(mixture.WIDE_BASELINE) | set(mixture.OPTICAL_FLOW) == set(mixture.ALL)
+  assert not set(mixture.WIDE_BASELINE) & set(mixture.OPTICAL_FLOW)
 
 
 def test_input_block_drives_the_pipeline(tmp_path, caplog):
   (tmp_path / "_tpc_a").mkdir()
   (tmp_path / "_tpc_b").mkdir()
   names = ("_tpc_a", "_tpc_b", "blendedmvs")   # blendedmvs absent under tmp_path
-  ds = common.mixture(names, quotas={"_tpc_a": 10, "_tpc_b": 6})
-  cfg = common.input_config(ds, batch_size=4, longest_side=28, data_root=str(tmp_path),
+  ds = mixture.mixture(names, quotas={"_tpc_a": 10, "_tpc_b": 6})
+  cfg = pipeline.input_config(ds, batch_size=4, longest_side=28, data_root=str(tmp_path),
                             num_workers=0, augment={"color_prob": 0.0})
   assert isinstance(cfg, ml_collections.ConfigDict) and cfg.datasets.blendedmvs.quota == 100_000
   with caplog.at_level(logging.WARNING):
@@ -64,21 +71,21 @@ def test_input_block_drives_the_pipeline(tmp_path, caplog):
 
 
 def test_all_absent_lists_them(tmp_path):
-  cfg = common.input_config(common.mixture(), data_root=str(tmp_path / "empty"))
+  cfg = pipeline.input_config(mixture.mixture(), data_root=str(tmp_path / "empty"))
   with pytest.raises(FileNotFoundError, match="hd1k"):
     pipeline.create(cfg, seed=0, process_index=0, process_count=1)
 
 
 def test_parse_arg():
-  c = common.parse_arg("data=of,res=980,sym=false", data="both", res=560, sym=True)
+  c = config_lib.parse_arg("data=of,res=980,sym=false", data="both", res=560, sym=True)
   assert (c.data, c.res, c.sym) == ("of", 980, False)
-  assert common.parse_arg(None, data="both").data == "both"
+  assert config_lib.parse_arg(None, data="both").data == "both"
   with pytest.raises(KeyError, match="unknown config arg 'x'"):
-    common.parse_arg("x=1", data="both")
+    config_lib.parse_arg("x=1", data="both")
 
 
 def test_synthetic_mixture_through_train_entry_point():
-  cfg = common.input_config(common.synthetic_mixture(num_pairs=6, size=(28, 42)), batch_size=4,
+  cfg = pipeline.input_config(mixture.synthetic_mixture(num_pairs=6, size=(28, 42)), batch_size=4,
                             longest_side=28, num_workers=0)
   it, info = pipeline.make_train_iterator(cfg, process_batch=4, seed=0)
   assert info["pairs_per_epoch"] == 12 and info["unique_pairs_per_epoch"] == 6
@@ -104,7 +111,7 @@ def test_pairs_folder_on_disk_with_a_truncated_png(tmp_path, caplog):
   png = root / "002" / "image0.png"
   png.write_bytes(png.read_bytes()[:40])
   ds = {"pairs_folder": {"quota": 6, "root": str(root), "options": {}}}
-  cfg = common.input_config(ds, batch_size=4, longest_side=28, num_workers=0,
+  cfg = pipeline.input_config(ds, batch_size=4, longest_side=28, num_workers=0,
                             max_skip_fraction=0.5, augment={"color_prob": 0.0})
   pipe = pipeline.create(cfg, seed=1, num_epochs=1, process_index=0, process_count=1)
   it = iter(pipe)
@@ -119,8 +126,7 @@ def test_pairs_folder_on_disk_with_a_truncated_png(tmp_path, caplog):
 
 
 def test_synthetic_config_shift_args_reach_the_pipeline():
-  from configs import synthetic
-  c = synthetic.get_config("pairs=shift,loss=l1,steps=4,batch=4,size=28,max_shift=3,aligned=0.0")
+  c = _synthetic_config("pairs=shift,loss=l1,steps=4,batch=4,size=28,max_shift=3,aligned=0.0")
   assert dict(c.loss_kwargs)["alpha"] == 1.0 and dict(c.loss_kwargs)["c"] == 0.01
   assert c.evals.heldout.kwargs.pair_type == "shift" and c.evals.heldout.kwargs.max_shift == 3
   # The curriculum (patch-aligned shifts) is for training only; the held-out pairs have none.
@@ -133,7 +139,7 @@ def test_synthetic_config_shift_args_reach_the_pipeline():
     flow = b["flow"][k]
     assert (flow == flow[0, 0]).all() and np.abs(flow).max() <= 3
   np.testing.assert_array_equal(b["flow"][1], -b["flow"][0])  # symmetrized (a, b), (b, a)
-  assert dict(synthetic.get_config(None).loss_kwargs)["alpha"] == 1.0  # the README run's
-  assert dict(synthetic.get_config("loss=paper").loss_kwargs)["alpha"] == 0.5
+  assert dict(_synthetic_config(None).loss_kwargs)["alpha"] == 1.0  # the README run's
+  assert dict(_synthetic_config("loss=paper").loss_kwargs)["alpha"] == 0.5
   with pytest.raises(ValueError, match="loss must be"):
-    synthetic.get_config("loss=huber")
+    _synthetic_config("loss=huber")

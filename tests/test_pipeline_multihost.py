@@ -10,8 +10,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from configs import common
-from ufm_jax.data import pipeline
+from ufm_jax.data import mixture, pipeline
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -22,9 +21,8 @@ _WORKER = textwrap.dedent("""
   jax.distributed.initialize(coordinator_address=sys.argv[1], num_processes=2,
                              process_id=int(sys.argv[2]))
   import numpy as np
-  from configs import common
-  from ufm_jax.data import pipeline
-  cfg = common.input_config(common.synthetic_mixture(num_pairs=8, size=(28, 42)), batch_size=8,
+  from ufm_jax.data import mixture, pipeline
+  cfg = pipeline.input_config(mixture.synthetic_mixture(num_pairs=8, size=(28, 42)), batch_size=8,
                             longest_side=28, num_workers=0, augment={"hflip_prob": 0.5})
   pipe = pipeline.create(cfg, seed=3, num_epochs=1)
   out = [b["image0"] for b in pipe]
@@ -34,7 +32,7 @@ _WORKER = textwrap.dedent("""
 
 
 def _config():
-  return common.input_config(common.synthetic_mixture(num_pairs=8, size=(28, 42)), batch_size=8,
+  return pipeline.input_config(mixture.synthetic_mixture(num_pairs=8, size=(28, 42)), batch_size=8,
                              longest_side=28, num_workers=0, augment={"hflip_prob": 0.5})
 
 

@@ -127,7 +127,7 @@ def test_split_merge_differentiates_only_the_refiner():
 def test_refine_stage_trains_only_the_refiner_end_to_end():
   """Tiny UFM-Refine: gradients w.r.t. the refiner only; a few Adam steps lower the loss on a
   fixed GT offset of (+0.5, -1.25) px from the regressed flow; the base params stay bitwise."""
-  from configs import models
+  from ufm_jax.models import variants as models
   from ufm_jax.models import ufm
   model = ufm.model_from_config(models.tiny_refine())
   assert type(model).__name__ == "UFMRefine"

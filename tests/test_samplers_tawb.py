@@ -9,7 +9,7 @@ import numpy as np
 
 from ufm_jax import data
 from ufm_jax.data.sources import _tawb_sampler as ts
-import test_sources_wide_trees as trees
+from ufm_jax.testing import wide_trees as trees
 
 ROOM = np.array([[-5.0, 5.0], [-4.0, 4.0], [-3.0, 3.0]])  # x, y, z (NED world: z down)
 LUT = np.random.default_rng(7).integers(30, 226, size=(32, 32, 32, 3)).astype(np.uint8)

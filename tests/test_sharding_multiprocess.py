@@ -35,11 +35,11 @@ def test_two_processes_same_loss(tmp_path):
   for pid in range(2):
     env = dict(os.environ)
     env.update({
-        "PYTHONPATH": os.pathsep.join([str(REPO), str(REPO / "tests")]),
+        "PYTHONPATH": str(REPO),
         "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu",
         "JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}", "JAX_NUM_PROCESSES": "2",
         "JAX_PROCESS_ID": str(pid), "JAX_CPU_COLLECTIVES_IMPLEMENTATION": "gloo"})
-    cmd = [sys.executable, str(REPO / "train.py"), f"--config={REPO}/tests/test_train_support.py",
+    cmd = [sys.executable, str(REPO / "train.py"), f"--config={REPO}/ufm_jax/testing/train_support.py",
            f"--workdir={tmp_path / 'mp'}", "--config.total_steps=2", "--config.ckpt_steps=2",
            "--config.mesh=data:-1,fsdp:2"]
     procs.append(subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -58,10 +58,10 @@ def test_two_processes_same_loss(tmp_path):
   l0, l1 = _losses(outs[0][2]), _losses(outs[1][2])
   assert sorted(l0) == [1, 2] and l0 == l1
   # Same global batch and mesh size as a single process with 4 devices.
-  env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests")]),
+  env = dict(os.environ, PYTHONPATH=str(REPO),
              XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
   r = subprocess.run([sys.executable, str(REPO / "train.py"),
-                      f"--config={REPO}/tests/test_train_support.py",
+                      f"--config={REPO}/ufm_jax/testing/train_support.py",
                       f"--workdir={tmp_path / 'sp'}", "--config.total_steps=2",
                       "--config.ckpt_steps=2", "--config.mesh=data:-1,fsdp:2"],
                      env=env, capture_output=True, text=True, timeout=240, cwd=REPO)

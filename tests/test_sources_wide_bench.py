@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ufm_jax import data
-import test_sources_wide_trees as trees
+from ufm_jax.testing import wide_trees as trees
 
 
 def test_dtu_plane_millimetres_to_metres(tmp_path):

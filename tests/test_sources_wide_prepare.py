@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from ufm_jax import data
-import test_sources_wide_trees as trees
+from ufm_jax.testing import wide_trees as trees
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 

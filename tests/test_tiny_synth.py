@@ -7,7 +7,7 @@ import jax
 import numpy as np
 import pytest
 
-from configs import models
+from ufm_jax.models import variants as models
 from ufm_jax.models import dinov2, ufm
 
 

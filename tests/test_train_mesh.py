@@ -16,11 +16,11 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 
 def run_train(workdir, *overrides, devices=8, env_extra=None, timeout=240):
   env = dict(os.environ)
-  env["PYTHONPATH"] = os.pathsep.join([str(REPO), str(REPO / "tests"), env.get("PYTHONPATH", "")])
+  env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
   env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
   env["JAX_PLATFORMS"] = "cpu"
   env.update(env_extra or {})
-  cmd = [sys.executable, str(REPO / "train.py"), f"--config={REPO}/tests/test_train_support.py",
+  cmd = [sys.executable, str(REPO / "train.py"), f"--config={REPO}/ufm_jax/testing/train_support.py",
          f"--workdir={workdir}", *overrides]
   return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout, cwd=REPO)
 

@@ -18,7 +18,7 @@ REFINER = ("unet_feature", "classification_head", "conv1", "conv2", "classificat
 
 
 def test_refine_stage_trains_only_the_refiner(tmp_path):
-  env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests")]),
+  env = dict(os.environ, PYTHONPATH=str(REPO),
              JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(XLA_CACHE),
              JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
   env.pop("XLA_FLAGS", None)

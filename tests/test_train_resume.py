@@ -23,7 +23,7 @@ CONFIG = [f"--config={REPO}/configs/synthetic.py:steps={TOTAL},batch=2,size=56,e
 
 def _env(cache):
   env = dict(os.environ)
-  env["PYTHONPATH"] = os.pathsep.join([str(REPO), str(REPO / "tests")])
+  env["PYTHONPATH"] = str(REPO)
   env["JAX_PLATFORMS"] = "cpu"
   env["JAX_COMPILATION_CACHE_DIR"] = str(cache)
   env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"

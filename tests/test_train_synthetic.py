@@ -18,7 +18,7 @@ XLA_CACHE = pathlib.Path(tempfile.gettempdir()) / "ufm_jax_test_xla_cache"
 
 
 def test_synthetic_config_learns(tmp_path):
-  env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests")]),
+  env = dict(os.environ, PYTHONPATH=str(REPO),
              JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(XLA_CACHE),
              JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
   env.pop("XLA_FLAGS", None)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import pathlib
 import re
 import signal
@@ -384,10 +383,3 @@ def load_init_params(spec: str, template) -> tuple[Any, InitReport]:
   params, report = merge_into(template, loaded, f"{kind}:{path}")
   logging.info("%s", report.summary())
   return params, report
-
-
-def write_json_atomic(path, obj) -> None:
-  path = pathlib.Path(path)
-  tmp = path.with_name(path.name + ".tmp")
-  tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=str))
-  os.replace(tmp, path)

@@ -31,27 +31,6 @@ def is_snapshot(path: str | os.PathLike) -> bool:
   return (p / "config.json").is_file() and (p / "model.safetensors").is_file()
 
 
-def model_from_name(name: str, **overrides):
-  """A model (no params) from a variant name of configs/models.py, with UFMConfig overrides
-  (e.g. dtype="bfloat16"); `ufm_jax.models.build_model` is used when it exists."""
-  try:
-    from ufm_jax.models import build_model
-  except ImportError:
-    build_model = None
-  if build_model is not None:
-    return build_model(name, **overrides)
-  try:
-    from configs import models
-  except ImportError:  # configs/ sits beside the package in a source checkout, not installed
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from configs import models
-  from ufm_jax.models import ufm
-  fn = getattr(models, name, None)
-  if not callable(fn):
-    raise ValueError(f"unknown model config {name!r} in configs/models.py")
-  return ufm.model_from_config(fn(**overrides))
-
-
 def is_workdir(path: str | os.PathLike) -> bool:
   """A train.py workdir: its config.json plus orbax steps under checkpoints/."""
   p = pathlib.Path(path)
@@ -75,7 +54,8 @@ def load_workdir(path: str | os.PathLike, step: int | None = None):
   else:
     if not cfg.get("model_name"):
       raise ValueError(f"{p / 'config.json'}: neither model_fn nor model_name; cannot rebuild the model")
-    model = model_from_name(cfg["model_name"], **model_kw)
+    from ufm_jax.models import variants
+    model = variants.build_model(cfg["model_name"], **model_kw)
   state, _ = checkpoint.read_state_numpy(p, step)
   return model, state["params"]
 

@@ -27,7 +27,7 @@ def robust_charbonnier(x, alpha: float = ALPHA, c: float = SCALE):
   return b / alpha * ((jnp.square(x / c) / b + 1.0) ** (alpha / 2.0) - 1.0)
 
 
-def _masked_mean(values, mask):
+def masked_mean(values, mask):
   mask = mask.astype(values.dtype)
   # max(.,1): a batch without any valid pixel contributes 0 rather than NaN.
   return jnp.sum(values * mask) / jnp.maximum(jnp.sum(mask), 1.0)
@@ -44,7 +44,7 @@ def end_point_error(flow_pred, flow_gt):
 def flow_loss(flow_pred, flow_gt, flow_valid, alpha: float = ALPHA, c: float = SCALE):
   """L_EPE: robust Charbonnier of the EPE averaged over `flow_valid` pixels (all images pooled)."""
   epe = end_point_error(flow_pred.astype(jnp.float32), flow_gt.astype(jnp.float32))
-  return _masked_mean(robust_charbonnier(epe, alpha, c), flow_valid)
+  return masked_mean(robust_charbonnier(epe, alpha, c), flow_valid)
 
 
 def covisibility_bce(logits, covisibility, covis_valid):
@@ -55,7 +55,7 @@ def covisibility_bce(logits, covisibility, covis_valid):
   logits = logits.astype(jnp.float32)
   target = covisibility.astype(jnp.float32)
   per_pixel = -(target * jax.nn.log_sigmoid(logits) + (1.0 - target) * jax.nn.log_sigmoid(-logits))
-  return _masked_mean(per_pixel, covis_valid)
+  return masked_mean(per_pixel, covis_valid)
 
 
 def flow_supervision_mask(batch, flow_pixels: str = "covisible"):
@@ -89,7 +89,7 @@ def ufm_loss(outputs, batch, covis_weight: float = COVIS_WEIGHT, alpha: float = 
   aux = {
       "loss_flow": l_flow,
       "loss_covis": l_covis,
-      "epe": _masked_mean(epe, flow_mask),
-      "covis_acc": _masked_mean(acc, batch["covis_valid"]),
+      "epe": masked_mean(epe, flow_mask),
+      "covis_acc": masked_mean(acc, batch["covis_valid"]),
   }
   return loss, aux

@@ -9,14 +9,17 @@ Config:
       "fsdp"       shard the largest dimension divisible by the fsdp axis size over `fsdp`
       "replicate"  keep a full copy on every device
       a tuple      explicit PartitionSpec entries, e.g. (None, "fsdp")
-  The batch is always sharded on its leading dimension over ("data", "fsdp").
+  config.sharding_min_size = N    tensors with fewer entries stay replicated under "fsdp"
+  The batch is always sharded on its leading dimension over ("data", "fsdp"), and so is every
+  activation at the model's block boundaries (`activation_constraint`): FSDP gathers the weights
+  of a layer, never the batch.
 """
 
 from __future__ import annotations
 
 import os
 import re
-from typing import Any, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -102,11 +105,11 @@ def _fsdp_spec(shape, axis_size: int, axis: str = "fsdp", min_size: int = 0) -> 
   return P()
 
 
-def spec_for(path: str, shape, rules, mesh: Mesh) -> P:
+def spec_for(path: str, shape, rules, mesh: Mesh, min_size: int = 0) -> P:
   for rx, rule in rules:
     if re.search(rx, path):
       if rule == "fsdp":
-        return _fsdp_spec(shape, mesh.shape["fsdp"])
+        return _fsdp_spec(shape, mesh.shape["fsdp"], min_size=min_size)
       if rule == "replicate":
         return P()
       rule = tuple(rule)
@@ -117,8 +120,9 @@ def spec_for(path: str, shape, rules, mesh: Mesh) -> P:
   return P()
 
 
-def tree_shardings(tree, mesh: Mesh, rules) -> Any:
-  """NamedSharding for every leaf of `tree` (arrays or ShapeDtypeStructs) by the config rules.
+def tree_shardings(tree, mesh: Mesh, rules, min_size: int = 0) -> Any:
+  """NamedSharding for every leaf of `tree` (arrays or ShapeDtypeStructs) by the config rules;
+  "fsdp" leaves with fewer than `min_size` entries are replicated.
 
   Leaves that are scalars (step counters) are replicated.
   """
@@ -128,13 +132,44 @@ def tree_shardings(tree, mesh: Mesh, rules) -> Any:
     shape = getattr(x, "shape", ())
     if len(shape) == 0:
       return NamedSharding(mesh, P())
-    return NamedSharding(mesh, spec_for(_path_str(path), shape, rules, mesh))
+    return NamedSharding(mesh, spec_for(_path_str(path), shape, rules, mesh, min_size))
 
   return jax.tree_util.tree_map_with_path(one, tree)
 
 
 def batch_sharding(mesh: Mesh) -> NamedSharding:
   return NamedSharding(mesh, P(BATCH_AXES))
+
+
+def gathered(mesh: Mesh):
+  """params -> params constrained to a full copy per device, at the start of the forward pass:
+  FSDP's weight all-gather (the stored params and optimizer state stay sharded; gradients are
+  reduce-scattered back). Left free, XLA may instead move a batch-sharded activation to the
+  layout of a feature-sharded weight. None on a one-device mesh."""
+  if mesh.size == 1:
+    return None
+  full = replicated(mesh)
+  return lambda tree: jax.lax.with_sharding_constraint(tree, jax.tree.map(lambda _: full, tree))
+
+
+def activation_constraint(mesh: Mesh):
+  """The model's `activation_sharding` hook: x -> x with its leading (batch) dimension sharded
+  over the mesh's batch axes, the other dimensions whole. None on a one-device mesh.
+
+  Arrays whose leading dimension does not divide over the batch axes (a batch-1 init trace) are
+  left to XLA.
+  """
+  n = batch_divisor(mesh)
+  if n == 1:
+    return None
+  sharding = batch_sharding(mesh)
+
+  def constrain(x):
+    if x.ndim == 0 or x.shape[0] % n:
+      return x
+    return jax.lax.with_sharding_constraint(x, sharding)
+
+  return constrain
 
 
 def replicated(mesh: Mesh) -> NamedSharding:

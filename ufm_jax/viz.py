@@ -116,17 +116,14 @@ def panel(source: np.ndarray, target: np.ndarray, flow: np.ndarray,
 
 def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
   """RGB (or grey) uint8 image -> PNG, written atomically (temp file + rename)."""
-  image = np.asarray(image)
-  if image.dtype != np.uint8:
-    raise ValueError(f"write_png({path}): expected uint8, got {image.dtype}")
-  if image.ndim == 3:
-    image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-  ok, buf = cv2.imencode(".png", image)
-  if not ok:
-    raise ValueError(f"write_png({path}): OpenCV could not encode an image of shape {image.shape}")
+  from ufm_jax.data.io import encode_png
+  try:
+    png = encode_png(image)
+  except ValueError as e:
+    raise ValueError(f"write_png({path}): {e}") from e
   tmp = f"{path}.tmp{os.getpid()}"
   with open(tmp, "wb") as f:
-    f.write(buf.tobytes())
+    f.write(png)
   os.replace(tmp, path)
 
 

@@ -8,6 +8,7 @@ path when it is missing. Writers are atomic (temp file + rename): a crash never 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 
@@ -363,6 +364,18 @@ def read_image(path: str | os.PathLike, bgr: bool = False) -> np.ndarray:
   return img
 
 
+def encode_png(image: np.ndarray) -> bytes:
+  """[H, W, 3] RGB or [H, W] grey uint8 -> PNG bytes."""
+  image = np.asarray(image)
+  if image.dtype != np.uint8 or not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)):
+    raise ValueError(f"encode_png: expected [H, W, 3] RGB or [H, W] grey uint8, got {image.dtype} "
+                     f"{image.shape}")
+  ok, buf = cv2.imencode(".png", image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+  if not ok:
+    raise ValueError(f"OpenCV could not PNG-encode an image of shape {image.shape}")
+  return buf.tobytes()
+
+
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
   """[H, W, 3] uint8 RGB -> image file (format from the extension), atomically."""
   image = np.asarray(image)
@@ -427,3 +440,20 @@ def check_dir(path: str | os.PathLike, layout: str) -> str:
   if not os.path.isdir(path):
     raise FileNotFoundError(f"{path}: directory not found; expected {layout}")
   return path
+
+
+def write_json_atomic(path: str | os.PathLike, obj) -> None:
+  """JSON file written through a temp file + rename (readers never see half a file); the folder
+  is created. Values JSON cannot hold (numpy scalars, paths) are written as float, else str."""
+  path = os.fspath(path)
+  os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+  with _atomic(path, ".json") as tmp:
+    with open(tmp, "w") as f:
+      json.dump(obj, f, indent=1, sort_keys=False, default=_json_default)
+
+
+def _json_default(x):
+  try:
+    return float(x)
+  except (TypeError, ValueError):
+    return str(x)

@@ -38,6 +38,7 @@ import grain
 import numpy as np
 
 from ufm_jax.data import augment as augment_lib
+from ufm_jax.data import mixture
 from ufm_jax.data.registry import get_source
 
 log = logging.getLogger(__name__)
@@ -457,21 +458,77 @@ def make_train_iterator(config: Mapping[str, Any], *, process_batch: int | None 
   return iter(pipe), info
 
 
+# The one home of the input block's defaults: `input_config` builds a block from them and
+# `create` fills the keys a block leaves out.
+INPUT_DEFAULTS = {
+    "data_root": None,
+    "split": None,
+    "batch_size": 96,
+    "symmetrize": True,
+    "longest_side": 560,
+    "aspect_ratios": augment_lib.DEFAULT_ASPECT_RATIOS,
+    "augment": {},
+    "num_workers": -1,
+    "read_threads": 2,
+    "prefetch_buffer_size": 2,
+    "worker_buffer_size": 1,
+    "max_skip_fraction": 0.01,
+    "skip_check_min_samples": 100,
+    "reverse_fallback": "unsupervised",
+    "max_retries": 8,
+}
+
+
+def auto_num_workers(cpu_count: int | None = None) -> int:
+  """Grain worker processes for `num_workers=-1`: every core but two (the training process and
+  its device feeding), at most 32; 0 (threads in-process) on small hosts."""
+  cores = cpu_count or os.cpu_count() or 1
+  return max(0, min(cores - 2, 32))
+
+
+def input_config(datasets, **overrides):
+  """The `config.input` block read by `create`: INPUT_DEFAULTS with `overrides`.
+
+  batch_size is the global number of pairs per step, both directions counted when symmetrized
+  (the paper's 96 = 48 unique pairs); each process gets batch_size / process_count.
+  num_workers: grain worker processes per host (-1: `auto_num_workers()`, from the core count).
+  reverse_fallback: what symmetrize does for datasets without backward labels ('unsupervised':
+  the (b, a) row has all masks False; 'error': refuse to build).
+  """
+  import ml_collections  # pylint: disable=g-import-not-at-top
+  unknown = sorted(set(overrides) - set(INPUT_DEFAULTS))
+  if unknown:
+    raise KeyError(f"input_config: unknown keys {unknown}; known: {sorted(INPUT_DEFAULTS)}")
+  block = {**INPUT_DEFAULTS, **overrides}
+  block["aspect_ratios"] = tuple(block["aspect_ratios"])
+  block["augment"] = dict(block["augment"] or {})
+  block["data_root"] = block["data_root"] or mixture.DEFAULT_DATA_ROOT
+  if block["split"] is None:
+    del block["split"]
+  return ml_collections.ConfigDict({"datasets": ml_collections.ConfigDict(datasets), **block})
+
+
 def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None = None,
            process_index: int | None = None, process_count: int | None = None) -> Pipeline:
-  """Builds the training pipeline from an input block (see `configs/common.py:input_config`).
+  """Builds the training pipeline from an input block (`input_config`; keys it leaves out take
+  INPUT_DEFAULTS).
 
   Keys: datasets {name: {quota, root, options}} (relative roots are under data_root), data_root,
   batch_size (global pairs per step, counting both directions when symmetrized), symmetrize,
-  longest_side, aspect_ratios, augment {...}, num_workers, worker_buffer_size, read_threads, prefetch_buffer_size, max_skip_fraction,
-  skip_check_min_samples, reverse_fallback, split. process_index/count default to jax's (grain ShardByJaxProcess).
+  longest_side, aspect_ratios, augment {...}, num_workers, worker_buffer_size, read_threads,
+  prefetch_buffer_size, max_skip_fraction, skip_check_min_samples, reverse_fallback, split.
+  process_index/count default to jax's (grain ShardByJaxProcess).
   """
   cfg = dict(config.to_dict() if hasattr(config, "to_dict") else config)
+  unknown = sorted(set(cfg) - set(INPUT_DEFAULTS) - {"datasets"})
+  if unknown:
+    raise KeyError(f"input block: unknown keys {unknown}; known: {sorted(INPUT_DEFAULTS)}")
+  cfg = {**INPUT_DEFAULTS, **cfg}
   jax_processes = process_index is None or process_count is None
   if jax_processes:
     shard = grain.sharding.ShardByJaxProcess(drop_remainder=True)
     process_index, process_count = shard.shard_index, shard.shard_count
-  symmetrize = bool(cfg.get("symmetrize", True))
+  symmetrize = bool(cfg["symmetrize"])
   global_batch = int(cfg["batch_size"])
   per_host, rem = divmod(global_batch, process_count)
   if rem:
@@ -488,7 +545,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   sizes = tuple(len(s) for s in sources)
   modes = ()
   if symmetrize:
-    fallback = str(cfg.get("reverse_fallback", "unsupervised"))
+    fallback = str(cfg["reverse_fallback"])
     if fallback not in ("unsupervised", "error"):
       raise ValueError(f"input.reverse_fallback must be 'unsupervised' or 'error', got {fallback!r}")
     modes = tuple(reverse_mode(s, n, fallback) for s, n in zip(sources, names))
@@ -496,9 +553,8 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
     if unsup:
       log.warning("no backward labels for %s: their (b, a) rows in symmetrized batches carry no "
                   "supervision (all masks False)", ", ".join(unsup))
-  shapes = augment_lib.training_shapes(int(cfg.get("longest_side", 560)),
-                                       tuple(cfg.get("aspect_ratios",
-                                                     augment_lib.DEFAULT_ASPECT_RATIOS)))
+  shapes = augment_lib.training_shapes(int(cfg["longest_side"]),
+                                       tuple(cfg["aspect_ratios"]))
   if jax_processes and process_count > 1:
     # Every host derives the same plans only if it sees the same datasets with the same sizes.
     from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
@@ -513,13 +569,15 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
     raise ValueError(f"epoch of {layout.epoch_size} pairs is smaller than one global batch of "
                      f"{layout.unique_per_step} unique pairs")
   load = LoadPair(sources, names, modes, layout, shapes,
-                  augment_lib.AugmentConfig.from_dict(cfg.get("augment")), symmetrize,
-                  int(cfg.get("max_retries", 8)))
+                  augment_lib.AugmentConfig.from_dict(cfg["augment"]), symmetrize,
+                  int(cfg["max_retries"]))
   ds = MixtureIndex(layout).map(load).batch(unique_per_host, drop_remainder=True, batch_fn=collate)
   ds = ds.to_iter_dataset(grain.ReadOptions(
-      num_threads=int(cfg.get("read_threads", 2)),
-      prefetch_buffer_size=int(cfg.get("prefetch_buffer_size", 2))))
-  workers = int(cfg.get("num_workers", 0))
+      num_threads=int(cfg["read_threads"]),
+      prefetch_buffer_size=int(cfg["prefetch_buffer_size"])))
+  workers = int(cfg["num_workers"])
+  if workers < 0:
+    workers = auto_num_workers()
   if workers > 0:
     from absl import flags  # pylint: disable=g-import-not-at-top
     if not flags.FLAGS.is_parsed():
@@ -527,9 +585,9 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
       # benchmarks) they keep their defaults.
       flags.FLAGS.mark_as_parsed()
     ds = ds.mp_prefetch(grain.MultiprocessingOptions(
-        num_workers=workers, per_worker_buffer_size=int(cfg.get("worker_buffer_size", 1))))
-  ds = _SkipAccounting(ds, float(cfg.get("max_skip_fraction", 0.01)),
-                       int(cfg.get("skip_check_min_samples", 100)))
+        num_workers=workers, per_worker_buffer_size=int(cfg["worker_buffer_size"])))
+  ds = _SkipAccounting(ds, float(cfg["max_skip_fraction"]),
+                       int(cfg["skip_check_min_samples"]))
   return Pipeline(dataset=ds, names=names, quotas=quotas, sizes=sizes, dropped=dropped,
                   epoch_size=layout.epoch_size,
                   steps_per_epoch=layout.epoch_size / layout.unique_per_step,

@@ -7,7 +7,7 @@ Module names follow the PyTorch ones with list indices joined by "_" (`input_pro
 """
 
 import dataclasses
-from typing import Optional, Sequence, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 import flax.linen as nn
 import jax
@@ -127,8 +127,10 @@ class Scratch(nn.Module):
 
 
 class DPTFeature(nn.Module):
-  """Four [B, h, w, C_k] maps at patch resolution -> [B, 8h, 8w, feature_dim]."""
+  """Four [B, h, w, C_k] maps at patch resolution -> [B, 8h, 8w, feature_dim]. `constrain`
+  (the model's activation-sharding hook) is applied to every stage's output."""
   config: DPTConfig
+  constrain: Optional[Callable] = None
 
   @nn.compact
   def __call__(self, feats: Sequence[jax.Array]):
@@ -148,18 +150,19 @@ class DPTFeature(nn.Module):
     x[3] = _conv(ld[3], 3, stride=2, pad=1, name="input_process_3_0_1")(
         _conv(ld[3], 1, name="input_process_3_0_0")(x[3]))
     # layer{k}_rn: 3x3 to feature_dim, no bias.
-    x = [_conv(fd, 3, pad=1, bias=False, name=f"input_process_{k}_1")(x[k]) for k in range(4)]
+    c = self.constrain or (lambda t: t)
+    x = [c(_conv(fd, 3, pad=1, bias=False, name=f"input_process_{k}_1")(x[k])) for k in range(4)]
     for k in range(4):
       self.sow("intermediates", f"layer{k}", x[k])
     scratch = Scratch(fd, name="scratch")
-    path4 = scratch.refinenet4(x[3])
+    path4 = c(scratch.refinenet4(x[3]))
     self.sow("intermediates", "refinenet4_out", path4)
     path4 = path4[:, :x[2].shape[1], :x[2].shape[2]]  # top-left crop for odd grids
-    path3 = scratch.refinenet3(path4, x[2])
+    path3 = c(scratch.refinenet3(path4, x[2]))
     self.sow("intermediates", "refinenet3_out", path3)
-    path2 = scratch.refinenet2(path3, x[1])
+    path2 = c(scratch.refinenet2(path3, x[1]))
     self.sow("intermediates", "refinenet2_out", path2)
-    path1 = scratch.refinenet1(path2, x[0])
+    path1 = c(scratch.refinenet1(path2, x[0]))
     self.sow("intermediates", "refinenet1_out", path1)
     return path1
 
@@ -167,17 +170,18 @@ class DPTFeature(nn.Module):
 class DPTRegressionProcessor(nn.Module):
   """conv3x3 -> bilinear (align_corners=True) resize to (H, W) -> conv3x3 -> ReLU -> conv1x1."""
   config: DPTConfig
+  constrain: Optional[Callable] = None
 
   @nn.compact
   def __call__(self, x, out_hw: Tuple[int, int]):
     cfg = self.config
+    c = self.constrain or (lambda t: t)
     h1, h2 = cfg.hidden_dims or (cfg.feature_dim // 2,) * 2
-    x = _conv(h1, 3, pad=1, name="conv1")(x)
+    x = c(_conv(h1, 3, pad=1, name="conv1")(x))
     self.sow("intermediates", "conv1_out", x)
-    x = resize_bilinear_align_corners(x, *out_hw)
-    x = _conv(h2, 3, pad=1, name="conv2_0")(x)
-    x = jax.nn.relu(x)
-    return _conv(cfg.output_dim, 1, name="conv2_2")(x)
+    x = c(resize_bilinear_align_corners(x, *out_hw))
+    x = c(jax.nn.relu(_conv(h2, 3, pad=1, name="conv2_0")(x)))
+    return c(_conv(cfg.output_dim, 1, name="conv2_2")(x))
 
 
 def flow_adaptor(x: jax.Array, cfg: FlowAdaptorConfig) -> jax.Array:

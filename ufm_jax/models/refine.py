@@ -435,32 +435,30 @@ class UFMRefine(ufm.UFM):
       src, tgt = src.astype(jnp.float64), tgt.astype(jnp.float64)
 
     # UFM.backbone is not reused: the refiner also needs the encoder's FIRST returned map and the
-    # normalised images. The heads are shared (UFM.heads).
-    if symmetrized:   # (a,b),(b,a) interleaved: each image through the encoder / U-Net once
-      feats = self.encoder(jnp.concatenate([src[::2], tgt[::2]], axis=0))
-      first1, first2 = ufm._interleave(*jnp.split(feats[0], 2, axis=0))
-      last1, last2 = ufm._interleave(*jnp.split(feats[-1], 2, axis=0))
-      u = self.refiner.unet(jnp.concatenate([src[::2], tgt[::2]], axis=0))
-      u1, u2 = ufm._interleave(*jnp.split(u, 2, axis=0)) if u is not None else (None, None)
-    else:
-      feats = self.encoder(jnp.concatenate([src, tgt], axis=0))
-      first1, first2 = jnp.split(feats[0], 2, axis=0)
-      last1, last2 = jnp.split(feats[-1], 2, axis=0)
-      u = self.refiner.unet(jnp.concatenate([src, tgt], axis=0))
-      u1, u2 = jnp.split(u, 2, axis=0) if u is not None else (None, None)
+    # normalised images. The heads are shared (UFM.heads). Each image goes through the encoder
+    # and the U-Net once, each pair's rows on one device (ufm.encoder_batch).
+    images = self.constrain(ufm.encoder_batch(src, tgt, symmetrized))
+    feats = self.encoder(images)
+    first1, first2 = (self.constrain(v) for v in ufm.split_views(feats[0], symmetrized))
+    last1, last2 = (self.constrain(v) for v in ufm.split_views(feats[-1], symmetrized))
+    u = self.refiner.unet(images)
+    u1, u2 = ((self.constrain(v) for v in ufm.split_views(u, symmetrized)) if u is not None
+              else (None, None))
 
     (fin1, fin2), inters = self.info_sharing(last1, last2)
-    head_in = [t.astype(head_dtype) for t in (last1, inters[0][0], inters[1][0], fin1)]
+    head_in = [self.constrain(t.astype(head_dtype))
+               for t in (last1, inters[0][0], inters[1][0], fin1)]
     out = self.heads(head_in, (h, w))          # the base model's DPT heads + adaptors
     flow = out["flow"]
 
-    # Official: cat(encoder list[0], info-sharing final.float()) per view, both views as one batch.
-    tokens = jnp.concatenate([jnp.concatenate([first1, fin1], -1),
-                              jnp.concatenate([first2, fin2], -1)], 0).astype(head_dtype)
-    unet_out = None if u is None else jnp.concatenate([u1, u2], 0)
-    fmap = self.refiner.combine(tokens, unet_out)
-    f1, f2 = jnp.split(fmap, 2, axis=0)
+    # Official: cat(encoder list[0], info-sharing final.float()) per view (one batch there; the
+    # combine is per image, so running it per view gives the same maps and keeps the batch layout).
+    f1 = self.constrain(self.refiner.combine(
+        jnp.concatenate([first1, fin1], -1).astype(head_dtype), u1))
+    f2 = self.constrain(self.refiner.combine(
+        jnp.concatenate([first2, fin2], -1).astype(head_dtype), u2))
     residual, log_p = self.refiner.refine(f1, f2, flow)
+    residual, log_p = self.constrain(residual), self.constrain(log_p)
     return dict(out, flow=flow + residual, flow_before_refinement=flow, residual=residual,
                 log_softmax=log_p, feature_map_0=f1, feature_map_1=f2)
 

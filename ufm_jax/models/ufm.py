@@ -138,18 +138,37 @@ def normalize(x: jax.Array) -> jax.Array:
   return (x - jnp.asarray(IMAGENET_MEAN, jnp.float32)) / jnp.asarray(IMAGENET_STD, jnp.float32)
 
 
-def _interleave(a, b):
-  """(a0, b0, a1, b1, ...) and (b0, a0, b1, a1, ...) along the batch axis."""
-  s = a.shape
-  return (jnp.stack([a, b], 1).reshape((2 * s[0],) + s[1:]),
-          jnp.stack([b, a], 1).reshape((2 * s[0],) + s[1:]))
+def encoder_batch(source, target, symmetrized: bool):
+  """The images the encoder runs on, laid out so that each pair's rows stay adjacent: with the
+  batch sharded in contiguous blocks, every device encodes exactly its own pairs' images.
+
+  symmetrized ((a, b), (b, a) rows): `source` already holds every image once (a0, b0, a1, ...).
+  Otherwise: source and target interleaved (s0, t0, s1, t1, ...).
+  """
+  if symmetrized:
+    return source
+  s = source.shape
+  return jnp.stack([source, target], axis=1).reshape((2 * s[0],) + s[1:])
+
+
+def split_views(x, symmetrized: bool):
+  """Inverse of `encoder_batch` on any per-image array: (view1, view2) rows of the pairs."""
+  s = x.shape
+  pairs = x.reshape((s[0] // 2, 2) + s[1:])
+  if symmetrized:  # view 2 of row (a, b) is b: the neighbouring row, swapped within each pair
+    return x, pairs[:, ::-1].reshape(s)
+  return pairs[:, 0], pairs[:, 1]
 
 
 class UFM(nn.Module):
-  """UniFlowMatchConfidence. `activation_sharding` (optional) is applied to the token tensors at
-  every transformer block boundary (e.g. a with_sharding_constraint closure)."""
+  """UniFlowMatchConfidence. `activation_sharding` (optional, `ufm_jax.sharding.
+  activation_constraint`) is applied to every batch-leading activation at block boundaries:
+  images, encoder and fusion blocks, DPT stages, outputs."""
   config: UFMConfig
   activation_sharding: layers.ActivationHook = None
+
+  def constrain(self, x):
+    return x if self.activation_sharding is None else self.activation_sharding(x)
 
   def setup(self):
     cfg = self.config
@@ -160,20 +179,16 @@ class UFM(nn.Module):
     self.info_sharing = info_sharing_lib.InfoSharing(cfg.info_sharing, bb_dtype, cfg.remat,
                                                      self.activation_sharding, cfg.attention_impl)
     # torch: head1 = Sequential(Sequential(DPTFeature, DPTRegressionProcessor), AdaptorMap).
-    self.head1_0_0 = dpt.DPTFeature(cfg.flow_head)
-    self.head1_0_1 = dpt.DPTRegressionProcessor(cfg.flow_head)
-    self.uncertainty_head_0_0 = dpt.DPTFeature(cfg.covisibility_head)
-    self.uncertainty_head_0_1 = dpt.DPTRegressionProcessor(cfg.covisibility_head)
+    hook = self.activation_sharding
+    self.head1_0_0 = dpt.DPTFeature(cfg.flow_head, hook)
+    self.head1_0_1 = dpt.DPTRegressionProcessor(cfg.flow_head, hook)
+    self.uncertainty_head_0_0 = dpt.DPTFeature(cfg.covisibility_head, hook)
+    self.uncertainty_head_0_1 = dpt.DPTRegressionProcessor(cfg.covisibility_head, hook)
 
   def encode(self, source, target, symmetrized: bool = False):
     """Normalised [B, H, W, 3] pair -> last encoder feature maps (view1, view2)."""
-    if symmetrized:
-      # (a,b),(b,a) interleaved: encode each image once, then interleave the features.
-      feats = self.encoder(jnp.concatenate([source[::2], target[::2]], axis=0))[-1]
-      f1, f2 = jnp.split(feats, 2, axis=0)
-      return _interleave(f1, f2)
-    feats = self.encoder(jnp.concatenate([source, target], axis=0))[-1]
-    return tuple(jnp.split(feats, 2, axis=0))
+    feats = self.encoder(self.constrain(encoder_batch(source, target, symmetrized)))[-1]
+    return tuple(self.constrain(v) for v in split_views(feats, symmetrized))
 
   def backbone(self, source, target, symmetrized: bool = False) -> Dict[str, Any]:
     """Checks and normalises the images, runs encoder + info sharing.
@@ -191,7 +206,7 @@ class UFM(nn.Module):
     f1, f2 = self.encode(src, tgt, symmetrized)
     (fin1, fin2), inters = self.info_sharing(f1, f2)
     # Heads see view 1 only: [encoder last, intermediate 0, intermediate 1, final], in float32.
-    feats = [t.astype(head_dtype) for t in (f1, inters[0][0], inters[1][0], fin1)]
+    feats = [self.constrain(t.astype(head_dtype)) for t in (f1, inters[0][0], inters[1][0], fin1)]
     return {"encoder": (f1, f2), "info_sharing": (fin1, fin2), "head_features": feats,
             "hw": tuple(source.shape[1:3])}
 
@@ -203,6 +218,7 @@ class UFM(nn.Module):
     flow = dpt.flow_adaptor(flow_norm, cfg.flow_adaptor)
     cov_feats = [jax.lax.stop_gradient(t) for t in feats] if cfg.detach_uncertainty_head else feats
     logits = self.uncertainty_head_0_1(self.uncertainty_head_0_0(cov_feats), hw)[..., 0]
+    flow, logits = self.constrain(flow), self.constrain(logits)
     return {"flow": flow, "covisibility": jax.nn.sigmoid(logits), "covisibility_logits": logits}
 
   def __call__(self, source, target, symmetrized: bool = False) -> Dict[str, jax.Array]:

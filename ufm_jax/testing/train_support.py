@@ -1,7 +1,7 @@
 """Stand-ins for the training-machinery tests (no tests here): a tiny flow model and a grain
 pipeline of translated random images, so mesh/optimizer/checkpoint logic is tested in seconds.
 
-Used by train.py through `config.model_fn` / `config.input.data_fn` ("test_train_support:...").
+Used by train.py through `config.model_fn` / `config.input.data_fn` ("ufm_jax.testing.train_support:...").
 """
 
 import flax.linen as nn
@@ -72,10 +72,10 @@ def tiny_config(**overrides):
   c.async_checkpoint = True
   c.mesh = "data:-1,fsdp:1"
   c.sharding_rules = [(".*", "fsdp")]
-  c.model_fn = "test_train_support:tiny_model"
+  c.model_fn = "ufm_jax.testing.train_support:tiny_model"
   c.model = ml_collections.ConfigDict({"width": 8})
   c.model_init = None
-  c.input = ml_collections.ConfigDict({"data_fn": "test_train_support:shifted_pairs",
+  c.input = ml_collections.ConfigDict({"data_fn": "ufm_jax.testing.train_support:shifted_pairs",
                                        "batch_size": 8, "shape": (14, 14), "num_pairs": 64})
   c.optim = ml_collections.ConfigDict({
       "lr": {"default": 3e-3, "encoder": 1e-3}, "groups": {"encoder": "^encoder/"},
@@ -88,7 +88,7 @@ def tiny_config(**overrides):
 
 
 def get_config(arg=None):
-  """python train.py --config=tests/test_train_support.py --workdir=DIR (test stand-in)."""
+  """python train.py --config=ufm_jax/testing/train_support.py --workdir=DIR (test stand-in)."""
   c = tiny_config()
   if arg:
     for kv in arg.split(","):

@@ -1,7 +1,8 @@
-"""Model size variants: plain functions returning `ufm_jax.models.ufm.UFMConfig`.
+"""Model variants by name: plain functions returning `ufm_jax.models.ufm.UFMConfig`, and
+`build_model(name, **overrides)`, the one way to build a model that has no checkpoint yet.
 
-    from configs.models import ufm_base
-    model = ufm_jax.models.ufm.model_from_config(ufm_base())
+    from ufm_jax.models import variants
+    model = variants.build_model("ufm_base", dtype="bfloat16")
 
 The released checkpoints carry their own config.json (`ufm_jax.load_official` reads it); these
 functions describe the same structures for training from scratch, benchmarks and eval_shape.
@@ -9,7 +10,7 @@ functions describe the same structures for training from scratch, benchmarks and
 
 import dataclasses
 
-from ufm_jax.models import dinov2, dpt, info_sharing, ufm
+from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
 
 # DPT head of the release: hooks on [encoder last, fusion layer 6, fusion layer 9, fusion final].
 _UFM_LAYER_DIMS = (96, 192, 384, 768)
@@ -77,13 +78,12 @@ def ufm_base_980(**kw) -> ufm.UFMConfig:
   return ufm_base(**{"inference_resolution": (742, 980), **kw})
 
 
-def ufm_refine(**kw) -> "refine.UFMRefineConfig":
+def ufm_refine(**kw) -> refine.UFMRefineConfig:
   """UFM-Refine (UniFlowMatchClassificationRefinement): UFM-Base plus the refiner: U-Net
   [64, 128, 256, 512] (hard-coded in the official ufm.py), 16-channel refinement features from
   the patch_mlp head on cat(encoder list[0], fusion final) (1024 + 768), a 7 x 7 window.
   mlp_ratio and temperature follow the public fixture (2, 4.0); a release's config.json is
   authoritative (`ufm_jax.load_official` reads it)."""
-  from ufm_jax.models import refine
   base = ufm_base()   # encoder list[0] is then the last block's output (a single index)
   fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(ufm.UFMConfig)}
   cfg = refine.UFMRefineConfig(**fields, unet_features=(64, 128, 256, 512), refine_feature_dim=16,
@@ -121,10 +121,9 @@ def tiny(**kw) -> ufm.UFMConfig:
 
 
 def tiny_synth(**kw) -> ufm.UFMConfig:
-  """`tiny` with 7 px patches (8 x 8 tokens per 56 px image instead of 4 x 4), an 8 x 8 position
-  table (no resampling at 56 px) initialised with fixed 2D sin-cos: the option
-  `configs/synthetic.py:model=tiny_synth` for finer matching of few-pixel motions. A step costs
-  ~3x `tiny`'s (the DPT heads run on a 64 x 64 grid); measured in that config's docstring."""
+  """`tiny` with 7 px patches (8 x 8 tokens per 56 px image instead of 4 x 4) and an 8 x 8
+  position table (no resampling at 56 px) initialised with fixed 2D sin-cos, for finer matching
+  of few-pixel motions (docs/synthetic_training.md)."""
   cfg = tiny()
   cfg = cfg.replace(encoder=dataclasses.replace(cfg.encoder, patch_size=7, pos_grid=8,
                                                 pos_embed_init="sincos"))
@@ -134,12 +133,9 @@ def tiny_synth(**kw) -> ufm.UFMConfig:
 def synth(**kw) -> ufm.UFMConfig:
   """`tiny_synth` with 16-wide DPT heads (~0.4M parameters) and fusion blocks whose key
   projections start equal to their query projections, both at 2x the default scale
-  (`info_sharing.tied_qk_init=2.0`): the model of `configs/synthetic.py`, trained from
-  scratch. The tie starts cross-view attention as feature similarity, the matching prior UFM
-  otherwise gets from pretrained DINOv2; without it a model this small sits at the zero-flow
-  solution for thousands of steps (measured in that config's docstring). The heads run on an
-  8x-upsampled token grid (64 x 64 at 56 px), so their width sets the step time; 16 channels
-  make a step ~0.15 s on 2 CPU cores (tiny_synth: ~0.3 s)."""
+  (`info_sharing.tied_qk_init=2.0`): the model of `configs/synthetic.py`, trained from scratch.
+  The tie starts cross-view attention as feature similarity, the matching prior UFM otherwise
+  gets from pretrained DINOv2 (why and how it was measured: docs/synthetic_training.md)."""
   cfg = tiny_synth()
   cfg = cfg.replace(flow_head=_dpt(64, 64, 2, (16, 16, 32, 32), 16),
                     covisibility_head=_dpt(64, 64, 1, (16, 16, 32, 32), 16),
@@ -147,10 +143,9 @@ def synth(**kw) -> ufm.UFMConfig:
   return cfg.replace(**kw)
 
 
-def tiny_refine(**kw) -> "refine.UFMRefineConfig":
+def tiny_refine(**kw) -> refine.UFMRefineConfig:
   """`tiny` plus a small refiner (U-Net [8, 16], 8 feature channels, 7 x 7 window): smoke tests
   and synthetic refine-stage training."""
-  from ufm_jax.models import refine
   base = tiny()
   fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(ufm.UFMConfig)}
   cfg = refine.UFMRefineConfig(**fields, unet_features=(8, 16), refine_feature_dim=8,
@@ -164,6 +159,12 @@ VARIANTS = {"fixture_small": fixture_small, "tiny": tiny, "tiny_synth": tiny_syn
 
 
 def get(name: str, **kw) -> ufm.UFMConfig:
+  """The config of variant `name` with UFMConfig field overrides (e.g. dtype="bfloat16")."""
   if name not in VARIANTS:
     raise ValueError(f"unknown model variant {name!r}; expected one of {sorted(VARIANTS)}")
   return VARIANTS[name](**kw)
+
+
+def build_model(name: str, **overrides):
+  """The flax module of variant `name` (UFM, or UFMRefine for refine variants), no params."""
+  return ufm.model_from_config(get(name, **overrides))

@@ -1,0 +1,73 @@
+"""The compiled FSDP train step moves weights, not activations (ufm_jax.hlo_stats on the HLO).
+
+A batch-sharded FSDP step gathers each weight for the forward and the backward pass and reduces
+its gradient: a few times the parameter bytes per device, whatever the batch. Here activations
+are far larger than the parameters, so any activation that crosses devices blows the budget;
+and no collective may carry the global batch dimension. Compiled for 8 fake CPU devices by the
+step benchmark (which sets the device count before jax starts), never run.
+"""
+
+import json
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+from ufm_jax import hlo_stats
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+BATCH = 48  # 6 rows (3 symmetrized pairs) per device; 48 and 96 are no parameter dimension
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mesh", ["data:2,fsdp:4", "data:1,fsdp:8"])
+def test_fsdp_step_moves_weights_not_activations(tmp_path, mesh):
+  hlo = tmp_path / "step.hlo.txt"
+  cmd = [sys.executable, str(REPO / "benchmarks" / "train_step.py"), "--config", "synthetic",
+         "--model", "tiny", "--mesh", mesh, "--devices", "8", "--batch", str(BATCH),
+         "--size", "56x56", "--aot", "--hlo_out", str(hlo)]
+  out = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=REPO)
+  assert out.returncode == 0, out.stderr[-3000:]
+  res = json.loads(out.stdout.strip().splitlines()[-1])
+  params = res["param_bytes"]
+  # The premise: activations dwarf the weights (XLA's per-device temp buffer).
+  assert res["temp_bytes_per_device"] > 5 * params, res
+  total = sum(res["collective_bytes"].values())
+  assert total <= 4 * params + 2**20, (
+      f"{mesh}: {total / 2**20:.1f} MiB of collectives per device for {params / 2**20:.1f} MiB of "
+      f"parameters:\n{out.stdout}")
+  colls = hlo_stats.collectives(hlo.read_text())
+  assert colls, "an FSDP step without collectives: the parameters are not sharded"
+  batch_dims = {BATCH, 2 * BATCH, BATCH // 2}  # rows, encoder rows, unique pairs
+  for c in colls:
+    for dtype, dims in c.shapes:
+      assert not (dims and dims[0] in batch_dims), (
+          f"{mesh}: {c.kind} of {dtype}{list(dims)} in {c.computation} carries the global batch")
+  assert res["param_bytes_per_device"] < params  # FSDP: weights are split, not replicated
+
+
+def test_collectives_parser_counts_loop_trips():
+  # A hand-written HLO: one all-gather in the entry, one all-reduce in a 12-trip while body.
+  text = """
+%body (p: (s32[], f32[4,8])) -> (s32[], f32[4,8]) {
+  %ar = f32[4,8]{1,0} all-reduce(%x), channel_id=1, to_apply=%add
+  ROOT %t = (s32[], f32[4,8]) tuple(%i, %ar)
+}
+
+%cond (p: (s32[], f32[4,8])) -> pred[] {
+  ROOT %lt = pred[] compare(%a, %b), direction=LT
+}
+
+ENTRY %main (a: f32[2,8]) -> f32[4,8] {
+  %ag = bf16[16,8]{1,0} all-gather(%a), channel_id=2, dimensions={0}
+  %w = (s32[], f32[4,8]) while(%init), condition=%cond, body=%body, backend_config={"known_trip_count":{"n":"12"}}
+  ROOT %r = f32[4,8] get-tuple-element(%w), index=1
+}
+"""
+  colls = hlo_stats.collectives(text)
+  by_kind = {c.kind: c for c in colls}
+  assert by_kind["all-gather"].bytes == 16 * 8 * 2 and by_kind["all-gather"].count == 1
+  assert by_kind["all-reduce"].bytes == 4 * 8 * 4 and by_kind["all-reduce"].count == 12
+  s = hlo_stats.summary(colls)
+  assert s["all-reduce"]["bytes"] == 12 * 128 and s["all-gather"]["bytes"] == 256

@@ -1,0 +1,88 @@
+"""Building blocks of the training configs in configs/ (plain functions returning ConfigDicts),
+and `load_config`, which reads a config file the way train.py's --config flag does.
+
+Configs import this package, never the reverse; each config file stands alone (no config imports
+another), so any of them loads from its path alone.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import pathlib
+
+import ml_collections
+
+from ufm_jax.data import mixture
+
+
+def parse_arg(arg: str | None, **defaults) -> ml_collections.ConfigDict:
+  """big_vision-style `get_config(arg)` parsing: "data=of,res=980" -> ConfigDict over defaults.
+
+  Values are converted to the type of their default (bool accepts true/false/1/0).
+  """
+  out = ml_collections.ConfigDict(defaults)
+  for item in filter(None, (arg or "").split(",")):
+    if "=" not in item:
+      raise ValueError(f"config arg {item!r} is not key=value (in {arg!r})")
+    key, value = item.split("=", 1)
+    if key not in defaults:
+      raise KeyError(f"unknown config arg {key!r}; known: {sorted(defaults)}")
+    default = defaults[key]
+    if isinstance(default, bool):
+      if value.lower() not in ("true", "false", "1", "0"):
+        raise ValueError(f"config arg {key}={value!r} is not a bool")
+      value = value.lower() in ("true", "1")
+    elif default is not None:
+      value = type(default)(value)
+    out[key] = value
+  return out
+
+
+def ufm_optim(lr=1e-4, encoder_lr=5e-6) -> ml_collections.ConfigDict:
+  """The paper's AdamW: (0.9, 0.95), weight decay 0.05, 10% warmup then cosine, per-group lr."""
+  return ml_collections.ConfigDict({
+      "lr": {"default": lr, "encoder": encoder_lr}, "groups": {"encoder": r"^encoder/"},
+      "b1": 0.9, "b2": 0.95, "eps": 1e-8, "weight_decay": 0.05, "no_decay": None,
+      "warmup_frac": 0.1, "end_lr_frac": 0.0, "grad_clip_norm": None,
+      "frozen": None, "trainable": None})
+
+
+def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
+  """The keys every UFM training config shares (mesh, sharding, checkpoints, logging, loss)."""
+  c.seed = 0
+  c.total_steps = None          # None: num_epochs * pairs per epoch / batch size
+  c.mesh = "data:-1,fsdp:1"     # e.g. "data:2,fsdp:4" to shard params/opt state over 4 devices
+  # FSDP over the largest divisible dimension; tensors under `sharding_min_size` entries (biases,
+  # norms, layer scales) stay replicated.
+  c.sharding_rules = [(r".*", "fsdp")]
+  c.sharding_min_size = 2 ** 14
+  c.ckpt_steps = 1000
+  c.keep_ckpt = 3
+  c.async_checkpoint = True
+  c.log_training_steps = 50
+  c.loss = "ufm"
+  c.loss_kwargs = ml_collections.ConfigDict(
+      {"covis_weight": 10.0, "alpha": 0.5, "c": 0.24, "flow_pixels": "covisible"})
+  c.apply_kwargs = {"symmetrized": True}  # rows (2i, 2i+1) are (a, b), (b, a): encode once
+  c.matmul_precision = None
+  return c
+
+
+def bench_eval(bench="sintel", every=5000, max_pairs=200, resolution="560",
+               data_root=mixture.DEFAULT_DATA_ROOT) -> ml_collections.ConfigDict:
+  """An `evals` entry that runs a benchmark of ufm_jax.evaluators during training."""
+  return ml_collections.ConfigDict({"type": "bench", "bench": bench, "every": every,
+                                    "max_pairs": max_pairs, "resolution": resolution,
+                                    "data_root": data_root})
+
+
+def load_config(spec: str) -> ml_collections.ConfigDict:
+  """`"configs/synthetic.py:steps=4"` -> get_config("steps=4") of that file (as --config does)."""
+  path, _, arg = str(spec).partition(":")
+  path = pathlib.Path(path)
+  if not path.is_file():
+    raise FileNotFoundError(f"config file not found: {path}")
+  module_spec = importlib.util.spec_from_file_location(f"_ufm_config_{path.stem}", path)
+  module = importlib.util.module_from_spec(module_spec)
+  module_spec.loader.exec_module(module)
+  return module.get_config(arg or None)

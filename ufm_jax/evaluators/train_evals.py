@@ -1,0 +1,131 @@
+"""Evaluators that train.py runs on the current params, chosen by `type` in `config.evals`:
+
+  heldout  fixed held-out pairs of a registered source, predicted by the sharded training-mesh
+           forward; the dense metrics (`DenseMetrics` with baselines: epe, px1/3/5, epe_all,
+           epe_zero, covis_acc)
+  bench    a benchmark of ufm_jax.evaluators (evaluate.py's benches) through ufm_jax.predict
+  "module:Class"  anything else, called with (cfg, mesh)
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import numpy as np
+from absl import logging
+
+from ufm_jax.evaluators.dense import DenseMetrics
+
+
+class EvalResult:
+  def __init__(self, scalars, images=None):
+    self.scalars, self.images = scalars, images or {}
+
+
+class HeldoutEval:
+  """EPE and covisibility accuracy on fixed held-out pairs of a registered source.
+
+  Pixels as evaluate.py's dense benches (`DenseMetrics`): epe / px1,3,5 (% of pixels with
+  EPE > t) pool the covisible pixels with valid flow and covisibility labels (where UFM is
+  supervised); epe_all pools every pixel with valid flow; epe_zero is the zero-flow EPE on the
+  `epe` pixels.
+
+  Config: source, root, kwargs (source options), num_pairs, shape (H, W: centre crop, which keeps
+  flow labels valid), batch_size, every, num_images (flow/covis pictures to TensorBoard).
+  """
+
+  KEYS = ("image0", "image1", "flow", "covisibility", "flow_valid", "covis_valid")
+
+  def __init__(self, cfg, mesh):
+    from ufm_jax import sharding
+    from ufm_jax.data import get_source
+    self.every = int(cfg.get("every", 0))
+    self.mesh = mesh
+    src = get_source(cfg.source, cfg.get("root"), **dict(cfg.get("kwargs", {})))
+    n = min(int(cfg.num_pairs), len(src))
+    h, w = cfg.shape
+    samples = []
+    for i in range(n):
+      s = src[i]
+      H, W = s["image0"].shape[:2]
+      if H < h or W < w:
+        raise ValueError(f"eval source {cfg.source}: sample {i} is {H}x{W}, smaller than the eval "
+                         f"shape {h}x{w}")
+      y0, x0 = (H - h) // 2, (W - w) // 2
+      samples.append({k: np.asarray(s[k])[y0:y0 + h, x0:x0 + w] for k in self.KEYS})
+    self.samples = samples
+    div = sharding.batch_divisor(mesh)
+    bs = int(cfg.get("batch_size", div))
+    self.batch_size = -(-bs // div) * div
+    self.num_images = int(cfg.get("num_images", 2))
+
+  def run(self, predict, params) -> EvalResult:
+    import jax
+    from ufm_jax import sharding, viz
+    n, bs = len(self.samples), self.batch_size
+    P, pid = jax.process_count(), jax.process_index()
+    acc = DenseMetrics(thresholds=(1, 3, 5), baselines=True)
+    images = {}
+    for start in range(0, n, bs):
+      chunk = self.samples[start:start + bs]
+      real = len(chunk)
+      chunk = chunk + [chunk[-1]] * (bs - real)  # pad to a fixed shape; padded rows are ignored
+      batch = {k: np.stack([c[k] for c in chunk]) for k in chunk[0]}
+      per = bs // P
+      local = {k: v[pid * per:(pid + 1) * per] for k, v in batch.items()}
+      out = jax.device_get(predict(params, sharding.make_global_batch(local, self.mesh)))
+      for j in range(real):
+        pred = {"flow": np.asarray(out["flow"][j], np.float32),
+                "covisibility": np.asarray(out["covisibility"][j])}
+        acc(chunk[j], pred)
+        i = start + j
+        if i < self.num_images:
+          images[f"pair{i}"] = viz.panel(chunk[j]["image0"], chunk[j]["image1"], pred["flow"],
+                                         pred["covisibility"])
+          images[f"pair{i}_gt"] = viz.panel(chunk[j]["image0"], chunk[j]["image1"],
+                                            chunk[j]["flow"], chunk[j]["covisibility"])
+    return EvalResult({**acc.result(), "num_pairs": float(n)}, images)
+
+
+class BenchEval:
+  """A benchmark of ufm_jax.evaluators (evaluate.py's benches) run on the current params.
+
+  Config: bench (e.g. sintel), every, max_pairs, resolution (560 | 980 | native), data_root.
+  Benches whose data is absent are skipped with a warning (once).
+  """
+
+  def __init__(self, cfg, model):
+    self.cfg, self.model = cfg, model
+    self.every = int(cfg.get("every", 0))
+    self.missing = False
+
+  def run(self, predict, params) -> EvalResult:
+    del predict  # the benches run ufm_jax.predict pair by pair at their own resolution
+    from ufm_jax import evaluators
+    if self.missing:
+      return EvalResult({})
+    runner = evaluators.Runner(self.model, params, self.cfg.get("resolution"))
+    try:
+      metrics, _ = evaluators.run_bench(self.cfg.bench, runner, self.cfg.get("data_root"),
+                                        max_pairs=self.cfg.get("max_pairs"), progress=False)
+    except evaluators.MissingDataError as e:
+      logging.warning("eval %s skipped from now on: %s", self.cfg.bench, e)
+      self.missing = True
+      return EvalResult({})
+    return EvalResult({k.replace("/", "_"): float(v) for k, v in metrics.items()
+                       if isinstance(v, (int, float))})
+
+
+def build_evaluators(evals_cfg, mesh, model):
+  """name -> evaluator, by each entry's `type` (see the module docstring)."""
+  out = {}
+  for name, cfg in dict(evals_cfg).items():
+    kind = cfg.get("type", "heldout")
+    if kind == "heldout":
+      out[name] = HeldoutEval(cfg, mesh)
+    elif kind == "bench":
+      out[name] = BenchEval(cfg, model)
+    else:
+      module, attr = kind.split(":")
+      out[name] = getattr(importlib.import_module(module), attr)(cfg, mesh)
+  return out

@@ -1,0 +1,141 @@
+"""Collectives of a compiled XLA program, read from its HLO text (`compiled.as_text()`).
+
+What a step moves between devices decides whether it scales, and none of it shows on one device:
+an FSDP step should gather each weight for the forward and backward pass and reduce-scatter its
+gradient (about 3x the parameter bytes per device), never move the batch. `collectives(text)`
+lists every all-gather / all-reduce / reduce-scatter / all-to-all / collective-permute with its
+result shape and bytes per device, counted as often as it runs: ops inside a `while` body (a scan
+over layers) are multiplied by the loop's known trip count.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import re
+
+KINDS = ("all-gather", "all-reduce", "reduce-scatter", "all-to-all", "collective-permute")
+DTYPE_BYTES = {"pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "f16": 2, "bf16": 2, "s32": 4,
+               "u32": 4, "f32": 4, "s64": 8, "u64": 8, "f64": 8, "c64": 8, "c128": 16,
+               "f8e4m3fn": 1, "f8e5m2": 1}
+
+_COMPUTATION = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s+\(.*\)\s+->\s+.*\{\s*$")
+_OP = re.compile(r"^\s*(?:ROOT\s+)?%?[\w.\-]+\s+=\s+(.+?)\s+(" + "|".join(KINDS) +
+                 r")(-start|-done)?\(")
+_SHAPE = re.compile(r"\b(" + "|".join(DTYPE_BYTES) + r")\[([\d,]*)\]")
+_CALLEE = re.compile(r"\b(body|condition|to_apply|calls|true_computation|false_computation|"
+                     r"branch_computations)=(?:\{([^}]*)\}|(%?[\w.\-]+))")
+_TRIP = re.compile(r'"known_trip_count":\{"n":"(\d+)"\}')
+
+
+@dataclasses.dataclass
+class Collective:
+  kind: str
+  shapes: list           # [(dtype, (dims...)), ...] of the result (a tuple for variadic ops)
+  bytes: int             # result bytes on one device, per execution
+  count: int             # executions per program run (trip counts of enclosing loops)
+  computation: str
+
+  def shape_str(self) -> str:
+    return ", ".join(f"{d}[{','.join(map(str, s))}]" for d, s in self.shapes)
+
+
+def _shapes(text: str):
+  return [(d, tuple(int(x) for x in dims.split(",") if x)) for d, dims in _SHAPE.findall(text)]
+
+
+def _nbytes(shapes) -> int:
+  total = 0
+  for dtype, dims in shapes:
+    n = 1
+    for d in dims:
+      n *= d
+    total += n * DTYPE_BYTES[dtype]
+  return total
+
+
+def collectives(hlo_text: str) -> list[Collective]:
+  """Every collective of the program, with how many times it runs per call of the entry."""
+  comps: dict[str, list[str]] = {}
+  entry = None
+  current = None
+  for line in hlo_text.splitlines():
+    m = _COMPUTATION.match(line)
+    if m:
+      current = m.group(1)
+      comps[current] = []
+      if line.startswith("ENTRY"):
+        entry = current
+      continue
+    if current is not None:
+      if line.strip() == "}":
+        current = None
+      else:
+        comps[current].append(line)
+  if entry is None:
+    raise ValueError("no ENTRY computation in the HLO text (pass compiled.as_text())")
+
+  # Executions of each computation: a while body runs trip-count times per execution of its
+  # caller; everything else once. Collectives sit in the entry, loop bodies or called graphs.
+  runs: dict[str, int] = collections.defaultdict(int)
+
+  def visit(name: str, times: int, depth: int = 0):
+    if depth > 64 or name not in comps:
+      return
+    runs[name] += times
+    for line in comps[name]:
+      trip = _TRIP.search(line)
+      for role, listed, single in _CALLEE.findall(line):
+        names = listed or single
+        if role == "to_apply":   # reductions of all-reduce/reduce: scalar graphs, no collectives
+          continue
+        n = int(trip.group(1)) if (trip and role in ("body", "condition")) else 1
+        for callee in names.split(","):
+          visit(callee.strip().lstrip("%"), times * n, depth + 1)
+
+  visit(entry, 1)
+  out = []
+  for name, lines in comps.items():
+    if not runs.get(name):
+      continue
+    for line in lines:
+      m = _OP.match(line)
+      if not m or m.group(3) == "-done":
+        continue
+      shapes = _shapes(m.group(1))
+      if m.group(3) == "-start" and len(shapes) > 1:
+        shapes = shapes[len(shapes) // 2:]  # (operands..., results...): keep the results
+      out.append(Collective(m.group(2), shapes, _nbytes(shapes), runs[name], name))
+  return out
+
+
+def summary(colls: list[Collective], top: int = 5) -> dict:
+  """{kind: {"count", "bytes", "largest": [(bytes, shape), ...]}} with executions counted."""
+  out = {}
+  for kind in KINDS:
+    items = [c for c in colls if c.kind == kind]
+    if not items:
+      continue
+    largest = sorted(items, key=lambda c: -c.bytes)[:top]
+    out[kind] = {"count": sum(c.count for c in items),
+                 "bytes": sum(c.bytes * c.count for c in items),
+                 "largest": [(c.bytes, c.shape_str()) for c in largest]}
+  return out
+
+
+def total_bytes(colls: list[Collective]) -> int:
+  return sum(c.bytes * c.count for c in colls)
+
+
+def format_summary(s: dict) -> str:
+  lines = []
+  for kind, v in s.items():
+    lines.append(f"  {kind:18s} {v['count']:6d} ops  {v['bytes'] / 2**30:9.3f} GiB per device")
+    for b, shape in v["largest"]:
+      lines.append(f"      {b / 2**20:10.2f} MiB  {shape}")
+  return "\n".join(lines) if lines else "  (no collectives)"
+
+
+def to_json(s: dict) -> str:
+  return json.dumps({k: v["bytes"] for k, v in s.items()})

@@ -1,0 +1,224 @@
+"""The pieces train.py wires together: model, input, loss, the jitted train step, predictions for
+the evaluators, and the metrics writer. Each is built from the config alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib
+import json
+import pathlib
+from typing import Any, Callable
+
+from absl import logging
+
+
+def import_attr(spec: str):
+  """'package.module:attr' -> the attribute."""
+  module, attr = spec.split(":")
+  return getattr(importlib.import_module(module), attr)
+
+
+def build_model(config, activation_sharding=None):
+  """The flax module from config: `config.model_fn` ("module:fn", called with config.model) or
+  the named variant of ufm_jax.models.variants with `config.model` overrides.
+
+  `activation_sharding`: the hook the model applies at block boundaries (from
+  `ufm_jax.sharding.activation_constraint`), None on one device.
+  """
+  if config.get("model_fn"):
+    return import_attr(config.model_fn)(config.model)
+  from ufm_jax.models import ufm, variants
+  cfg = variants.get(config.model_name, **config.model.to_dict())
+  return ufm.model_from_config(cfg, activation_sharding=activation_sharding)
+
+
+def init_params(model, image_shape, rng):
+  """The model's own initializers (`model.init`) traced on one (H, W) pair: the one init path of
+  training from scratch (jit it, or eval_shape it for the abstract tree)."""
+  import jax.numpy as jnp
+  dummy = jnp.zeros((1, *image_shape, 3), jnp.uint8)
+  return model.init(rng, dummy, dummy)["params"]
+
+
+def build_input(config, process_batch: int, seed: int):
+  """(iterator of numpy batches, info) from config.input (grain pipeline of ufm_jax.data)."""
+  if config.input.get("data_fn"):
+    return import_attr(config.input.data_fn)(config.input, process_batch, seed)
+  from ufm_jax.data import pipeline
+  return pipeline.make_train_iterator(config.input, process_batch=process_batch, seed=seed)
+
+
+def build_loss(config):
+  """loss(model outputs, batch) -> (loss, aux dict of scalars)."""
+  from ufm_jax import losses, refine_training
+  kwargs = dict(config.get("loss_kwargs", {}))
+  if config.get("loss", "ufm") == "refine":
+
+    def refine_loss(out, batch):
+      loss, aux = refine_training.refinement_loss(
+          out["log_softmax"], out["flow_before_refinement"], batch["flow"],
+          batch["covisibility"], batch["flow_valid"], **kwargs)
+      epe = losses.end_point_error(out["flow"], batch["flow"])
+      mask = losses.flow_supervision_mask(batch)
+      aux = dict(aux, loss_refine=loss, epe=losses.masked_mean(epe, mask))
+      return loss, aux
+    return refine_loss
+  return functools.partial(losses.ufm_loss, **kwargs)
+
+
+def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None):
+  """train_step(state, batch) -> (state, metrics): one optimizer update.
+
+  Gradients are taken w.r.t. the trainable params only (frozen ones enter through stop_gradient,
+  so e.g. the refine stage runs no backward pass through the base model). `gather_params`
+  (sharding.gathered) is applied to the params the forward pass uses.
+  """
+  import jax
+  import jax.numpy as jnp
+  import optax
+  from ufm_jax import optim
+
+  def loss_and_aux(trainable, frozen, batch):
+    params = optim.merge_params(trainable, jax.lax.stop_gradient(frozen))
+    if gather_params is not None:
+      params = gather_params(params)
+    out = model.apply({"params": params}, batch["image0"], batch["image1"], **apply_kwargs)
+    return loss_fn(out, batch)
+
+  def train_step(state, batch):
+    trainable, frozen = optim.split_trainable(state.params, labels)
+    (loss, aux), g = jax.value_and_grad(loss_and_aux, has_aux=True)(trainable, frozen, batch)
+    grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
+    new_state, ok = optim.apply_gradients(state, grads, loss, tx)
+    metrics = dict(aux, loss=loss, grad_norm=optax.global_norm(g), update_ok=ok)
+    return new_state, metrics
+
+  return train_step
+
+
+def make_predict(model, apply_kwargs, gather_params=None):
+  """predict(params, batch) -> {"flow", "covisibility"} for evaluation batches.
+
+  Training batches are symmetrized ((a, b), (b, a) rows whose images are encoded once); evaluation
+  pairs are not, so `symmetrized` is dropped: with it every odd row would be predicted for the
+  reverse of the pair before it.
+  """
+  kwargs = {k: v for k, v in apply_kwargs.items() if k != "symmetrized"}
+
+  def predict(params, batch):
+    if gather_params is not None:
+      params = gather_params(params)
+    out = model.apply({"params": params}, batch["image0"], batch["image1"], **kwargs)
+    return {"flow": out["flow"], "covisibility": out["covisibility"]}
+
+  return predict
+
+
+@dataclasses.dataclass
+class TrainSetup:
+  """Everything train.py compiles, from the config: model, optimizer, shardings, jitted fns."""
+  model: Any
+  tx: Any
+  labels: Any
+  schedules: Any
+  init_fn: Callable            # rng -> params (the modules' own initializers)
+  abstract_params: Any
+  abstract_state: Any
+  param_sh: Any
+  state_sh: Any
+  batch_sh: Any
+  train_step: Callable         # jitted (state, batch) -> (state, metrics); state donated
+  predict: Callable            # jitted (params, batch) -> {"flow", "covisibility"}
+
+  def abstract_batch(self, batch_size: int, image_shape):
+    """ShapeDtypeStructs of a global training batch, sharded as the step expects (AOT)."""
+    import jax
+    import jax.numpy as jnp
+    h, w = image_shape
+    shapes = {"image0": ((batch_size, h, w, 3), jnp.uint8),
+              "image1": ((batch_size, h, w, 3), jnp.uint8),
+              "flow": ((batch_size, h, w, 2), jnp.float32),
+              "covisibility": ((batch_size, h, w), jnp.bool_),
+              "flow_valid": ((batch_size, h, w), jnp.bool_),
+              "covis_valid": ((batch_size, h, w), jnp.bool_)}
+    return {k: jax.ShapeDtypeStruct(s, d, sharding=self.batch_sh) for k, (s, d) in shapes.items()}
+
+  def sharded_abstract_state(self):
+    import jax
+    return jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
+                        self.abstract_state, self.state_sh)
+
+
+def setup(config, mesh, image_shape, total_steps: int) -> TrainSetup:
+  """Model (activations constrained to the batch sharding of `mesh`), optimizer, parameter and
+  state shardings (config.sharding_rules, config.sharding_min_size), the jitted train step and
+  eval predict. Nothing is allocated: params exist only as shapes until `init_fn` runs."""
+  import jax
+  from ufm_jax import optim, sharding
+  model = build_model(config, sharding.activation_constraint(mesh))
+  apply_kwargs = dict(config.get("apply_kwargs", {}))
+  init_fn = functools.partial(init_params, model, tuple(image_shape))
+  abstract_params = jax.eval_shape(init_fn, jax.random.PRNGKey(0))
+  trainable_fn = import_attr(config.trainable_filter) if config.get("trainable_filter") else None
+  tx, labels, schedules = optim.make_optimizer(config.optim, abstract_params, total_steps,
+                                               trainable_fn=trainable_fn)
+  min_size = int(config.get("sharding_min_size", 0) or 0)
+  param_sh = sharding.tree_shardings(abstract_params, mesh, config.sharding_rules, min_size)
+  abstract_state = jax.eval_shape(lambda p: optim.TrainState.create(p, tx), abstract_params)
+  state_sh = sharding.tree_shardings(abstract_state, mesh, config.sharding_rules, min_size)
+  batch_sh = sharding.batch_sharding(mesh)
+  repl = sharding.replicated(mesh)
+  step = make_train_step(model, build_loss(config), tx, labels, apply_kwargs,
+                         sharding.gathered(mesh))
+  train_step = jax.jit(step, in_shardings=(state_sh, batch_sh), out_shardings=(state_sh, repl),
+                       donate_argnums=(0,))
+  predict = jax.jit(make_predict(model, apply_kwargs, sharding.gathered(mesh)),
+                    in_shardings=(param_sh, batch_sh), out_shardings=repl)
+  return TrainSetup(model, tx, labels, schedules, init_fn, abstract_params, abstract_state,
+                    param_sh, state_sh, batch_sh, train_step, predict)
+
+
+class Writer:
+  """metrics.jsonl / eval.jsonl (process 0) + TensorBoard events (scalars and PNG images)."""
+
+  def __init__(self, workdir: pathlib.Path, active: bool):
+    self.active = active
+    self.workdir = workdir
+    self.tb = None
+    if active:
+      try:
+        from tensorboardX import SummaryWriter
+        self.tb = SummaryWriter(str(workdir / "tb"))
+      except ImportError:  # pragma: no cover
+        logging.warning("tensorboardX missing: no TensorBoard events")
+
+  def _append(self, name, record):
+    if self.active:
+      with open(self.workdir / name, "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+  def scalars(self, name, step, record, prefix):
+    self._append(name, record)
+    if self.tb is not None:
+      for k, v in record.items():
+        if isinstance(v, (int, float)) and k != "step":
+          self.tb.add_scalar(f"{prefix}/{k}", v, step)
+      self.tb.flush()
+
+  def image(self, tag, step, img):
+    """An RGB uint8 [H, W, 3] picture. tensorboardX's add_image PNG-encodes through PIL, which
+    is not a dependency: encode with OpenCV and hand the bytes to the Summary proto."""
+    if self.tb is None:
+      return
+    from tensorboardX.proto.summary_pb2 import Summary
+    from ufm_jax.data.io import encode_png
+    png = encode_png(img)
+    summary = Summary(value=[Summary.Value(tag=tag, image=Summary.Image(
+        height=img.shape[0], width=img.shape[1], colorspace=3, encoded_image_string=png))])
+    self.tb.file_writer.add_summary(summary, step)
+
+  def close(self):
+    if self.tb is not None:
+      self.tb.close()
