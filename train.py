@@ -449,7 +449,7 @@ def main(argv):
         print(keeper.message, flush=True)
         break
       run_evals(step, force=step == total_steps)
-  manager.wait_until_finished()
+    keeper.wait()
   manager.close()
   writer.close()
 

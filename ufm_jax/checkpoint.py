@@ -233,10 +233,12 @@ class CheckpointWriteError(RuntimeError):
 
 
 def write_error(manager) -> BaseException | None:
-  """The error of a failed background checkpoint write, without waiting for one in flight."""
+  """The error of a failed background checkpoint write once the write is over (None while one is
+  in flight or when it succeeded); never waits."""
+  if manager.is_saving_in_progress():
+    return None
   try:
-    if not manager.is_saving_in_progress():
-      manager.wait_until_finished()  # the write is over: returns at once, raising its error
+    manager.wait_until_finished()  # the write is over: returns at once, raising its error
     manager.check_for_errors()
   except Exception as e:  # noqa: BLE001 - whatever the writer raised
     return e
@@ -271,6 +273,7 @@ class Keeper:
     self.message = ""
     self._unread = None
     self._deferred = False
+    self._writing = False
 
   def _count(self, step: int, update_ok) -> None:
     if bool(jax.device_get(update_ok)):
@@ -297,13 +300,13 @@ class Keeper:
       self._count(*self._unread)
       self._unread = None
     regular = last or self._deferred or self.manager.should_save(step)
-    error = write_error(self.manager)
+    error = None
+    if self._writing:
+      error = write_error(self.manager)
+      self._writing = self.manager.is_saving_in_progress()
     stop, failed = self.guard.poll(step, error is not None)
     if failed:
-      how = f": {type(error).__name__}: {error}" if error is not None else " on another process"
-      raise CheckpointWriteError(
-          f"writing checkpoint step {self.saved_step} to {self.manager.directory} failed{how}; "
-          f"the newest complete checkpoint is {_step_or_none(self.manager.latest_step())}")
+      self._write_failed(error)
     if not (regular or stop):
       self._unread = (step, update_ok)
       return False
@@ -316,14 +319,27 @@ class Keeper:
     elif self.saved_step != step:
       self._deferred = False
       save(self.manager, step, state, data_iter, force=True)
-      self.saved_step = step
+      self.saved_step, self._writing = step, True
     if stop:
-      self.manager.wait_until_finished()
+      self.wait()
       self.message = (
           f"preempted: saved step {step}, exiting" if self.saved_step == step else
           f"preempted at step {step} during skipped updates: not saved; newest checkpoint: "
           f"{_step_or_none(self.manager.latest_step())}, exiting")
     return stop
+
+  def _write_failed(self, error):
+    how = f": {type(error).__name__}: {error}" if error is not None else " on another process"
+    raise CheckpointWriteError(
+        f"writing checkpoint step {self.saved_step} to {self.manager.directory} failed{how}; "
+        f"the newest complete checkpoint is {_step_or_none(self.manager.latest_step())}")
+
+  def wait(self):
+    """Waits for the checkpoint write in flight; CheckpointWriteError when it failed."""
+    try:
+      self.manager.wait_until_finished()
+    except Exception as e:  # noqa: BLE001 - whatever the writer raised
+      self._write_failed(e)
 
 
 # ---------------------------------------------------------------------------------------------
