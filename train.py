@@ -119,7 +119,8 @@ def main(argv):
   t_last, step_last = time.time(), start_step
   t_start, first_step = None, start_step
   step = start_step
-  with ckpt_lib.PreemptionGuard() as guard:
+  with ckpt_lib.PreemptionGuard(mesh) as guard:
+    keeper = ckpt_lib.Keeper(manager, guard, config.get("max_nonfinite_steps", 100), start_step)
     while step < total_steps:
       local = next(train_iter)
       batch = sharding.make_global_batch(local, mesh)
@@ -153,14 +154,11 @@ def main(argv):
           logging.warning("step %d: non-finite loss or gradient, update skipped (total %d)",
                           step, rec["skipped"])
         t_last, step_last = now, step
-      ckpt_lib.save(manager, step, state, train_iter, force=step == total_steps)
-      run_evals(step, force=step == total_steps)
-      if guard.should_stop(step):
-        ckpt_lib.save(manager, step, state, train_iter, force=True)
-        manager.wait_until_finished()
-        print(f"preempted: saved step {step}, exiting", flush=True)
+      if keeper.end_of_step(step, state, train_iter, metrics["update_ok"], step == total_steps):
+        print(keeper.message, flush=True)
         break
-  manager.wait_until_finished()
+      run_evals(step, force=step == total_steps)
+    keeper.wait()
   manager.close()
   writer.close()
 

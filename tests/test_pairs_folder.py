@@ -1,6 +1,7 @@
 """pairs_folder: the project's pair-folder format, written by the test and by the synthetic CLI."""
 
 import json
+import logging
 import os
 
 import cv2
@@ -99,3 +100,38 @@ def test_synthetic_cli_round_trip(tmp_path):
     np.testing.assert_array_equal(back["flow"], ref_back["flow"])
     np.testing.assert_array_equal(back["covis_valid"], ref_back["covis_valid"])
     np.testing.assert_allclose(back["meta"]["K0"], ref_back["meta"]["K0"])
+
+
+def test_no_flow_where_flow_valid_says_valid_is_a_corrupt_sample(tmp_path):
+  make_pair(tmp_path / "a")
+  make_pair(tmp_path / "b", masks=False)
+  src = data.get_source("pairs_folder", str(tmp_path))
+  for marker in (np.nan, np.inf, 1e10):
+    flow = np.full((6, 8, 2), 2.0, np.float32)
+    flow[1, 2] = marker
+    for pair in ("a", "b"):
+      write_flo(tmp_path / pair / "flow.flo", flow)
+    with pytest.raises(ValueError, match=r"a/flow\.flo: no flow .* at 1 pixels that "
+                                         r"flow_valid\.png marks valid"):
+      src[0]
+    t = src[1]  # without flow_valid.png the marker just means "no flow here"
+    assert not t["flow_valid"][1, 2] and t["flow_valid"].sum() == 47
+    assert np.isfinite(t["flow"]).all() and not t["covisibility"][1, 2]
+
+
+def test_pipeline_skips_and_counts_an_all_nan_flow_file(tmp_path, caplog):
+  from ufm_jax.data import pipeline
+  out = tmp_path / "syn"
+  assert S.main(["--out", str(out), "--pairs", "4", "--seed", "1", "--size", "28x28",
+                 "--pair-type", "shift", "--no-reverse"]) == 0
+  bad = out / "000002" / "flow.flo"
+  write_flo(bad, np.full((28, 28, 2), np.nan, np.float32))
+  cfg = {"datasets": {"pairs_folder": {"quota": 4, "root": str(out)}}, "batch_size": 4,
+         "symmetrize": False, "longest_side": 28, "aspect_ratios": (1.0,), "read_threads": 1,
+         "augment": {"color_prob": 0.0, "zoom": (1.0, 1.0), "view_scale_jitter": 0.0},
+         "max_skip_fraction": 0.5, "skip_check_min_samples": 1}
+  it = iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1))
+  with caplog.at_level(logging.WARNING, logger="ufm_jax.data.pipeline"):
+    next(it)
+  assert it.skipped >= 1 and it.attempted == 4 + it.skipped
+  assert f"{bad}: no flow" in caplog.text

@@ -474,3 +474,39 @@ def test_pipeline_interface(tmp_path):
     if modes[name] == "both":
       for s in src.both(0):
         pipeline.check_sample(s, name)
+
+
+# -- Non-finite ground truth ----------------------------------------------------------------------
+# NaN/Inf flow where a format has no such marker is a damaged file: the reader raises (naming it)
+# and the pipeline skips and counts the sample. Formats' own markers stay "no ground truth" (the
+# 1e10 .flo marker here; Spring's NaN in test_spring_half_resolution_gt_and_matchmap).
+
+def test_nonfinite_flow_is_a_corrupt_sample_where_the_format_has_no_such_marker(tmp_path):
+  _chairs_tree(tmp_path / "chairs")
+  flow = io.read_flo(tmp_path / "chairs/data/00002_flow.flo")
+  flow[2, 3] = np.nan
+  io.write_flo(tmp_path / "chairs/data/00002_flow.flo", flow)
+  chairs = data.get_source("flyingchairs", tmp_path / "chairs", split="all")
+  assert not chairs[0]["flow_valid"][0, 0]  # the 1e10 unknown marker is still just invalid
+  with pytest.raises(ValueError, match=r"00002_flow\.flo: non-finite flow .* at 1 of 48 pixels"):
+    chairs[1]
+
+  _sintel_tree(tmp_path / "sintel")
+  flow = io.read_flo(tmp_path / "sintel/training/flow/alley_1/frame_0002.flo")
+  flow[1, 1] = [np.inf, 0.0]
+  io.write_flo(tmp_path / "sintel/training/flow/alley_1/frame_0002.flo", flow)
+  sintel = data.get_source("sintel_clean", tmp_path / "sintel")
+  assert not sintel[0]["flow_valid"][0, 0] and sintel[0]["flow_valid"].sum() == 23
+  with pytest.raises(ValueError, match=r"flow/alley_1/frame_0002\.flo: non-finite flow"):
+    sintel[1]
+
+  _sceneflow_tree(tmp_path / "things", "TRAIN/A/0000", (6, 7, 8))
+  path = tmp_path / "things/optical_flow/TRAIN/A/0000/into_future/left/OpticalFlowIntoFuture_0007_L.pfm"
+  fut = io.read_pfm(path)
+  fut[:] = np.nan
+  io.write_pfm(path, fut)
+  things = data.get_source("flyingthings", tmp_path / "things")
+  _check_sample(things[0], H, W)
+  with pytest.raises(ValueError, match=r"OpticalFlowIntoFuture_0007_L\.pfm: non-finite flow"):
+    things[1]
+

@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import pathlib
 import re
 import signal
+import time
 from typing import Any
 
 import jax
@@ -74,15 +76,15 @@ def save(manager, step: int, state, data_iter=None, force: bool = False) -> bool
   return manager.save(step, args=ocp.args.Composite(**items), force=force)
 
 
-def restore_latest(manager, abstract_state, data_iter=None):
-  """(state, step) from the latest checkpoint, or (None, None) when there is none.
+def _all_processes(ok: bool) -> bool:
+  """True when `ok` holds on every process; every process gets the same answer."""
+  if jax.process_count() == 1:
+    return bool(ok)
+  from jax.experimental import multihost_utils
+  return bool(np.min(multihost_utils.process_allgather(np.int32(bool(ok)))))
 
-  `abstract_state`: a pytree of jax.ShapeDtypeStruct with `.sharding` set, so arrays come back
-  sharded as the train step expects. The data iterator is restored in place.
-  """
-  step = manager.latest_step()
-  if step is None:
-    return None, None
+
+def _restore_step(manager, step: int, abstract_state, data_iter):
   items = {"state": ocp.args.StandardRestore(abstract_state)}
   if data_iter is not None:
     if _grain_iterator(data_iter):
@@ -93,20 +95,88 @@ def restore_latest(manager, abstract_state, data_iter=None):
   restored = manager.restore(step, args=ocp.args.Composite(**items))
   if data_iter is not None and not _grain_iterator(data_iter):
     data_iter.set_state(restored["data"])
-  logging.info("resumed from %s at step %d", manager.directory, step)
-  return restored["state"], step
+  return restored["state"]
+
+
+def quarantine_step(manager, step: int, reason: str) -> pathlib.Path:
+  """Moves checkpoint `step` aside to <step>.corrupt-<UTC time>, so no later restart retries it.
+
+  Kept, not deleted: the operator may want to look at it. Process 0 moves it (the checkpoint
+  folder is shared, as orbax assumes); every process then re-reads the list of steps.
+  """
+  directory = pathlib.Path(manager.directory)
+  target = directory / f"{step}.corrupt-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}"
+  if jax.process_index() == 0:
+    os.replace(directory / str(step), target)
+    (target / "CORRUPT.txt").write_text(reason + "\n")
+    logging.warning("moved the unrestorable checkpoint step %d to %s", step, target)
+  if jax.process_count() > 1:
+    from jax.experimental import multihost_utils
+    multihost_utils.sync_global_devices(f"ufm_jax quarantine {step}")
+  manager.reload()
+  return target
+
+
+def restore_latest(manager, abstract_state, data_iter=None):
+  """(state, step) from the newest checkpoint that restores completely, or (None, None) when
+  there is none.
+
+  `abstract_state`: a pytree of jax.ShapeDtypeStruct with `.sharding` set, so arrays come back
+  sharded as the train step expects. The data iterator is restored in place.
+
+  A step whose train state or data-iterator state does not restore (a truncated or missing file,
+  on any process) is logged with the error and skipped for the next older one; once an older step
+  restores, the skipped ones are moved aside (`quarantine_step`) so a restart does not trip over
+  them again. When no step restores, nothing is moved (the cause is then rather the model or
+  mesh than the files) and the error names every step's failure.
+  """
+  failed = []
+  for step in sorted(manager.all_steps(), reverse=True):
+    error = None
+    try:
+      state = _restore_step(manager, step, abstract_state, data_iter)
+    except Exception as e:  # noqa: BLE001 - whatever a damaged file raises
+      state, error = None, f"{type(e).__name__}: {e}"
+    if not _all_processes(error is None):
+      error = error or "restored here but not on another process"
+      if len(error) > 1000:
+        error = error[:1000] + " ..."
+      logging.warning("checkpoint step %d in %s does not restore, trying the one before: %s",
+                      step, manager.directory, error)
+      failed.append((step, error))
+      continue
+    for bad, why in failed:
+      quarantine_step(manager, bad, f"step {bad} did not restore (step {step} did): {why}")
+    logging.info("resumed from %s at step %d", manager.directory, step)
+    return state, step
+  if failed:
+    raise RuntimeError(f"no checkpoint under {manager.directory} restores (nothing was moved; "
+                       "a changed model, optimizer or mesh is a likely cause):\n  " +
+                       "\n  ".join(f"step {s}: {e}" for s, e in failed))
+  return None, None
 
 
 # ---------------------------------------------------------------------------------------------
-# Preemption
+# Preemption and the other ways a run stops
 
 
 class PreemptionGuard:
-  """Turns SIGTERM into a flag the loop polls, so it can save and exit cleanly."""
+  """Turns SIGTERM into a flag the loop polls, so it can save and exit cleanly.
 
-  def __init__(self):
+  With several processes the signal may reach only one of them (one preempted host), yet all
+  must stop after the same step, or the others wait forever in the next collective. `poll` ORs
+  each flag over all processes with a tiny all-reduce over the mesh, read one step late (while
+  the next step runs, so the host never waits for the device); JAX's own preemption sync point
+  (when its preemption service is on) counts as SIGTERM too.
+  """
+
+  def __init__(self, mesh=None):
     self.requested = False
     self._previous = None
+    self._mesh = mesh
+    self._reduce = None
+    self._pending = None
+    self._sync_point = True
 
   def __enter__(self):
     def handler(signum, frame):
@@ -119,16 +189,157 @@ class PreemptionGuard:
   def __exit__(self, *exc):
     signal.signal(signal.SIGTERM, self._previous or signal.SIG_DFL)
 
-  def should_stop(self, step: int) -> bool:
-    if jax.process_count() > 1:
-      # All hosts must agree on the step; JAX's preemption service (enabled by
-      # jax.distributed.initialize) says when one of them was notified.
+  def _any_process(self, flags: np.ndarray):
+    """Issues max over processes of `flags`; returns the result of the previous call (or None)."""
+    from jax.sharding import NamedSharding, PartitionSpec
+    if self._reduce is None:
+      if self._mesh is None:
+        self._mesh = jax.sharding.Mesh(np.array(jax.devices()), ("all",))
+      axes = tuple(self._mesh.axis_names)
+      self._sharding = NamedSharding(self._mesh, PartitionSpec(axes, None))
+      self._reduce = jax.jit(lambda x: jnp.max(x, axis=0),
+                             out_shardings=NamedSharding(self._mesh, PartitionSpec()))
+    rows = np.broadcast_to(flags[None], (self._mesh.devices.size, flags.size))
+    x = jax.make_array_from_callback(rows.shape, self._sharding, lambda idx: rows[idx])
+    previous, self._pending = self._pending, self._reduce(x)
+    return None if previous is None else np.asarray(previous)
+
+  def poll(self, step: int, *flags: bool) -> tuple[bool, ...]:
+    """(stop, *flags), each OR-ed over all processes; the same answer on every process when all
+    call it once per step."""
+    local = np.array([self.requested, *flags], np.int32)
+    if jax.process_count() == 1:
+      return tuple(bool(v) for v in local)
+    agreed = self._any_process(local)
+    out = [False] * local.size if agreed is None else [bool(v) for v in agreed]
+    if self._sync_point:
       from jax.experimental import multihost_utils
       try:
-        return self.requested or multihost_utils.reached_preemption_sync_point(step)
+        out[0] = out[0] or bool(multihost_utils.reached_preemption_sync_point(step))
       except Exception:  # noqa: BLE001 - preemption service unavailable on this platform
-        return self.requested
-    return self.requested
+        self._sync_point = False
+    return tuple(out)
+
+  def should_stop(self, step: int) -> bool:
+    return self.poll(step)[0]
+
+
+class NonFiniteSteps(RuntimeError):
+  """Too many consecutive updates were skipped for a non-finite loss or gradient."""
+
+
+class CheckpointWriteError(RuntimeError):
+  """A background checkpoint write failed."""
+
+
+def write_error(manager) -> BaseException | None:
+  """The error of a failed background checkpoint write once the write is over (None while one is
+  in flight or when it succeeded); never waits."""
+  if manager.is_saving_in_progress():
+    return None
+  try:
+    manager.wait_until_finished()  # the write is over: returns at once, raising its error
+    manager.check_for_errors()
+  except Exception as e:  # noqa: BLE001 - whatever the writer raised
+    return e
+  return None
+
+
+def _step_or_none(step) -> str:
+  return "none" if step is None else f"step {step}"
+
+
+class Keeper:
+  """Saves and stops train.py's loop: `end_of_step` once per step, on every process.
+
+  - Saves at the manager's interval, at the last step, and when a process got SIGTERM (once per
+    step when these coincide), then returns True for the loop to exit 0 (`message` says what).
+  - Never saves a step inside a run of skipped (non-finite) updates: a regular save waits for the
+    next finite update, a preemption exits without a new checkpoint. After `max_nonfinite_steps`
+    consecutive skipped updates it raises NonFiniteSteps naming the count and the last finite step.
+  - Polls the background checkpoint write every step and raises CheckpointWriteError when it
+    failed (on any process); the failed step never becomes a checkpoint, the newest complete one
+    stays.
+  `update_ok` is read one step late unless the step saves, so the host stays a step ahead.
+  """
+
+  def __init__(self, manager, guard: PreemptionGuard, max_nonfinite_steps: int | None,
+               start_step: int):
+    self.manager, self.guard = manager, guard
+    self.max_nonfinite = int(max_nonfinite_steps or 0)
+    self.last_finite = start_step  # checkpoints are never written inside a non-finite run
+    self.streak = 0
+    self.saved_step = None
+    self.message = ""
+    self._unread = None
+    self._deferred = False
+    self._writing = False
+
+  def _count(self, step: int, update_ok) -> None:
+    if bool(jax.device_get(update_ok)):
+      if self.streak:
+        logging.warning("step %d: finite again after %d skipped updates", step, self.streak)
+      self.last_finite, self.streak = step, 0
+    else:
+      if not self.streak:
+        logging.warning("step %d: non-finite loss or gradient, update skipped", step)
+      self.streak += 1
+    if self.max_nonfinite and self.streak >= self.max_nonfinite:
+      newest = self.manager.latest_step()
+      try:
+        self.manager.wait_until_finished()  # a save in flight is of a finite step: let it finish
+      except Exception:  # noqa: BLE001 - this error is the one to report
+        pass
+      raise NonFiniteSteps(
+          f"{self.streak} consecutive updates skipped for a non-finite loss or gradient (steps "
+          f"{step - self.streak + 1}-{step}, max_nonfinite_steps={self.max_nonfinite}); last "
+          f"finite update: step {self.last_finite}; newest checkpoint: {_step_or_none(newest)}")
+
+  def end_of_step(self, step: int, state, data_iter, update_ok, last: bool) -> bool:
+    if self._unread is not None:
+      self._count(*self._unread)
+      self._unread = None
+    regular = last or self._deferred or self.manager.should_save(step)
+    error = None
+    if self._writing:
+      error = write_error(self.manager)
+      self._writing = self.manager.is_saving_in_progress()
+    stop, failed = self.guard.poll(step, error is not None)
+    if failed:
+      self._write_failed(error)
+    if not (regular or stop):
+      self._unread = (step, update_ok)
+      return False
+    self._count(step, update_ok)
+    if self.streak:
+      self._deferred = regular and not stop
+      logging.warning("step %d: not saved, %d updates in a row were skipped (last finite update: "
+                      "step %d)%s", step, self.streak, self.last_finite,
+                      "; saving at the next finite one" if self._deferred else "")
+    elif self.saved_step != step:
+      self._deferred = False
+      save(self.manager, step, state, data_iter, force=True)
+      self.saved_step, self._writing = step, True
+    if stop:
+      self.wait()
+      self.message = (
+          f"preempted: saved step {step}, exiting" if self.saved_step == step else
+          f"preempted at step {step} during skipped updates: not saved; newest checkpoint: "
+          f"{_step_or_none(self.manager.latest_step())}, exiting")
+    return stop
+
+  def _write_failed(self, error):
+    how = f": {type(error).__name__}: {error}" if error is not None else " on another process"
+    raise CheckpointWriteError(
+        f"writing checkpoint step {self.saved_step} to {self.manager.directory} failed{how}; "
+        f"the newest complete checkpoint is {_step_or_none(self.manager.latest_step())}")
+
+  def wait(self):
+    """Waits for the checkpoint write in flight; CheckpointWriteError when it failed."""
+    try:
+      self.manager.wait_until_finished()
+    except Exception as e:  # noqa: BLE001 - whatever the writer raised
+      self._write_failed(e)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -60,6 +60,9 @@ def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
   c.keep_ckpt = 3
   c.async_checkpoint = True
   c.log_training_steps = 50
+  # Consecutive updates skipped for a non-finite loss or gradient before the run stops with exit
+  # status 1 (a diverged run; restarting it would only replay the divergence). 0: never stop.
+  c.max_nonfinite_steps = 100
   c.loss = "ufm"
   c.loss_kwargs = ml_collections.ConfigDict(
       {"covis_weight": 10.0, "alpha": 0.5, "c": 0.24, "flow_pixels": "covisible"})

@@ -44,6 +44,28 @@ def _atomic(path, suffix: str = ""):
 # Middlebury .flo (Sintel, FlyingChairs)
 
 
+FLO_UNKNOWN = 1e9  # Middlebury marks unknown flow with |u| or |v| > 1e9 (writers use 1e10)
+
+
+def require_finite(values, path, valid=None, what: str = "flow") -> None:
+  """Raises ValueError naming `path` when `values` ([H, W] or [H, W, C]) is NaN or infinite at a
+  pixel of `valid` (default: every pixel).
+
+  For formats whose "no ground truth" marker is something else (a mask file, 1e9 in .flo, 0
+  depth), a non-finite value where the labels count is a damaged or mis-exported file: the
+  training pipeline skips and counts such a sample instead of silently training on less.
+  """
+  bad = ~np.isfinite(np.asarray(values))
+  if bad.ndim == 3:
+    bad = bad.any(-1)
+  if valid is not None:
+    bad &= np.asarray(valid, bool)
+  n = int(bad.sum())
+  if n:
+    where = "" if valid is None else " marked valid"
+    raise ValueError(f"{path}: non-finite {what} (NaN/Inf) at {n} of {bad.size} pixels{where}")
+
+
 def read_flo(path: str | os.PathLike) -> np.ndarray:
   """Middlebury .flo -> [H, W, 2] float32 (u, v). Unknown-flow markers (>1e9) are kept as is."""
   _require_file(path)

@@ -190,7 +190,10 @@ def check_sample(sample: Mapping[str, Any], where: str) -> dict:
     out[k] = m.astype(bool, copy=False)
   bad = int((~np.isfinite(out["flow"]).all(-1) & out["flow_valid"]).sum())
   if bad:
-    raise ValueError(f"{where}: non-finite flow at {bad} pixels marked flow_valid")
+    meta = sample.get("meta") or {}
+    path = meta.get("path") or meta.get("gt_relpath")
+    raise ValueError(f"{where}{f' ({path})' if path else ''}: non-finite flow at {bad} pixels "
+                     "marked flow_valid")
   return out
 
 

@@ -70,6 +70,7 @@ def tiny_config(**overrides):
   c.keep_ckpt = 2
   c.log_training_steps = 1
   c.async_checkpoint = True
+  c.max_nonfinite_steps = 100
   c.mesh = "data:-1,fsdp:1"
   c.sharding_rules = [(".*", "fsdp")]
   c.model_fn = "ufm_jax.testing.train_support:tiny_model"

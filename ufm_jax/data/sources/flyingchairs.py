@@ -6,7 +6,8 @@ Layout under `root` (the unpacked `FlyingChairs_release/`, see data/flyingchairs
 
 Labels (supplementary "Computing Covisibility Mask"): FlyingChairs has neither occlusion nor scene
 flow, so covisibility is the FoV mask (target location inside image1) used as a proxy for flow
-supervision, and the covisibility supervision mask is all zero. No backward flow.
+supervision, and the covisibility supervision mask is all zero. No backward flow. flow_valid =
+|u|, |v| < 1000 (RAFT); the flow is dense, so NaN/Inf in it makes the sample corrupt (ValueError).
 """
 
 from __future__ import annotations
@@ -73,8 +74,8 @@ class FlyingChairs:
     if flow.shape[:2] != image0.shape[:2] or image1.shape != image0.shape:
       raise ValueError(f"{stem}_flow.flo: flow {flow.shape[:2]} and images {image0.shape[:2]}, "
                        f"{image1.shape[:2]} differ in size")
-    with np.errstate(invalid="ignore"):
-      flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)  # NaN fails
+    io.require_finite(flow, stem + "_flow.flo")  # FlyingChairs flow is dense
+    flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)
     flow = sceneflow.fill_invalid(flow, flow_valid)
     covisibility = sceneflow.fov_mask(flow) & flow_valid
     return dict(image0=image0, image1=image1, flow=flow, covisibility=covisibility,

@@ -13,8 +13,8 @@ frame i; `reverse(k)` gives (I[i+1], I[i]) with the into_past flow of frame i+1 
 real ground truth). With `directions="both"` the source enumerates them interleaved (2k forward,
 2k+1 its reverse) so batches can be symmetrised by adjacent indices.
 
-Labels: flow_valid = finite and |u|, |v| < 1000 (RAFT). Covisibility follows the supplementary
-scene-flow rule (`ufm_jax.geometry.sceneflow`): flow + disparity change, depth = 1050 / disparity,
+Labels: flow_valid = |u|, |v| < 1000 (RAFT); NaN/Inf flow (no marker in this dense format) makes the
+sample corrupt (ValueError). Covisibility follows the supplementary scene-flow rule (`ufm_jax.geometry.sceneflow`): flow + disparity change, depth = 1050 / disparity,
 thresholds of Table S1 (tau_d = 0.01, tau_r = 0.001). meta holds K (shared by both frames) and the
 depth maps; camera poses (camera_data.txt) are not read, their convention is not documented here.
 """
@@ -130,8 +130,8 @@ class SceneFlowSource(BidirectionalPairs):
       if arr.shape[:2] != (h, w) or arr.ndim != ndim:
         raise ValueError(f"{path}: shape {arr.shape} does not match the {h}x{w} images of "
                          f"{scene}/{cam} (expected {'(H, W, 2)' if ndim == 3 else '(H, W)'})")
-    with np.errstate(invalid="ignore"):
-      flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)  # NaN fails
+    io.require_finite(flow, flow_path)  # dense PFM: NaN/Inf is no marker but a damaged file
+    flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)
     K = sceneflow.sceneflow_intrinsics(h, w)
     geo = sceneflow.sceneflow_covisibility(sceneflow.fill_invalid(flow, flow_valid, np.nan), disp0,
                                            change, disp1, *self.tau, K=K)

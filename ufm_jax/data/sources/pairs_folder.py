@@ -8,7 +8,9 @@ Layout (see data/pairs_folder/README.md):
 Pairs are the sub-folders holding an image0.png, in sorted order (names starting with "." are
 skipped: folders still being written). When `<root>/<split>` exists it
 is used, otherwise `root` itself (a flat folder of pairs serves every split).
-Missing masks: flow_valid = finite flow; covisibility = the FoV mask of the flow with
+Flow with no value (NaN/Inf, or |u|, |v| > 1e9: the Middlebury unknown marker) is invalid; where
+flow_valid.png marks it valid the sample is corrupt (ValueError). Missing masks: flow_valid = flow
+with a value; covisibility = the FoV mask of the flow with
 covis_valid all False (unknown covisibility never trains the covisibility head, like
 FlyingChairs); covis_valid when only covisibility.png is given = all True.
 """
@@ -21,7 +23,7 @@ import os
 import numpy as np
 
 from ufm_jax.data import decode
-from ufm_jax.data.io import read_flo
+from ufm_jax.data.io import FLO_UNKNOWN, read_flo
 from ufm_jax.data.registry import register
 from ufm_jax.geometry.masks import fov_mask_from_flow
 
@@ -62,19 +64,25 @@ def read_labels(folder: str, shape, target_shape) -> dict:
   flow = read_flo(path)
   if flow.shape[:2] != tuple(shape):
     raise ValueError(f"{path}: flow shape {flow.shape[:2]} differs from image0 shape {tuple(shape)}")
-  finite = np.isfinite(flow).all(-1)
-  flow = np.where(finite[..., None], flow, 0.0).astype(np.float32)
   opt = {}
   for key in ("covisibility", "flow_valid", "covis_valid"):
     p = os.path.join(folder, f"{key}.png")
     if os.path.isfile(p):
       opt[key] = _read_mask(p, shape)
-  flow_valid = opt.get("flow_valid", finite) & finite
+  with np.errstate(invalid="ignore"):
+    known = (np.abs(flow) <= FLO_UNKNOWN).all(-1)  # False for NaN/Inf and the 1e10 marker
+  if "flow_valid" in opt:
+    bad = int((opt["flow_valid"] & ~known).sum())
+    if bad:  # the labels contradict each other: a damaged or mis-exported file
+      raise ValueError(f"{path}: no flow (NaN/Inf or |u|, |v| > 1e9) at {bad} pixels that "
+                       f"flow_valid.png marks valid")
+  flow = np.where(known[..., None], flow, 0.0).astype(np.float32)
+  flow_valid = opt.get("flow_valid", known)
   if "covisibility" in opt:
     covis = opt["covisibility"]
     covis_valid = opt.get("covis_valid", np.ones(shape, bool))
   else:
-    covis = fov_mask_from_flow(flow, target_shape) & finite
+    covis = fov_mask_from_flow(flow, target_shape) & known
     covis_valid = opt.get("covis_valid", np.zeros(shape, bool))
   return dict(flow=flow, covisibility=covis, flow_valid=flow_valid, covis_valid=covis_valid)
 

@@ -7,7 +7,8 @@ Layout under `root` (the unpacked `MPI-Sintel-complete/`, see data/sintel/README
   training/invalid/<scene>/frame_{%04d}.png            (set = GT invalid)
   test/{clean,final}/<scene>/frame_{%04d}.png          (no GT)
 
-Labels: flow_valid = finite GT (the standard "Sintel train" EPE averages over all pixels; the
+Labels: flow_valid = known GT, |u|, |v| <= 1e9 (the .flo unknown marker; NaN/Inf is none, so it makes
+the sample corrupt, a ValueError; the standard "Sintel train" EPE averages over all pixels; the
 `invalid` map is kept in meta, not applied); covisibility = not occluded and landing inside
 image1; covis_valid = not invalid. meta adds the boolean maps `occlusion`, `invalid` and
 `matched` (visible in both frames: not occluded, x + flow inside [0, W-1] x [0, H-1] and
@@ -29,7 +30,7 @@ from ufm_jax.geometry import sceneflow
 
 LAYOUT = ("training/<pass>/<scene>/frame_%04d.png, training/flow/, training/occlusions/, "
           "training/invalid/ (test/<pass>/ for split='test'); see data/sintel/README.md")
-UNKNOWN_FLOW = 1e9  # Middlebury marks unknown flow with |u| or |v| > 1e9
+UNKNOWN_FLOW = io.FLO_UNKNOWN
 
 
 class Sintel:
@@ -96,8 +97,8 @@ class Sintel:
                         ("invalid", invalid.shape)):
       if shape != (h, w):
         raise ValueError(f"{flow_path}: {what} map is {shape}, images of {scene} are {(h, w)}")
-    with np.errstate(invalid="ignore"):
-      flow_valid = (np.abs(flow[..., 0]) <= UNKNOWN_FLOW) & (np.abs(flow[..., 1]) <= UNKNOWN_FLOW)
+    io.require_finite(flow, flow_path)  # unknown flow is marked with 1e10, never NaN
+    flow_valid = (np.abs(flow[..., 0]) <= UNKNOWN_FLOW) & (np.abs(flow[..., 1]) <= UNKNOWN_FLOW)
     flow = sceneflow.fill_invalid(flow, flow_valid)
     covisibility = ~occlusion & sceneflow.fov_mask(flow) & flow_valid
     u = np.arange(w)[None, :] + flow[..., 0]
