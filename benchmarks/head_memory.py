@@ -8,6 +8,10 @@ flow + covisibility loss, traced abstractly: nothing is allocated or run) and, w
 XLA's memory analysis of the compiled forward + backward on one device. Per-device batch
 `--batch`; at full scale multiply by the pairs each device holds. Prints figures and one JSON
 line; asserts nothing.
+
+Measured (CPU, ufm_base, 420x560, 2 pairs): kept for backward 3.11 GiB (f32) -> 1.75 GiB (bf16),
+-44% (the ReLU masks are bool either way); XLA:CPU temp 4.98 -> 4.85 GiB only, because XLA:CPU
+runs bf16 convolutions in float32 buffers: the compiled figure needs a GPU to mean anything.
 """
 
 from __future__ import annotations
