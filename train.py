@@ -86,7 +86,7 @@ def main(argv):
     params = jax.jit(init_fn, out_shardings=param_sh)(rng)
     if config.get("model_init"):
       host_params = jax.tree.map(np.asarray, params)
-      loaded, report = ckpt_lib.load_init_params(config.model_init, host_params)
+      loaded, report = ckpt_lib.load_init_params(config.model_init, host_params, model.config)
       if is_main:
         print(report.summary(), flush=True)
       params = jax.device_put(loaded, param_sh)

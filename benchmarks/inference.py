@@ -2,6 +2,8 @@
 
   python benchmarks/inference.py --config fixture_small --size 168x224 --batch 1
   python benchmarks/inference.py --config ufm_base --size 420x560 --batch 1 --runs 3
+  python benchmarks/inference.py --config ufm_base --size 420x560 --compile_only \
+      --set scan_blocks=true          # compile time only (abstract params, nothing runs)
 
 Prints: latency (median of --runs timed calls after --warmup untimed ones), pairs/s, the model's
 FLOPs per pair from XLA's cost analysis of the compiled forward, achieved GFLOP/s, and the f32
@@ -57,10 +59,25 @@ def cost_flops(compiled) -> float:
   return float(cost.get("flops", float("nan"))) if cost else float("nan")
 
 
-def build_model(config_name: str):
-  """A model of ufm_jax.models.variants by name (e.g. fixture_small, ufm_base)."""
+def build_model(config_name: str, **overrides):
+  """A model of ufm_jax.models.variants by name (e.g. fixture_small, ufm_base), with UFMConfig
+  overrides (e.g. scan_blocks=True, dtype="bfloat16")."""
   from ufm_jax.models import variants
-  return variants.build_model(config_name)
+  return variants.build_model(config_name, **overrides)
+
+
+def parse_overrides(text: str | None) -> dict:
+  """"k=v,k2=v2" -> {k: v}: values as JSON when they parse (true, 3, null), else strings."""
+  out = {}
+  for item in filter(None, (text or "").split(",")):
+    if "=" not in item:
+      raise argparse.ArgumentTypeError(f"--set wants KEY=VALUE[,KEY=VALUE], got {item!r}")
+    k, v = item.split("=", 1)
+    try:
+      out[k] = json.loads(v)
+    except json.JSONDecodeError:
+      out[k] = v
+  return out
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -81,14 +98,27 @@ def main(argv=None) -> dict:
   ap.add_argument("--warmup", type=int, default=2)
   ap.add_argument("--matmul_n", type=int, default=2048)
   ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
+  ap.add_argument("--set", type=parse_overrides, default={}, metavar="K=V[,K=V]",
+                  help="UFMConfig overrides, e.g. scan_blocks=true,dtype=bfloat16")
+  ap.add_argument("--compile_only", action="store_true",
+                  help="only lower and compile the forward (abstract params) and print the times")
+  ap.add_argument("--grad", action="store_true",
+                  help="with --compile_only: compile forward + gradient w.r.t. the params (a "
+                       "one-device stand-in for the train step; --set remat=true to match it)")
   args = ap.parse_args(argv)
 
   if args.snapshot:
     import ufm_jax
+    from ufm_jax.models import scan
     model, params = ufm_jax.load_official(args.snapshot)
+    if args.set:
+      model = model.clone(config=model.config.replace(**args.set))
+      params = scan.to_layout(params, model.config)
     name = args.snapshot
   else:
-    model, params, name = build_model(args.config), None, args.config
+    model, params, name = build_model(args.config, **args.set), None, args.config
+  if args.compile_only:
+    return compile_only(model, name, args)
   if args.size is None:
     from ufm_jax.inference import inference_resolutions
     args.size = inference_resolutions(model)[0]
@@ -144,6 +174,41 @@ def main(argv=None) -> dict:
   print(f"  achieved  {res['achieved_gflops']:.1f} GFLOP/s   f32 matmul peak "
         f"({args.matmul_n}^3 jnp.dot)  {peak:.1f} GFLOP/s   -> {100 * res['fraction_of_peak']:.0f}% "
         "of peak (median of per-round ratios; model and matmul timed alternately)")
+  if args.json:
+    pathlib.Path(args.json).write_text(json.dumps(res, indent=1))
+  return res
+
+
+def compile_only(model, name: str, args) -> dict:
+  """Lowering and XLA compile time of the jitted forward on abstract inputs (nothing runs)."""
+  from ufm_jax.models import ufm
+  h, w = args.size or model.config.inference_resolution
+  img = jax.ShapeDtypeStruct((args.batch, h, w, 3), jnp.uint8)
+  params = ufm.param_shapes(model)
+  fwd = jax.jit(lambda p, s, t: model.apply({"params": p}, s, t))
+  if args.grad:
+    def loss(p, s, t):
+      out = model.apply({"params": p}, s, t)
+      return jnp.mean(out["flow"] ** 2) + jnp.mean(out["covisibility_logits"])
+    fwd = jax.jit(jax.value_and_grad(loss))
+  # CPU seconds next to wall seconds: on a shared machine the wall time includes waiting.
+  t0, c0 = time.perf_counter(), time.process_time()
+  lowered = fwd.lower(params, img, img)
+  t_lower, c_lower = time.perf_counter() - t0, time.process_time() - c0
+  t0, c0 = time.perf_counter(), time.process_time()
+  lowered.compile()
+  t_compile, c_compile = time.perf_counter() - t0, time.process_time() - c0
+  res = {"config": name, "overrides": args.set, "size_hw": [h, w], "batch": args.batch,
+         "what": "forward + grad" if args.grad else "forward",
+         "devices": f"{jax.devices()[0].platform} x{jax.device_count()}",
+         "lower_s": round(t_lower, 2), "compile_s": round(t_compile, 2),
+         "lower_cpu_s": round(c_lower, 2), "compile_cpu_s": round(c_compile, 2),
+         "load_avg_1m": round(os.getloadavg()[0], 2), "cpu_count": os.cpu_count()}
+  print(f"{res['what']} of {name} {args.set}  size {h}x{w}  batch {args.batch}  on {res['devices']}: "
+        f"lower {t_lower:.1f} s ({c_lower:.1f} CPU s)  compile {t_compile:.1f} s ({c_compile:.1f} "
+        f"CPU s)  (load average {res['load_avg_1m']} "
+        f"on {res['cpu_count']} CPUs)")
+  print(json.dumps(res))
   if args.json:
     pathlib.Path(args.json).write_text(json.dumps(res, indent=1))
   return res

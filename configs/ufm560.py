@@ -27,7 +27,7 @@ def get_config(arg=None):
   c.input = pipeline.input_config(mixture.mixture(names[arg.data]), batch_size=96,
                                   longest_side=560)
   c.model_name = arg.model
-  c.model = ml_collections.ConfigDict({"dtype": "bfloat16", "remat": True})
+  c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
   # dinov2:PATH (facebook/dinov2-large), snapshot:DIR or ckpt:WORKDIR; typed so that
   # `--config.model_init=...` parses (a plain None field cannot be overridden from the flags).
   c.model_init = ml_collections.FieldReference(None, field_type=str)

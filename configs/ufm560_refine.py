@@ -40,9 +40,9 @@ def get_config(arg=None):
   if arg.steps:
     c.total_steps = arg.steps
   c.model_name = arg.model
-  c.model = ml_collections.ConfigDict({"dtype": "bfloat16", "remat": True})
+  c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
   if arg.data == "synthetic":
-    c.model = ml_collections.ConfigDict({"dtype": "float32", "remat": False})
+    c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=True)
   c.model_init = ml_collections.FieldReference(None, field_type=str)  # the UFM-560 base
   c.loss = "refine"
   c.loss_kwargs = {}

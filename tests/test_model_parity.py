@@ -15,10 +15,17 @@ from ufm_jax import convert
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="module")
-def base(reference_dir):
+@pytest.fixture(scope="module", params=[False, True], ids=["unrolled", "scan"])
+def base(reference_dir, request):
+  """The official snapshot, run per layer and as the scan model (stacked params); both must
+  match the official stages, the scan one through its per-block scan outputs."""
   d = reference_dir / "base"
   model, params = convert.load_official(d)
+  if request.param:
+    from ufm_jax.models import scan
+    model = model.clone(config=model.config.replace(scan_blocks=True))
+    params = scan.stack_blocks(params, model.config)
+    assert "blocks" in params["encoder"] and "self_attention_blocks" in params["info_sharing"]
   io = dict(np.load(d / "io.npz"))
   inter = dict(np.load(d / "intermediates.npz"))
   fwd = jax.jit(lambda p, a, b: model.apply({"params": p}, a, b, mutable=["intermediates"]))
@@ -141,15 +148,18 @@ def test_float_input_normalisation(base):
   np.testing.assert_allclose(got, io["img1_norm"], rtol=0, atol=2e-6)
 
 
-def test_float64_matches_official_float64_run(reference_dir):
+@pytest.mark.parametrize("scan_blocks", [False, True], ids=["unrolled", "scan"])
+def test_float64_matches_official_float64_run(reference_dir, scan_blocks):
   """The whole pass in float64 (x64 must be enabled before jax starts: a subprocess)."""
   script = textwrap.dedent(f"""
     import jax, numpy as np
     jax.config.update("jax_enable_x64", True)
     from ufm_jax import convert
+    from ufm_jax.models import scan
     d = {str(reference_dir / "base")!r}
     model, params = convert.load_official(d)
-    model = model.clone(config=model.config.replace(dtype="float64"))
+    model = model.clone(config=model.config.replace(dtype="float64", scan_blocks={scan_blocks}))
+    params = scan.to_layout(params, model.config)
     params = jax.tree.map(lambda p: np.asarray(p, np.float64), params)
     io = np.load(d + "/io_f64.npz")
     out = jax.jit(model.apply)({{"params": params}}, io["img1_uint8"], io["img2_uint8"])

@@ -98,10 +98,15 @@ def test_local_refinement_matches_fixture(fx, chunk):
 # The whole UFM-Refine model, loaded from the snapshot through load_official
 
 
-@pytest.fixture(scope="module")
-def full(fx):
+@pytest.fixture(scope="module", params=[False, True], ids=["unrolled", "scan"])
+def full(fx, request):
   from ufm_jax.convert import load_official
+  from ufm_jax.models import scan
   model, params = load_official(fx["dir"])
+  if request.param:   # the same snapshot as a scan model (stacked encoder / fusion blocks)
+    model = model.clone(config=model.config.replace(scan_blocks=True))
+    params = scan.stack_blocks(params, model.config)
+    assert "blocks" in params["encoder"] and "self_attention_blocks" in params["info_sharing"]
   io = fx["io"]
   out = jax.jit(model.apply)({"params": params}, io["img1_uint8"], io["img2_uint8"])
   return model, params, {k: np.asarray(v) for k, v in out.items()}

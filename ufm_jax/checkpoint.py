@@ -574,8 +574,13 @@ def guess_kind(spec: str) -> tuple[str, str]:
                           "a converted checkpoint, a UFM HF snapshot or DINOv2 weights)")
 
 
-def load_init_params(spec: str, template) -> tuple[Any, InitReport]:
-  """Parameters for `template` (the freshly initialised tree) from the `model_init` source."""
+def load_init_params(spec: str, template, config=None) -> tuple[Any, InitReport]:
+  """Parameters for `template` (the freshly initialised tree) from the `model_init` source.
+
+  `config` (the model's UFMConfig) puts the loaded blocks into the template's layout: per-layer
+  sources (snapshots, DINOv2, unscanned runs) stacked for a `scan_blocks` model, stacked ones
+  (scan runs) split for a per-layer model. Without it the layouts must already agree.
+  """
   kind, path = guess_kind(spec)
   if kind == "dinov2":
     loaded = _dinov2_to_flax(read_dinov2(path), template)
@@ -591,6 +596,10 @@ def load_init_params(spec: str, template) -> tuple[Any, InitReport]:
       import ufm_jax
       _, params = ufm_jax.load(path)
       loaded = {k: np.asarray(v) for k, v in _flat(params).items()}
+  if config is not None:
+    from ufm_jax.models import scan
+    tree = traverse_util.unflatten_dict({tuple(k.split("/")): v for k, v in loaded.items()})
+    loaded = _flat(scan.to_layout(tree, config))
   params, report = merge_into(template, loaded, f"{kind}:{path}")
   logging.info("%s", report.summary())
   return params, report

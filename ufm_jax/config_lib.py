@@ -71,6 +71,20 @@ def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
   return c
 
 
+def model_options(dtype: str = "bfloat16", remat: bool = True, scan_blocks: bool = True,
+                  head_dtype: str = "float32") -> ml_collections.ConfigDict:
+  """The `model` block: UFMConfig compute options passed to the variant (trainer.build_model).
+
+  Every option is present so each can be overridden from the command line (the block is locked):
+  `--config.model.attention_impl=cudnn|xla` (typed None = auto: cuDNN on GPU for bf16, XLA
+  elsewhere), `--config.model.scan_blocks=False` (unrolled blocks: slower compile, same numbers),
+  `--config.model.head_dtype=bfloat16` (DPT heads in bf16; the official heads are float32).
+  """
+  return ml_collections.ConfigDict({
+      "dtype": dtype, "remat": remat, "scan_blocks": scan_blocks, "head_dtype": head_dtype,
+      "attention_impl": ml_collections.FieldReference(None, field_type=str)})
+
+
 def bench_eval(bench="sintel", every=5000, max_pairs=200, resolution="560",
                data_root=mixture.DEFAULT_DATA_ROOT) -> ml_collections.ConfigDict:
   """An `evals` entry that runs a benchmark of ufm_jax.evaluators during training."""

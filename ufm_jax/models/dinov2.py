@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ufm_jax.models import layers
+from ufm_jax.models import layers, scan
 
 # (embed_dim, depth, num_heads, ffn) of the hub models dinov2_vit{s,b,l,g}14.
 SIZES = {
@@ -204,6 +204,7 @@ class DinoV2(nn.Module):
   remat: bool = False
   activation_sharding: layers.ActivationHook = None
   attention_impl: Optional[str] = None
+  scan: bool = False  # blocks as stacked params + lax.scan (models/scan.py)
 
   @nn.compact
   def __call__(self, images: jax.Array) -> Sequence[jax.Array]:
@@ -234,17 +235,30 @@ class DinoV2(nn.Module):
     x = constrain(x)
 
     take = cfg.take_indices()
-    block = layers.block_class(self.remat)
     norm = layers.layer_norm("norm")  # float32 out, as torch autocast runs LayerNorm
+    kw = dict(num_heads=cfg.num_heads, mlp_ratio=cfg.mlp_ratio, qkv_bias=True, qk_norm=False,
+              init_values=cfg.init_values, ffn=cfg.ffn, dtype=self.dtype,
+              attention_impl=self.attention_impl)
     outs = {}
     # Blocks after the last returned index cannot change any output, so they are not run.
-    for i in range(max(take) + 1):
-      x = block(cfg.num_heads, cfg.mlp_ratio, True, False, cfg.init_values, cfg.ffn, self.dtype,
-                self.attention_impl, name=f"blocks_{i}")(x)
-      x = constrain(x)
-      self.sow("intermediates", f"block{i}_out", x)
-      if i in take:
-        outs[i] = x
+    if self.scan:
+      # One scan per segment ending at a returned index: each tap is a segment's final carry.
+      block = layers.Block(**kw, parent=None)
+      stack = scan.stacked_params(self, "blocks", block, cfg.depth, c)
+      collect = self.is_mutable_collection("intermediates")
+      for lo, hi in scan.segments([i + 1 for i in take]):
+        x, ys = scan.run(block, stack, x, lo, hi, self.remat, constrain, collect)
+        for i in range(lo, hi) if collect else ():
+          self.sow("intermediates", f"block{i}_out", ys[i - lo])
+        outs[hi - 1] = x
+    else:
+      block = layers.block_class(self.remat)
+      for i in range(max(take) + 1):
+        x = block(**kw, name=f"blocks_{i}")(x)
+        x = constrain(x)
+        self.sow("intermediates", f"block{i}_out", x)
+        if i in take:
+          outs[i] = x
     skip = 1 + cfg.num_register_tokens
     result = []
     for i in take:
@@ -252,9 +266,9 @@ class DinoV2(nn.Module):
       result.append(y[:, skip:].reshape(b, h, w, c))
       self.sow("intermediates", f"out{len(result) - 1}", result[-1])
     # Parameters of blocks that are never run still exist in the checkpoint: create them so the
-    # tree has the checkpoint's structure (init only; apply never touches them).
-    if self.is_initializing():
+    # tree has the checkpoint's structure (init only; apply never touches them). The stacked
+    # tree of the scan holds all `depth` blocks already.
+    if self.is_initializing() and not self.scan:
       for i in range(max(take) + 1, cfg.depth):
-        block(cfg.num_heads, cfg.mlp_ratio, True, False, cfg.init_values, cfg.ffn, self.dtype,
-              self.attention_impl, name=f"blocks_{i}")(x)
+        block(**kw, name=f"blocks_{i}")(x)
     return result

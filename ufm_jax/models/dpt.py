@@ -92,11 +92,12 @@ def resize_bilinear_align_corners(x: jax.Array, out_h: int, out_w: int) -> jax.A
 class ResidualConvUnit(nn.Module):
   """x + conv2(relu(conv1(relu(x))))."""
   features: int
+  dtype: Optional[jnp.dtype] = None
 
   @nn.compact
   def __call__(self, x):
-    y = _conv(self.features, 3, pad=1, name="conv1")(jax.nn.relu(x))
-    y = _conv(self.features, 3, pad=1, name="conv2")(jax.nn.relu(y))
+    y = _conv(self.features, 3, pad=1, name="conv1", dtype=self.dtype)(jax.nn.relu(x))
+    y = _conv(self.features, 3, pad=1, name="conv2", dtype=self.dtype)(jax.nn.relu(y))
     return x + y
 
 
@@ -104,32 +105,37 @@ class FusionBlock(nn.Module):
   """out_conv(up2(resConfUnit2(x0 [+ resConfUnit1(x1)]))), bilinear x2 align_corners=True."""
   features: int
   has_skip: bool = True  # refinenet4 has no second input (and no resConfUnit1 weights)
+  dtype: Optional[jnp.dtype] = None
 
   @nn.compact
   def __call__(self, x0, x1=None):
     out = x0
     if self.has_skip:
-      out = out + ResidualConvUnit(self.features, name="resConfUnit1")(x1)
-    out = ResidualConvUnit(self.features, name="resConfUnit2")(out)
+      out = out + ResidualConvUnit(self.features, self.dtype, name="resConfUnit1")(x1)
+    out = ResidualConvUnit(self.features, self.dtype, name="resConfUnit2")(out)
     _, h, w, _ = out.shape
     out = resize_bilinear_align_corners(out, 2 * h, 2 * w)
-    return _conv(self.features, 1, name="out_conv")(out)
+    return _conv(self.features, 1, name="out_conv", dtype=self.dtype)(out)
 
 
 class Scratch(nn.Module):
   feature_dim: int
+  dtype: Optional[jnp.dtype] = None
 
   def setup(self):
-    self.refinenet1 = FusionBlock(self.feature_dim)
-    self.refinenet2 = FusionBlock(self.feature_dim)
-    self.refinenet3 = FusionBlock(self.feature_dim)
-    self.refinenet4 = FusionBlock(self.feature_dim, has_skip=False)
+    self.refinenet1 = FusionBlock(self.feature_dim, dtype=self.dtype)
+    self.refinenet2 = FusionBlock(self.feature_dim, dtype=self.dtype)
+    self.refinenet3 = FusionBlock(self.feature_dim, dtype=self.dtype)
+    self.refinenet4 = FusionBlock(self.feature_dim, has_skip=False, dtype=self.dtype)
 
 
 class DPTFeature(nn.Module):
-  """Four [B, h, w, C_k] maps at patch resolution -> [B, 8h, 8w, feature_dim]. `constrain`
-  (the model's activation-sharding hook) is applied to every stage's output."""
+  """Four [B, h, w, C_k] maps at patch resolution -> [B, 8h, 8w, feature_dim].
+
+  `dtype` (None: the inputs' float32) is the compute and activation dtype; params stay float32.
+  `constrain` (the model's activation-sharding hook) is applied to every stage's output."""
   config: DPTConfig
+  dtype: Optional[jnp.dtype] = None
   constrain: Optional[Callable] = None
 
   @nn.compact
@@ -141,20 +147,22 @@ class DPTFeature(nn.Module):
         raise ValueError(f"DPT hook {hook}: got {feats[hook].shape[-1]} channels, expected "
                          f"{cfg.input_feature_dims[k]}")
     x = [feats[hook] for hook in cfg.hooks]
+    dt = self.dtype
     # Branch resampling: x4 (1x1, ConvT 4/4), x2 (1x1, ConvT 2/2), x1 (1x1), x1/2 (1x1, 3x3 s2).
-    x[0] = ConvTranspose(ld[0], 4, name="input_process_0_0_1")(
-        _conv(ld[0], 1, name="input_process_0_0_0")(x[0]))
-    x[1] = ConvTranspose(ld[1], 2, name="input_process_1_0_1")(
-        _conv(ld[1], 1, name="input_process_1_0_0")(x[1]))
-    x[2] = _conv(ld[2], 1, name="input_process_2_0_0")(x[2])
-    x[3] = _conv(ld[3], 3, stride=2, pad=1, name="input_process_3_0_1")(
-        _conv(ld[3], 1, name="input_process_3_0_0")(x[3]))
+    x[0] = ConvTranspose(ld[0], 4, dt, name="input_process_0_0_1")(
+        _conv(ld[0], 1, name="input_process_0_0_0", dtype=dt)(x[0]))
+    x[1] = ConvTranspose(ld[1], 2, dt, name="input_process_1_0_1")(
+        _conv(ld[1], 1, name="input_process_1_0_0", dtype=dt)(x[1]))
+    x[2] = _conv(ld[2], 1, name="input_process_2_0_0", dtype=dt)(x[2])
+    x[3] = _conv(ld[3], 3, stride=2, pad=1, name="input_process_3_0_1", dtype=dt)(
+        _conv(ld[3], 1, name="input_process_3_0_0", dtype=dt)(x[3]))
     # layer{k}_rn: 3x3 to feature_dim, no bias.
     c = self.constrain or (lambda t: t)
-    x = [c(_conv(fd, 3, pad=1, bias=False, name=f"input_process_{k}_1")(x[k])) for k in range(4)]
+    x = [c(_conv(fd, 3, pad=1, bias=False, name=f"input_process_{k}_1", dtype=dt)(x[k]))
+         for k in range(4)]
     for k in range(4):
       self.sow("intermediates", f"layer{k}", x[k])
-    scratch = Scratch(fd, name="scratch")
+    scratch = Scratch(fd, dt, name="scratch")
     path4 = c(scratch.refinenet4(x[3]))
     self.sow("intermediates", "refinenet4_out", path4)
     path4 = path4[:, :x[2].shape[1], :x[2].shape[2]]  # top-left crop for odd grids
@@ -168,20 +176,24 @@ class DPTFeature(nn.Module):
 
 
 class DPTRegressionProcessor(nn.Module):
-  """conv3x3 -> bilinear (align_corners=True) resize to (H, W) -> conv3x3 -> ReLU -> conv1x1."""
+  """conv3x3 -> bilinear (align_corners=True) resize to (H, W) -> conv3x3 -> ReLU -> conv1x1.
+
+  `dtype` as DPTFeature's; the output is returned in the input features' dtype (float32)."""
   config: DPTConfig
+  dtype: Optional[jnp.dtype] = None
   constrain: Optional[Callable] = None
 
   @nn.compact
   def __call__(self, x, out_hw: Tuple[int, int]):
     cfg = self.config
     c = self.constrain or (lambda t: t)
+    out_dtype = jnp.promote_types(x.dtype, jnp.float32)
     h1, h2 = cfg.hidden_dims or (cfg.feature_dim // 2,) * 2
-    x = c(_conv(h1, 3, pad=1, name="conv1")(x))
+    x = c(_conv(h1, 3, pad=1, name="conv1", dtype=self.dtype)(x))
     self.sow("intermediates", "conv1_out", x)
     x = c(resize_bilinear_align_corners(x, *out_hw))
-    x = c(jax.nn.relu(_conv(h2, 3, pad=1, name="conv2_0")(x)))
-    return c(_conv(cfg.output_dim, 1, name="conv2_2")(x))
+    x = c(jax.nn.relu(_conv(h2, 3, pad=1, name="conv2_0", dtype=self.dtype)(x)))
+    return c(_conv(cfg.output_dim, 1, name="conv2_2", dtype=self.dtype)(x).astype(out_dtype))
 
 
 def flow_adaptor(x: jax.Array, cfg: FlowAdaptorConfig) -> jax.Array:

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ufm_jax.models import layers
+from ufm_jax.models import layers, scan
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +59,7 @@ class InfoSharing(nn.Module):
   remat: bool = False
   activation_sharding: layers.ActivationHook = None
   attention_impl: Optional[str] = None
+  scan: bool = False  # blocks as stacked params + lax.scan (models/scan.py)
 
   @nn.compact
   def __call__(self, feat1: jax.Array, feat2: jax.Array):
@@ -77,18 +78,31 @@ class InfoSharing(nn.Module):
     self.sow("intermediates", "tokens_in", x)
     x = constrain(x)
 
-    block = layers.block_class(self.remat)
     norm = layers.layer_norm("norm")  # float32 out, as torch autocast runs LayerNorm
     take = cfg.take_indices()
+    kw = dict(num_heads=cfg.num_heads, mlp_ratio=cfg.mlp_ratio, qkv_bias=cfg.qkv_bias,
+              qk_norm=cfg.qk_norm, init_values=cfg.init_values, ffn="mlp", dtype=self.dtype,
+              attention_impl=self.attention_impl, tied_qk_init=cfg.tied_qk_init)
     inters = []
-    for i in range(cfg.depth):
-      x = block(cfg.num_heads, cfg.mlp_ratio, cfg.qkv_bias, cfg.qk_norm, cfg.init_values, "mlp",
-                self.dtype, self.attention_impl, cfg.tied_qk_init,
-                name=f"self_attention_blocks_{i}")(x)
-      x = constrain(x)
-      self.sow("intermediates", f"block{i}_out", x)
-      if i in take:
-        inters.append(norm(x) if cfg.norm_intermediate else x)
+    if self.scan:
+      # One scan per segment ending at an intermediate tap (and one for the rest).
+      block = layers.Block(**kw, parent=None)
+      stack = scan.stacked_params(self, "self_attention_blocks", block, cfg.depth, cfg.dim)
+      collect = self.is_mutable_collection("intermediates")
+      for lo, hi in scan.segments([i + 1 for i in take] + [cfg.depth]):
+        x, ys = scan.run(block, stack, x, lo, hi, self.remat, constrain, collect)
+        for i in range(lo, hi) if collect else ():
+          self.sow("intermediates", f"block{i}_out", ys[i - lo])
+        if hi - 1 in take:
+          inters.append(norm(x) if cfg.norm_intermediate else x)
+    else:
+      block = layers.block_class(self.remat)
+      for i in range(cfg.depth):
+        x = block(**kw, name=f"self_attention_blocks_{i}")(x)
+        x = constrain(x)
+        self.sow("intermediates", f"block{i}_out", x)
+        if i in take:
+          inters.append(norm(x) if cfg.norm_intermediate else x)
 
     def split(t):
       t = t.reshape(b, 2, h, w, cfg.dim)

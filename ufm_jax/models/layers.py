@@ -55,13 +55,43 @@ def tied_qkv_init(scale: float = 1.0, base=nn.initializers.lecun_normal()):
   return init
 
 
+ATTENTION_IMPLS = (None, "auto", "xla", "cudnn")
+
+
+def attention_implementation(impl: Optional[str], dtype, head_dim: int) -> str:
+  """"xla" or "cudnn" for jax.nn.dot_product_attention. None/"auto": cuDNN's fused flash kernel
+  on GPU for bf16/f16 with a head dim it takes (a multiple of 8, at most 128; 256 on Hopper is
+  not assumed), XLA otherwise (CPU, TPU, float32)."""
+  if impl not in ATTENTION_IMPLS:
+    raise ValueError(f"attention_impl {impl!r}; expected one of {ATTENTION_IMPLS}")
+  if impl in ("xla", "cudnn"):
+    return impl
+  if (jax.default_backend() == "gpu" and jnp.dtype(dtype) in (jnp.bfloat16, jnp.float16)
+      and head_dim % 8 == 0 and head_dim <= 128):
+    return "cudnn"
+  return "xla"
+
+
+def dot_product_attention(q, k, v, scale: float, impl: Optional[str] = None):
+  """[B, N, heads, hd] attention by `attention_implementation`. In auto mode a cuDNN refusal
+  at trace time (cuDNN missing, an unsupported GPU or shape) falls back to XLA; a forced
+  "cudnn" raises it."""
+  chosen = attention_implementation(impl, q.dtype, q.shape[-1])
+  if chosen == "cudnn" and impl in (None, "auto"):
+    try:
+      return jax.nn.dot_product_attention(q, k, v, scale=scale, implementation="cudnn")
+    except (NotImplementedError, RuntimeError, ValueError):
+      chosen = "xla"
+  return jax.nn.dot_product_attention(q, k, v, scale=scale, implementation=chosen)
+
+
 class Attention(nn.Module):
   """Multi-head self-attention: fused qkv projection, optional per-head q/k LayerNorm."""
   num_heads: int
   qkv_bias: bool = True
   qk_norm: bool = False
   dtype: Optional[Dtype] = None
-  implementation: Optional[str] = None  # jax.nn.dot_product_attention: None/"xla" or "cudnn"
+  implementation: Optional[str] = None  # None/"auto", "xla", "cudnn" (attention_implementation)
   tied_qk_init: Optional[float] = None  # from-scratch: W_k = W_q, this scale (tied_qkv_init)
 
   @nn.compact
@@ -83,9 +113,7 @@ class Attention(nn.Module):
       logits = jnp.einsum("bqhd,bkhd->bhqk", q, k) * head_dim ** -0.5
       out = jnp.einsum("bhqk,bkhd->bqhd", jax.nn.softmax(logits, axis=-1), v)
     else:
-      # XLA path by default; implementation="cudnn" selects the fused flash kernel on GPU.
-      out = jax.nn.dot_product_attention(q, k, v, scale=head_dim ** -0.5,
-                                         implementation=self.implementation)
+      out = dot_product_attention(q, k, v, head_dim ** -0.5, self.implementation)
     out = out.reshape(b, n, c)
     return nn.Dense(c, dtype=self.dtype, name="proj")(out)
 

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from ufm_jax.models import dinov2, dpt, layers
+from ufm_jax.models import dinov2, dpt, layers, scan
 from ufm_jax.models import info_sharing as info_sharing_lib
 
 # UniCeption data_norm_type "dinov2" (ImageNet), float32 like the official tensors.
@@ -41,11 +41,25 @@ class UFMConfig:
   # official autocast does), or "float64" (everything; needs jax_enable_x64, for testing).
   dtype: str = "float32"
   remat: bool = False  # gradient checkpointing per transformer block
-  attention_impl: Optional[str] = None  # None/"xla", or "cudnn" (fused flash attention on GPU)
+  # None or "auto": cuDNN fused attention on GPU when dtype and head size allow, else XLA
+  # (layers.attention_implementation); "xla" or "cudnn" force one.
+  attention_impl: Optional[str] = None
+  # Encoder and fusion blocks as one stacked parameter tree run by lax.scan (models/scan.py):
+  # one compiled block body instead of 24 + 12. Changes the param layout (scan.stack_blocks).
+  scan_blocks: bool = False
+  # Compute dtype of the DPT heads: "float32" (as the official code, even under autocast) or
+  # "bfloat16" (half the head activation memory); params and outputs stay float32.
+  head_dtype: str = "float32"
 
   def __post_init__(self):
     if self.dtype not in DTYPES:
       raise ValueError(f"UFMConfig.dtype {self.dtype!r}; expected one of {sorted(DTYPES)}")
+    if self.head_dtype not in ("float32", "bfloat16"):
+      raise ValueError(f"UFMConfig.head_dtype {self.head_dtype!r}; expected 'float32' or "
+                       "'bfloat16'")
+    if self.attention_impl not in layers.ATTENTION_IMPLS:
+      raise ValueError(f"UFMConfig.attention_impl {self.attention_impl!r}; expected one of "
+                       f"{layers.ATTENTION_IMPLS}")
     if len(self.info_sharing.indices) != 2:
       raise ValueError("UFM feeds exactly two info-sharing intermediates to the DPT heads; "
                        f"got info_sharing.indices={self.info_sharing.indices}")
@@ -175,15 +189,18 @@ class UFM(nn.Module):
     compute = DTYPES[cfg.dtype]
     bb_dtype = None if cfg.dtype == "float32" else compute
     self.encoder = dinov2.DinoV2(cfg.encoder, bb_dtype, cfg.remat, self.activation_sharding,
-                                 cfg.attention_impl)
+                                 cfg.attention_impl, cfg.scan_blocks)
     self.info_sharing = info_sharing_lib.InfoSharing(cfg.info_sharing, bb_dtype, cfg.remat,
-                                                     self.activation_sharding, cfg.attention_impl)
+                                                     self.activation_sharding, cfg.attention_impl,
+                                                     cfg.scan_blocks)
+    # float64 mode runs the heads in float64 too (their inputs are float64).
+    hd = jnp.bfloat16 if cfg.head_dtype == "bfloat16" and cfg.dtype != "float64" else None
     # torch: head1 = Sequential(Sequential(DPTFeature, DPTRegressionProcessor), AdaptorMap).
     hook = self.activation_sharding
-    self.head1_0_0 = dpt.DPTFeature(cfg.flow_head, hook)
-    self.head1_0_1 = dpt.DPTRegressionProcessor(cfg.flow_head, hook)
-    self.uncertainty_head_0_0 = dpt.DPTFeature(cfg.covisibility_head, hook)
-    self.uncertainty_head_0_1 = dpt.DPTRegressionProcessor(cfg.covisibility_head, hook)
+    self.head1_0_0 = dpt.DPTFeature(cfg.flow_head, hd, hook)
+    self.head1_0_1 = dpt.DPTRegressionProcessor(cfg.flow_head, hd, hook)
+    self.uncertainty_head_0_0 = dpt.DPTFeature(cfg.covisibility_head, hd, hook)
+    self.uncertainty_head_0_1 = dpt.DPTRegressionProcessor(cfg.covisibility_head, hd, hook)
 
   def encode(self, source, target, symmetrized: bool = False):
     """Normalised [B, H, W, 3] pair -> last encoder feature maps (view1, view2)."""
@@ -244,6 +261,9 @@ def init_params(model: UFM, seed: int = 0):
   scaled by it and its key kernel starts as a copy of the query kernel. Released models start
   from pretrained weights instead (`ufm_jax.load_official`).
   """
+  if model.config.scan_blocks:  # the same draws as the per-layer model, stacked
+    per_layer = model.clone(config=model.config.replace(scan_blocks=False))
+    return scan.stack_blocks(init_params(per_layer, seed), model.config)
   # param_shapes traces model.init, whose pos_embed initializer rejects an unknown choice.
   rng = np.random.default_rng(seed)
   tie = model.config.info_sharing.tied_qk_init
