@@ -1,4 +1,4 @@
-"""Command line: `python -m ufm_jax infer|convert ...` (also installed as `ufm-jax`).
+"""Command line: `python -m ufm_jax infer|export|convert ...` (also installed as `ufm-jax`).
 
   python -m ufm_jax infer SOURCE TARGET --checkpoint DIR --out DIR [--snapshot] [--bidirectional]
       Writes, per direction (`forward`: SOURCE -> TARGET, `backward` with --bidirectional):
@@ -7,6 +7,9 @@
         <dir>_covisibility.npy   covisibility probability, [H, W] float32
         <dir>_covisibility.png   covisibility as 8-bit grey (255 = covisible)
         <dir>_panel.png          source | target | flow colours | target warped into the source
+  python -m ufm_jax export --checkpoint DIR --size HxW --out PATH [--batch N|dynamic]
+      [--dtype float32|bfloat16] [--format stablehlo|onnx] [--outputs flow,covisibility]
+      A deployable artifact of the forward pass plus PATH.json (see `ufm_jax.export`).
   python -m ufm_jax convert SNAPSHOT_DIR OUT_DIR ...
       Converts an official Hugging Face snapshot (see `ufm_jax.convert`).
 
@@ -149,18 +152,79 @@ def _infer_main(args) -> int:
   return 0
 
 
+def _size_arg(text: str) -> tuple[int, int]:
+  from ufm_jax.data.synthetic import parse_size
+  try:
+    return parse_size(text)
+  except ValueError as e:
+    raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _batch_arg(text: str):
+  if text == "dynamic":
+    return text
+  if not text.isdigit() or int(text) < 1:
+    raise argparse.ArgumentTypeError(f"--batch must be a positive integer or 'dynamic', got {text!r}")
+  return int(text)
+
+
+def _add_checkpoint_args(p) -> None:
+  p.add_argument("--checkpoint", required=True,
+                 help="converted checkpoint, train.py workdir or HF snapshot folder")
+  p.add_argument("--snapshot", action="store_true",
+                 help="--checkpoint is an official Hugging Face snapshot (config.json + safetensors)")
+
+
+def _add_infer_parser(sub) -> None:
+  p = sub.add_parser("infer", help="flow + covisibility for one image pair")
+  p.add_argument("source", help="source image (flow is defined on its pixels)")
+  p.add_argument("target", help="target image")
+  _add_checkpoint_args(p)
+  p.add_argument("--out", required=True, help="output folder (created)")
+  p.add_argument("--bidirectional", action="store_true", help="also write target -> source")
+  p.set_defaults(func=_infer_main)
+
+
+def _add_export_parser(sub) -> None:
+  from ufm_jax import export
+  p = sub.add_parser("export", help="StableHLO (jax.export) or ONNX artifact of the forward pass",
+                     description=export.__doc__.split("\n")[0])
+  _add_checkpoint_args(p)
+  p.add_argument("--size", required=True, type=_size_arg,
+                 help="HxW input size, multiples of the patch size (e.g. 420x560)")
+  p.add_argument("--out", required=True, help="artifact path (PATH.json is written beside it)")
+  p.add_argument("--batch", default=1, type=_batch_arg, help="pairs per call, or 'dynamic'")
+  p.add_argument("--dtype", default="float32", choices=export.DTYPES,
+                 help="compute dtype of encoder + transformer (heads stay float32)")
+  p.add_argument("--format", default="stablehlo", choices=export.FORMATS)
+  p.add_argument("--outputs", default=",".join(export.DEFAULT_OUTPUTS),
+                 help="comma-separated model outputs to keep (refinement models also have "
+                      "flow_before_refinement, residual, log_softmax, ...)")
+  p.set_defaults(func=_export_main)
+
+
+def _export_main(args) -> int:
+  from ufm_jax import export
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  outputs = [k.strip() for k in args.outputs.split(",") if k.strip()]
+  written = export.export(model, params, args.size, args.out, fmt=args.format, batch=args.batch,
+                          dtype=args.dtype, outputs=outputs,
+                          checkpoint=pathlib.Path(args.checkpoint).absolute())
+  for p in written:
+    print(p)
+  return 0
+
+
+# Subcommands: each adds its parser (with set_defaults(func=...)) to the subparsers.
+SUBCOMMANDS = [_add_infer_parser, _add_export_parser]
+
+
 def main(argv: list[str] | None = None) -> int:
   argv = list(sys.argv[1:] if argv is None else argv)
   parser = argparse.ArgumentParser(prog="python -m ufm_jax", description=__doc__.split("\n")[0])
   sub = parser.add_subparsers(dest="command", required=True)
-  p = sub.add_parser("infer", help="flow + covisibility for one image pair")
-  p.add_argument("source", help="source image (flow is defined on its pixels)")
-  p.add_argument("target", help="target image")
-  p.add_argument("--checkpoint", required=True, help="converted checkpoint or HF snapshot folder")
-  p.add_argument("--out", required=True, help="output folder (created)")
-  p.add_argument("--snapshot", action="store_true",
-                 help="--checkpoint is an official Hugging Face snapshot (config.json + safetensors)")
-  p.add_argument("--bidirectional", action="store_true", help="also write target -> source")
+  for add in SUBCOMMANDS:
+    add(sub)
   sub.add_parser("convert", help="official HF snapshot -> orbax checkpoint (ufm_jax.convert)",
                  add_help=False)
   if argv and argv[0] == "convert":
@@ -168,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     return convert.main(argv[1:]) or 0
   args = parser.parse_args(argv)
   try:
-    return _infer_main(args)
+    return args.func(args)
   except (FileNotFoundError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
