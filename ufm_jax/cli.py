@@ -1,4 +1,4 @@
-"""Command line: `python -m ufm_jax infer|export|convert ...` (also installed as `ufm-jax`).
+"""Command line: `python -m ufm_jax infer|export|match|convert ...` (also installed as `ufm-jax`).
 
   python -m ufm_jax infer SOURCE TARGET --checkpoint DIR --out DIR [--snapshot] [--bidirectional]
       Writes, per direction (`forward`: SOURCE -> TARGET, `backward` with --bidirectional):
@@ -10,6 +10,8 @@
   python -m ufm_jax export --checkpoint DIR --size HxW --out PATH [--batch N|dynamic]
       [--dtype float32|bfloat16] [--format stablehlo|onnx] [--outputs flow,covisibility]
       A deployable artifact of the forward pass plus PATH.json (see `ufm_jax.export`).
+  python -m ufm_jax match SOURCE TARGET --checkpoint DIR --out matches.npz [--draw m.png]
+      [--num 5000] [--min-covisibility 0.5] [--bidirectional]   (see `ufm_jax.matching`)
   python -m ufm_jax convert SNAPSHOT_DIR OUT_DIR ...
       Converts an official Hugging Face snapshot (see `ufm_jax.convert`).
 
@@ -215,8 +217,43 @@ def _export_main(args) -> int:
   return 0
 
 
+def _add_match_parser(sub) -> None:
+  p = sub.add_parser("match", help="sparse matches (npz) for OpenCV / COLMAP from one image pair")
+  p.add_argument("source")
+  p.add_argument("target")
+  _add_checkpoint_args(p)
+  p.add_argument("--out", required=True, help="matches .npz: keypoints0, keypoints1, confidence")
+  p.add_argument("--draw", default=None, help="also draw the matches into this PNG")
+  p.add_argument("--num", type=int, default=5000)
+  p.add_argument("--min-covisibility", type=float, default=0.5)
+  p.add_argument("--bidirectional", action="store_true",
+                 help="keep forward-backward consistent matches only (--max-fb-error px)")
+  p.add_argument("--max-fb-error", type=float, default=1.0)
+  p.add_argument("--seed", type=int, default=0)
+  p.set_defaults(func=_match_main)
+
+
+def _match_main(args) -> int:
+  from ufm_jax import matching, viz
+  source, target = viz.read_image(args.source), viz.read_image(args.target)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  m = matching.match(model, params, source, target, num=args.num,
+                     min_covisibility=args.min_covisibility, bidirectional=args.bidirectional,
+                     max_fb_error_px=args.max_fb_error, seed=args.seed)
+  out = pathlib.Path(args.out)
+  out.parent.mkdir(parents=True, exist_ok=True)
+  tmp = out.with_name(f".{out.name}.tmp{os.getpid()}.npz")
+  np.savez(tmp, **m, image0_hw=np.array(source.shape[:2]), image1_hw=np.array(target.shape[:2]))
+  os.replace(tmp, out)
+  print(f"{out}: {len(m['keypoints0'])} matches")
+  if args.draw:
+    viz.write_png(args.draw, matching.draw_matches(source, target, m["keypoints0"], m["keypoints1"]))
+    print(args.draw)
+  return 0
+
+
 # Subcommands: each adds its parser (with set_defaults(func=...)) to the subparsers.
-SUBCOMMANDS = [_add_infer_parser, _add_export_parser]
+SUBCOMMANDS = [_add_infer_parser, _add_export_parser, _add_match_parser]
 
 
 def main(argv: list[str] | None = None) -> int:
