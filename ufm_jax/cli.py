@@ -7,6 +7,8 @@
         <dir>_covisibility.npy   covisibility probability, [H, W] float32
         <dir>_covisibility.png   covisibility as 8-bit grey (255 = covisible)
         <dir>_panel.png          source | target | flow colours | target warped into the source
+  python -m ufm_jax infer (--frames DIR [--stride k] | --pairs LIST.txt | VIDEO.mp4) --checkpoint DIR
+      --out DIR [--batch N] [--save npy,covis,panel] [--overwrite]   (see `ufm_jax.sequence`)
   python -m ufm_jax export --checkpoint DIR --size HxW --out PATH [--batch N|dynamic]
       [--dtype float32|bfloat16] [--format stablehlo|onnx] [--outputs flow,covisibility]
       A deployable artifact of the forward pass plus PATH.json (see `ufm_jax.export`).
@@ -143,7 +145,40 @@ def run_infer(model, params, source_path, target_path, out_dir, bidirectional=Fa
   return written
 
 
+def _infer_many(args) -> int:
+  from ufm_jax import sequence
+  save = [k for k in args.save.split(",") if k]
+  bad = sorted(set(save) - set(sequence.SAVE_CHOICES))
+  if bad:
+    raise ValueError(f"--save {','.join(bad)}: expected a comma list of {','.join(sequence.SAVE_CHOICES)}")
+  if args.stride < 1 or args.batch < 1:
+    raise ValueError("--stride and --batch must be >= 1")
+  if args.frames:
+    if not os.path.isdir(args.frames):
+      raise FileNotFoundError(f"--frames folder not found: {args.frames}")
+    pairs = sequence.frame_pairs(args.frames, args.stride)
+  elif args.pairs:
+    if not os.path.isfile(args.pairs):
+      raise FileNotFoundError(f"--pairs list not found: {args.pairs}")
+    pairs = sequence.list_pairs(args.pairs)
+  else:
+    pairs = sequence.video_frames(args.source, args.stride)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  counts = sequence.run(model, params, pairs, args.out, batch=args.batch, save=save,
+                        overwrite=args.overwrite)
+  print(f"{args.out}: {counts['done']} pairs written, {counts['skipped']} already there, "
+        f"{counts['failed']} failed (see manifest.jsonl); "
+        f"{counts['done'] / max(counts['seconds'], 1e-9):.2f} pairs/s end to end")
+  return 0
+
+
 def _infer_main(args) -> int:
+  from ufm_jax import sequence
+  if args.frames or args.pairs or (args.source and args.target is None and
+                                   pathlib.Path(args.source).suffix.lower() in sequence.VIDEO_SUFFIXES):
+    return _infer_many(args)
+  if not args.source or not args.target:
+    raise ValueError("infer needs SOURCE and TARGET images, a video file, --frames DIR or --pairs LIST")
   for p in (args.source, args.target):
     if not os.path.isfile(p):
       raise FileNotFoundError(f"image not found: {p}")
@@ -179,11 +214,19 @@ def _add_checkpoint_args(p) -> None:
 
 def _add_infer_parser(sub) -> None:
   p = sub.add_parser("infer", help="flow + covisibility for one image pair")
-  p.add_argument("source", help="source image (flow is defined on its pixels)")
-  p.add_argument("target", help="target image")
+  p.add_argument("source", nargs="?", help="source image (flow is defined on its pixels), or a "
+                 "video file (consecutive frames)")
+  p.add_argument("target", nargs="?", help="target image")
   _add_checkpoint_args(p)
   p.add_argument("--out", required=True, help="output folder (created)")
   p.add_argument("--bidirectional", action="store_true", help="also write target -> source")
+  g = p.add_argument_group("many pairs (see ufm_jax.sequence)")
+  g.add_argument("--frames", help="folder of frames: consecutive pairs in natural sort order")
+  g.add_argument("--pairs", help="text file, two image paths per line (relative to the file)")
+  g.add_argument("--stride", type=int, default=1, help="frame i is paired with frame i + stride")
+  g.add_argument("--batch", type=int, default=1, help="pairs per forward (last batch padded)")
+  g.add_argument("--save", default="", help="extra outputs besides .flo: comma list of npy,covis,panel")
+  g.add_argument("--overwrite", action="store_true", help="redo pairs whose outputs exist")
   p.set_defaults(func=_infer_main)
 
 
