@@ -1,4 +1,4 @@
-"""Command line: `python -m ufm_jax infer|convert ...` (also installed as `ufm-jax`).
+"""Command line: `python -m ufm_jax infer|export|match|convert ...` (also installed as `ufm-jax`).
 
   python -m ufm_jax infer SOURCE TARGET --checkpoint DIR --out DIR [--snapshot] [--bidirectional]
       Writes, per direction (`forward`: SOURCE -> TARGET, `backward` with --bidirectional):
@@ -7,6 +7,13 @@
         <dir>_covisibility.npy   covisibility probability, [H, W] float32
         <dir>_covisibility.png   covisibility as 8-bit grey (255 = covisible)
         <dir>_panel.png          source | target | flow colours | target warped into the source
+  python -m ufm_jax infer (--frames DIR [--stride k] | --pairs LIST.txt | VIDEO.mp4) --checkpoint DIR
+      --out DIR [--batch N] [--save npy,covis,panel] [--overwrite]   (see `ufm_jax.sequence`)
+  python -m ufm_jax export --checkpoint DIR --size HxW --out PATH [--batch N|dynamic]
+      [--dtype float32|bfloat16] [--format stablehlo|onnx] [--outputs flow,covisibility]
+      A deployable artifact of the forward pass plus PATH.json (see `ufm_jax.export`).
+  python -m ufm_jax match SOURCE TARGET --checkpoint DIR --out matches.npz [--draw m.png]
+      [--num 5000] [--min-covisibility 0.5] [--bidirectional]   (see `ufm_jax.matching`)
   python -m ufm_jax convert SNAPSHOT_DIR OUT_DIR ...
       Converts an official Hugging Face snapshot (see `ufm_jax.convert`).
 
@@ -118,7 +125,40 @@ def run_infer(model, params, source_path, target_path, out_dir, bidirectional=Fa
   return written
 
 
+def _infer_many(args) -> int:
+  from ufm_jax import sequence
+  save = [k for k in args.save.split(",") if k]
+  bad = sorted(set(save) - set(sequence.SAVE_CHOICES))
+  if bad:
+    raise ValueError(f"--save {','.join(bad)}: expected a comma list of {','.join(sequence.SAVE_CHOICES)}")
+  if args.stride < 1 or args.batch < 1:
+    raise ValueError("--stride and --batch must be >= 1")
+  if args.frames:
+    if not os.path.isdir(args.frames):
+      raise FileNotFoundError(f"--frames folder not found: {args.frames}")
+    pairs = sequence.frame_pairs(args.frames, args.stride)
+  elif args.pairs:
+    if not os.path.isfile(args.pairs):
+      raise FileNotFoundError(f"--pairs list not found: {args.pairs}")
+    pairs = sequence.list_pairs(args.pairs)
+  else:
+    pairs = sequence.video_frames(args.source, args.stride)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  counts = sequence.run(model, params, pairs, args.out, batch=args.batch, save=save,
+                        overwrite=args.overwrite)
+  print(f"{args.out}: {counts['done']} pairs written, {counts['skipped']} already there, "
+        f"{counts['failed']} failed (see manifest.jsonl); "
+        f"{counts['done'] / max(counts['seconds'], 1e-9):.2f} pairs/s end to end")
+  return 0
+
+
 def _infer_main(args) -> int:
+  from ufm_jax import sequence
+  if args.frames or args.pairs or (args.source and args.target is None and
+                                   pathlib.Path(args.source).suffix.lower() in sequence.VIDEO_SUFFIXES):
+    return _infer_many(args)
+  if not args.source or not args.target:
+    raise ValueError("infer needs SOURCE and TARGET images, a video file, --frames DIR or --pairs LIST")
   for p in (args.source, args.target):
     if not os.path.isfile(p):
       raise FileNotFoundError(f"image not found: {p}")
@@ -129,18 +169,122 @@ def _infer_main(args) -> int:
   return 0
 
 
+def _size_arg(text: str) -> tuple[int, int]:
+  from ufm_jax.data.synthetic import parse_size
+  try:
+    return parse_size(text)
+  except ValueError as e:
+    raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _batch_arg(text: str):
+  if text == "dynamic":
+    return text
+  if not text.isdigit() or int(text) < 1:
+    raise argparse.ArgumentTypeError(f"--batch must be a positive integer or 'dynamic', got {text!r}")
+  return int(text)
+
+
+def _add_checkpoint_args(p) -> None:
+  p.add_argument("--checkpoint", required=True,
+                 help="converted checkpoint, train.py workdir or HF snapshot folder")
+  p.add_argument("--snapshot", action="store_true",
+                 help="--checkpoint is an official Hugging Face snapshot (config.json + safetensors)")
+
+
+def _add_infer_parser(sub) -> None:
+  p = sub.add_parser("infer", help="flow + covisibility for one image pair")
+  p.add_argument("source", nargs="?", help="source image (flow is defined on its pixels), or a "
+                 "video file (consecutive frames)")
+  p.add_argument("target", nargs="?", help="target image")
+  _add_checkpoint_args(p)
+  p.add_argument("--out", required=True, help="output folder (created)")
+  p.add_argument("--bidirectional", action="store_true", help="also write target -> source")
+  g = p.add_argument_group("many pairs (see ufm_jax.sequence)")
+  g.add_argument("--frames", help="folder of frames: consecutive pairs in natural sort order")
+  g.add_argument("--pairs", help="text file, two image paths per line (relative to the file)")
+  g.add_argument("--stride", type=int, default=1, help="frame i is paired with frame i + stride")
+  g.add_argument("--batch", type=int, default=1, help="pairs per forward (last batch padded)")
+  g.add_argument("--save", default="", help="extra outputs besides .flo: comma list of npy,covis,panel")
+  g.add_argument("--overwrite", action="store_true", help="redo pairs whose outputs exist")
+  p.set_defaults(func=_infer_main)
+
+
+def _add_export_parser(sub) -> None:
+  from ufm_jax import export
+  p = sub.add_parser("export", help="StableHLO (jax.export) or ONNX artifact of the forward pass",
+                     description=export.__doc__.split("\n")[0])
+  _add_checkpoint_args(p)
+  p.add_argument("--size", required=True, type=_size_arg,
+                 help="HxW input size, multiples of the patch size (e.g. 420x560)")
+  p.add_argument("--out", required=True, help="artifact path (PATH.json is written beside it)")
+  p.add_argument("--batch", default=1, type=_batch_arg, help="pairs per call, or 'dynamic'")
+  p.add_argument("--dtype", default="float32", choices=export.DTYPES,
+                 help="compute dtype of encoder + transformer (heads stay float32)")
+  p.add_argument("--format", default="stablehlo", choices=export.FORMATS)
+  p.add_argument("--outputs", default=",".join(export.DEFAULT_OUTPUTS),
+                 help="comma-separated model outputs to keep (refinement models also have "
+                      "flow_before_refinement, residual, log_softmax, ...)")
+  p.set_defaults(func=_export_main)
+
+
+def _export_main(args) -> int:
+  from ufm_jax import export
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  outputs = [k.strip() for k in args.outputs.split(",") if k.strip()]
+  written = export.export(model, params, args.size, args.out, fmt=args.format, batch=args.batch,
+                          dtype=args.dtype, outputs=outputs,
+                          checkpoint=pathlib.Path(args.checkpoint).absolute())
+  for p in written:
+    print(p)
+  return 0
+
+
+def _add_match_parser(sub) -> None:
+  p = sub.add_parser("match", help="sparse matches (npz) for OpenCV / COLMAP from one image pair")
+  p.add_argument("source")
+  p.add_argument("target")
+  _add_checkpoint_args(p)
+  p.add_argument("--out", required=True, help="matches .npz: keypoints0, keypoints1, confidence")
+  p.add_argument("--draw", default=None, help="also draw the matches into this PNG")
+  p.add_argument("--num", type=int, default=5000)
+  p.add_argument("--min-covisibility", type=float, default=0.5)
+  p.add_argument("--bidirectional", action="store_true",
+                 help="keep forward-backward consistent matches only (--max-fb-error px)")
+  p.add_argument("--max-fb-error", type=float, default=1.0)
+  p.add_argument("--seed", type=int, default=0)
+  p.set_defaults(func=_match_main)
+
+
+def _match_main(args) -> int:
+  from ufm_jax import matching, viz
+  source, target = viz.read_image(args.source), viz.read_image(args.target)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  m = matching.match(model, params, source, target, num=args.num,
+                     min_covisibility=args.min_covisibility, bidirectional=args.bidirectional,
+                     max_fb_error_px=args.max_fb_error, seed=args.seed)
+  out = pathlib.Path(args.out)
+  out.parent.mkdir(parents=True, exist_ok=True)
+  tmp = out.with_name(f".{out.name}.tmp{os.getpid()}.npz")
+  np.savez(tmp, **m, image0_hw=np.array(source.shape[:2]), image1_hw=np.array(target.shape[:2]))
+  os.replace(tmp, out)
+  print(f"{out}: {len(m['keypoints0'])} matches")
+  if args.draw:
+    viz.write_png(args.draw, matching.draw_matches(source, target, m["keypoints0"], m["keypoints1"]))
+    print(args.draw)
+  return 0
+
+
+# Subcommands: each adds its parser (with set_defaults(func=...)) to the subparsers.
+SUBCOMMANDS = [_add_infer_parser, _add_export_parser, _add_match_parser]
+
+
 def main(argv: list[str] | None = None) -> int:
   argv = list(sys.argv[1:] if argv is None else argv)
   parser = argparse.ArgumentParser(prog="python -m ufm_jax", description=__doc__.split("\n")[0])
   sub = parser.add_subparsers(dest="command", required=True)
-  p = sub.add_parser("infer", help="flow + covisibility for one image pair")
-  p.add_argument("source", help="source image (flow is defined on its pixels)")
-  p.add_argument("target", help="target image")
-  p.add_argument("--checkpoint", required=True, help="converted checkpoint or HF snapshot folder")
-  p.add_argument("--out", required=True, help="output folder (created)")
-  p.add_argument("--snapshot", action="store_true",
-                 help="--checkpoint is an official Hugging Face snapshot (config.json + safetensors)")
-  p.add_argument("--bidirectional", action="store_true", help="also write target -> source")
+  for add in SUBCOMMANDS:
+    add(sub)
   sub.add_parser("convert", help="official HF snapshot -> orbax checkpoint (ufm_jax.convert)",
                  add_help=False)
   if argv and argv[0] == "convert":
@@ -148,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
     return convert.main(argv[1:]) or 0
   args = parser.parse_args(argv)
   try:
-    return _infer_main(args)
+    return args.func(args)
   except (FileNotFoundError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2

@@ -202,7 +202,8 @@ def estimate_pose(kpts0: np.ndarray, kpts1: np.ndarray, K0: np.ndarray, K1: np.n
 
 def sample_matches(flow: np.ndarray, covisibility: np.ndarray, num: int, rng, target_hw=None,
                    certainty_threshold: float = 0.05, balanced: bool = True,
-                   kde_sigma: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+                   kde_sigma: float = 0.1, min_covisibility: float = 0.0,
+                   return_index: bool = False):
   """Draws `num` matches from a dense flow weighted by covisibility (DKM/RoMa `sample`).
 
   Certainty = covisibility, zeroed where x + flow leaves the target image (size `target_hw`,
@@ -211,7 +212,10 @@ def sample_matches(flow: np.ndarray, covisibility: np.ndarray, num: int, rng, ta
   certainty; with `balanced`, re-draw min(num, #candidates) of them without replacement
   proportional to 1 / (1 + KDE density) (Gaussian, sigma 0.1 in the [-1, 1]-normalised 4-D match
   space; 1e-7 where density < 10) so that dense clusters do not dominate.
-  Returns (kpts0 [n, 2], kpts1 [n, 2]) in pixels (x, y), pixel centres at integers.
+  Pixels with covisibility below `min_covisibility` are never drawn (ufm_jax.match; the pose
+  benchmark keeps 0).
+  Returns (kpts0 [n, 2], kpts1 [n, 2]) in pixels (x, y), pixel centres at integers, plus the flat
+  source-pixel indices [n] with `return_index`.
   """
   flow = np.asarray(flow, np.float64)
   h, w = flow.shape[:2]
@@ -221,11 +225,13 @@ def sample_matches(flow: np.ndarray, covisibility: np.ndarray, num: int, rng, ta
   k1 = k0 + flow.reshape(-1, 2)
   cert = np.asarray(covisibility, np.float64).reshape(-1)
   inside = (k1[:, 0] >= -0.5) & (k1[:, 0] < w1 - 0.5) & (k1[:, 1] >= -0.5) & (k1[:, 1] < h1 - 0.5)
-  cert = np.where(inside & np.isfinite(cert) & np.isfinite(k1).all(1), cert, 0.0)
+  keep = inside & np.isfinite(cert) & np.isfinite(k1).all(1) & (cert >= min_covisibility)
+  cert = np.where(keep, cert, 0.0)
   cert = np.where(cert > certainty_threshold, 1.0, cert)
   nz = np.flatnonzero(cert > 0)
   if nz.size == 0:
-    return np.zeros((0, 2)), np.zeros((0, 2))
+    empty = (np.zeros((0, 2)), np.zeros((0, 2)))
+    return empty + (np.zeros(0, np.int64),) if return_index else empty
   n_cand = min(4 * num if balanced else num, nz.size)
   cand = rng.choice(nz, size=n_cand, replace=False, p=cert[nz] / cert[nz].sum())
   if balanced and n_cand > num:
@@ -239,7 +245,7 @@ def sample_matches(flow: np.ndarray, covisibility: np.ndarray, num: int, rng, ta
     q = 1.0 / (density + 1.0)
     q[density < 10] = 1e-7
     cand = rng.choice(cand, size=num, replace=False, p=q / q.sum())
-  return k0[cand], k1[cand]
+  return (k0[cand], k1[cand], cand) if return_index else (k0[cand], k1[cand])
 
 
 def pose_auc(errors, thresholds=(5, 10, 20)) -> dict[float, float]:

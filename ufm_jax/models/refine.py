@@ -85,7 +85,8 @@ class UNet(nn.Module):
     for i, f in enumerate(self.features):
       x = DoubleConv(f, dtype=self.dtype, name=f"downs_{i}")(x)
       skips.append(x)
-      x = nn.max_pool(x, (2, 2), strides=(2, 2), padding="VALID")
+      # keywords: jax2onnx's patched max_pool takes no positional window shape
+      x = nn.max_pool(x, window_shape=(2, 2), strides=(2, 2), padding="VALID")
     x = DoubleConv(2 * self.features[-1], dtype=self.dtype, name="bottleneck")(x)
     for k, f in enumerate(reversed(self.features)):
       x = UpConv2x2(f, dtype=self.dtype, name=f"ups_{2 * k}")(x)
@@ -202,16 +203,18 @@ def _tap_products(f1, f2, x0, y0, ntaps):
   xs = jnp.clip(x0 + t, 0, w + t)                                        # [N, h1, w1]
   ys = jnp.clip(y0 + t, 0, h + t)
 
-  def take(img, y, x):                                                   # -> [T, C]
-    zero = jnp.zeros((), jnp.int32)   # one index dtype, also under jax_enable_x64
-    return jax.lax.dynamic_slice(img, (y.astype(jnp.int32), x.astype(jnp.int32), zero),
-                                 (1, t, c))[0]
-
-  take_all = jax.vmap(jax.vmap(jax.vmap(take, (None, 0, 0)), (None, 0, 0)), (0, 0, 0))
+  # Flat row indices into the padded map and one plain take: the same values as a vmapped
+  # dynamic_slice, but a gather simple enough for ONNX export (jax2onnx converts it to Gather).
+  wp = w + 2 * t
+  f2f = f2p.reshape(-1, c)
+  start = ((jnp.arange(n, dtype=jnp.int32)[:, None, None] * (h + 2 * t) + ys.astype(jnp.int32)) * wp
+           + xs.astype(jnp.int32))                                       # [N, h1, w1]
+  cols = jnp.arange(t, dtype=jnp.int32)
 
   @jax.checkpoint   # backward re-gathers instead of storing [T, N, H, W, T, C]
   def row(i):
-    vals = take_all(f2p, ys + i, xs)                                     # [N, h1, w1, T, C]
+    idx = (start + i * wp)[..., None] + cols                             # [N, h1, w1, T]
+    vals = jnp.take(f2f, idx, axis=0, mode="clip")                       # [N, h1, w1, T, C]
     return jnp.einsum("nyxc,nyxtc->nyxt", f1, vals, precision=jax.lax.Precision.HIGHEST)
 
   _, dots = jax.lax.scan(lambda carry, i: (carry, row(i)), None, jnp.arange(t))

@@ -1,0 +1,164 @@
+"""Folder, pair-list and video inference for `python -m ufm_jax infer` (many pairs, one forward).
+
+Pairs come from `--frames DIR` (consecutive frames in natural sort order, `--stride k` apart),
+`--pairs LIST.txt` (two paths per line, relative to the list) or a video file (OpenCV). They go
+through `ufm_jax.predict` `--batch` at a time; the last batch is padded with its last pair so the
+compiled forward sees one shape. Reading and writing run in a small thread pool beside the
+device. Outputs per pair under OUT/<name>: `.flo` always, `--save npy,covis,panel` adds more;
+OUT/manifest.jsonl gets one line per pair (pair, files, mean covisibility, ms, or the error of an
+unreadable image, which is skipped). Existing outputs are skipped unless `overwrite`.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import json
+import os
+import pathlib
+import re
+import time
+
+import numpy as np
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".tif", ".tiff", ".webp")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
+SAVE_CHOICES = ("npy", "covis", "panel")
+
+
+def natural_key(name: str):
+  return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", str(name))]
+
+
+def frame_pairs(folder, stride: int = 1) -> list[tuple[str, str]]:
+  files = sorted((p for p in pathlib.Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
+                 key=lambda p: natural_key(p.name))
+  if len(files) < stride + 1:
+    raise ValueError(f"{folder}: {len(files)} images; need at least {stride + 1} for --stride {stride}")
+  return [(str(files[i]), str(files[i + stride])) for i in range(len(files) - stride)]
+
+
+def list_pairs(list_file) -> list[tuple[str, str]]:
+  root = pathlib.Path(list_file).parent
+  pairs = []
+  for n, line in enumerate(pathlib.Path(list_file).read_text().splitlines(), 1):
+    parts = line.split("#", 1)[0].split()
+    if not parts:
+      continue
+    if len(parts) != 2:
+      raise ValueError(f"{list_file}:{n}: expected two image paths, got {len(parts)} fields")
+    pairs.append(tuple(str(root / p) for p in parts))
+  return pairs
+
+
+def video_frames(path, stride: int = 1):
+  """Frames of a video as RGB uint8 arrays (OpenCV), as (name, image) with name frame_%06d."""
+  import cv2
+  cap = cv2.VideoCapture(str(path))
+  if not cap.isOpened():
+    raise ValueError(f"{path}: OpenCV cannot open this video")
+  frames, i = [], 0
+  while True:
+    ok, bgr = cap.read()
+    if not ok:
+      break
+    frames.append((f"frame_{i:06d}", cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)))
+    i += 1
+  cap.release()
+  return [(frames[i], frames[i + stride]) for i in range(len(frames) - stride)]
+
+
+def pair_name(a, b) -> str:
+  return f"{pathlib.Path(a).stem}__{pathlib.Path(b).stem}"
+
+
+def _outputs(out_dir: pathlib.Path, name: str, save) -> dict[str, pathlib.Path]:
+  files = {"flo": out_dir / f"{name}.flo"}
+  if "npy" in save:
+    files.update(npy=out_dir / f"{name}_flow.npy", cnpy=out_dir / f"{name}_covisibility.npy")
+  if "covis" in save:
+    files["cpng"] = out_dir / f"{name}_covisibility.png"
+  if "panel" in save:
+    files["panel"] = out_dir / f"{name}_panel.png"
+  return files
+
+
+def _write(files, source, target, pred):
+  from ufm_jax import viz
+  from ufm_jax.cli import _save_npy
+  from ufm_jax.data.io import write_flo
+  flow, covis = pred["flow"], pred["covisibility"]
+  if "npy" in files:
+    _save_npy(files["npy"], flow)
+    _save_npy(files["cnpy"], covis)
+  if "cpng" in files:
+    viz.write_png(files["cpng"], viz.covisibility_to_image(covis))
+  if "panel" in files:
+    viz.write_png(files["panel"], viz.panel(source, target, flow, covis))
+  write_flo(files["flo"], flow)  # last: its presence marks the pair done (resume)
+
+
+def run(model, params, pairs, out_dir, *, batch: int = 1, save=(), overwrite=False,
+        workers: int = 4, progress=True) -> dict:
+  """pairs: (source, target) of paths or of (name, image). Returns counts (done/skipped/failed)."""
+  from tqdm import tqdm
+
+  from ufm_jax import inference, viz
+
+  out_dir = pathlib.Path(out_dir)
+  out_dir.mkdir(parents=True, exist_ok=True)
+  todo, counts = [], {"done": 0, "skipped": 0, "failed": 0}
+  for a, b in pairs:
+    na, nb = (a[0] if isinstance(a, tuple) else a), (b[0] if isinstance(b, tuple) else b)
+    name = pair_name(na, nb)
+    files = _outputs(out_dir, name, save)
+    if not overwrite and all(f.exists() for f in files.values()):
+      counts["skipped"] += 1
+      continue
+    todo.append((a, b, str(na), str(nb), name, files))
+  manifest = open(out_dir / "manifest.jsonl", "a")
+
+  def load(item):
+    a, b = item[0], item[1]
+    try:
+      return (a[1] if isinstance(a, tuple) else viz.read_image(a),
+              b[1] if isinstance(b, tuple) else viz.read_image(b), None)
+    except (OSError, ValueError) as e:
+      return None, None, str(e)
+
+  pool = concurrent.futures.ThreadPoolExecutor(workers)
+  writes = []
+  bar = tqdm(total=len(todo), disable=not progress, unit="pair")
+  t_start = time.perf_counter()
+  try:
+    loads = [pool.submit(load, it) for it in todo]
+    for s in range(0, len(todo), batch):
+      chunk = [(todo[i], loads[i].result()) for i in range(s, min(s + batch, len(todo)))]
+      good = [(it, (x, y)) for it, (x, y, err) in chunk if err is None]
+      for it, (_, _, err) in chunk:
+        if err is not None:
+          print(f"warning: skipping pair {it[2]} -> {it[3]}: {err}")
+          manifest.write(json.dumps({"pair": [it[2], it[3]], "error": err}) + "\n")
+          counts["failed"] += 1
+      if good:
+        srcs = [g[1][0] for g in good] + [good[-1][1][0]] * (batch - len(good))
+        tgts = [g[1][1] for g in good] + [good[-1][1][1]] * (batch - len(good))
+        t0 = time.perf_counter()
+        preds = inference.predict(model, params, srcs, tgts, batch_size=batch)[:len(good)]
+        ms = 1e3 * (time.perf_counter() - t0) / len(good)
+        for (it, (x, y)), pred in zip(good, preds):
+          writes.append(pool.submit(_write, it[5], x, y, pred))
+          manifest.write(json.dumps({"pair": [it[2], it[3]], "name": it[4],
+                                     "files": [str(f) for f in it[5].values()],
+                                     "mean_covisibility": float(np.mean(pred["covisibility"])),
+                                     "ms": round(ms, 2)}) + "\n")
+          counts["done"] += 1
+      bar.update(len(chunk))
+      bar.set_postfix(pairs_per_s=f"{counts['done'] / (time.perf_counter() - t_start):.2f}")
+    for w in writes:
+      w.result()
+  finally:
+    bar.close()
+    pool.shutdown(wait=True)
+    manifest.close()
+  counts["seconds"] = time.perf_counter() - t_start
+  return counts
