@@ -34,9 +34,9 @@ def head_inputs(cfg, batch: int, hw):
 
 def measure(name: str, head_dtype: str, batch: int, hw, compile_step: bool) -> dict:
   from jax._src.ad_checkpoint import saved_residuals
-  from ufm_jax.cli import model_from_name
+  from ufm_jax.models import variants
   from ufm_jax.models import ufm
-  model = model_from_name(name, head_dtype=head_dtype)
+  model = variants.build_model(name, head_dtype=head_dtype)
   params = ufm.param_shapes(model)
   feats = head_inputs(model.config, batch, hw)
 

@@ -149,7 +149,8 @@ def test_model_init_puts_any_layout_into_the_model(official, reference_dir, tmp_
 def test_workdir_of_a_scan_run_loads_as_a_usable_model(tmp_path):
   """cli.load_workdir rebuilds the scan model from config.json; its stacked params run and
   equal the per-layer model on the unstacked params."""
-  model = cli.model_from_name("fixture_small", scan_blocks=True)
+  from ufm_jax.models import variants
+  model = variants.build_model("fixture_small", scan_blocks=True)
   params = ufm.init_params(model, seed=3)
   manager = checkpoint.make_manager(tmp_path, save_interval_steps=1, keep=1, async_save=False)
   checkpoint.save(manager, 7, {"params": params, "step": 7}, force=True)
