@@ -15,12 +15,16 @@ bench, the dataset folder itself. --resolution: 560 / 980 (longest side, source 
 multiples of 14), `native` (source size rounded to multiples of 14), or unset (the model config's
 inference resolution, as the official predict). Metrics are computed at the dataset's native
 resolution. Runtime = median forward time per pair after warm-up, excluding I/O, resize and unmap.
+The synthetic bench renders the task a train.py workdir was trained on (its config.json: pair type,
+size, shift) on the test split, and reports `epe_zero`, the EPE of predicting no motion, beside
+the model's `epe`: a model that matches is well below it.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import pathlib
 import sys
@@ -33,8 +37,8 @@ from ufm_jax.evaluators import base, report
 DEFAULT_WORKDIR = "workdirs/synthetic"
 RANDOM_MODEL = "tiny"  # ufm_jax.models.variants name used when there is no checkpoint at all
 def parse_args(argv=None):
-  ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
-                               formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+  ap = argparse.ArgumentParser(description=__doc__,
+                               formatter_class=argparse.RawDescriptionHelpFormatter)
   ap.add_argument("--bench", default="synthetic",
                   help=f"one of {', '.join(evaluators.BENCHES)}, a comma list, or 'all'")
   ap.add_argument("--checkpoint", default=None, help="converted checkpoint, training workdir or snapshot")
@@ -46,7 +50,7 @@ def parse_args(argv=None):
   ap.add_argument("--num_panels", type=int, default=8, help="panel PNGs for the first N pairs")
   ap.add_argument("--out", default="results", help="results.json goes here")
   ap.add_argument("--seed", type=int, default=0, help="pose RANSAC/sampling seed")
-  ap.add_argument("--no_progress", action="store_true")
+  ap.add_argument("--no_progress", action="store_true", help="no progress bars (logs, CI)")
   args = ap.parse_args(argv)
   if args.resolution is not None and args.resolution != "native":
     try:
@@ -54,6 +58,27 @@ def parse_args(argv=None):
     except ValueError:
       ap.error(f"--resolution must be an integer (560, 980) or 'native', got {args.resolution!r}")
   return args
+
+
+def model_dir(args) -> str | None:
+  """The folder the model comes from under the --checkpoint / --snapshot rules (None: random)."""
+  if args.snapshot or args.checkpoint:
+    return args.snapshot or args.checkpoint
+  return DEFAULT_WORKDIR if os.path.isdir(DEFAULT_WORKDIR) else None
+
+
+def synthetic_task(path) -> dict:
+  """The synthetic pairs a train.py workdir was trained on (pair type, size, shift), so the
+  synthetic bench evaluates that task, on its test split; {} for anything else."""
+  cfg_file = pathlib.Path(path or "") / "config.json"
+  if not path or not cfg_file.is_file():
+    return {}
+  cfg = json.loads(cfg_file.read_text())
+  opts = ((cfg.get("input") or {}).get("datasets") or {}).get("synthetic", {}).get("options")
+  if not opts:
+    return {}
+  return {k: (tuple(v) if isinstance(v, list) else v) for k, v in opts.items()
+          if k in ("pair_type", "size", "max_shift")}
 
 
 def load_model(args):
@@ -97,7 +122,9 @@ def main(argv=None) -> int:
   for name in names:
     bench = evaluators.BENCHES[name]
     try:
-      sources[name] = {s.label: evaluators.open_source(bench, s, args.data_root) for s in bench.splits}
+      opts = synthetic_task(model_dir(args)) if name == "synthetic" else {}
+      sources[name] = {s.label: evaluators.open_source(bench, s, args.data_root, **opts)
+                       for s in bench.splits}
     except evaluators.MissingDataError as e:
       if explicit:
         print(f"error: {e}", file=sys.stderr)

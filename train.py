@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import pathlib
+import re
 import sys
 import time
 
@@ -26,6 +27,9 @@ flags.mark_flags_as_required(["config", "workdir"])
 
 def main(argv):
   del argv
+  if not flags.FLAGS["verbosity"].present:
+    # One console line per log step plus warnings; --verbosity=0 shows the INFO logs (orbax's too).
+    logging.set_verbosity(logging.WARNING)
   config = _CONFIG.value
   workdir = pathlib.Path(_WORKDIR.value).absolute()
 
@@ -170,5 +174,18 @@ def _fmt_eta(sec):
   return f"{sec // 3600}h{sec % 3600 // 60:02d}m{sec % 60:02d}s"
 
 
+def _run():
+  try:
+    app.run(main)
+  except AttributeError as e:
+    # A mistyped --config.key=value: ml_collections' own message ("Did you mean ...") is the
+    # useful part; the traceback around it is not.
+    hint = re.search(r"Did you mean [^?]*\?", str(e))
+    if hint is None:
+      raise
+    print(f"error: unknown --config key. {hint.group(0)}", file=sys.stderr)
+    sys.exit(2)
+
+
 if __name__ == "__main__":
-  app.run(main)
+  _run()

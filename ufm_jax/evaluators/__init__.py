@@ -52,7 +52,8 @@ def make_metrics(bench: Bench, seed: int = 0):
   if bench.family == "flow":
     return FlowMetrics(kind=bench.option("kind", "sintel"))
   if bench.family == "dense":
-    return DenseMetrics()
+    # The synthetic task's absolute numbers mean little alone: report the zero-flow bar beside them.
+    return DenseMetrics(baselines=bench.name == "synthetic")
   if bench.family == "pose":
     return PoseMetrics(thresholds=bench.option("auc_thresholds", (5, 10, 15)), seed=seed)
   raise ValueError(f"bench {bench.name}: unknown family {bench.family!r}")
