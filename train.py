@@ -57,7 +57,9 @@ def main(argv):
 
   # ---------------------------------------------------------------------------------- data
   process_batch = sharding.local_batch_size(config.input.batch_size, mesh)
-  train_iter, data_info = trainer.build_input(config, process_batch, config.seed)
+  host_iter, data_info = trainer.build_input(config, process_batch, config.seed)
+  # Global batches, the next `device_prefetch` already on their way to the devices.
+  train_iter = sharding.DevicePrefetch(host_iter, mesh, config.get("device_prefetch", 2))
   pairs_per_epoch = int(data_info.get("pairs_per_epoch") or 0)
   if config.get("total_steps"):
     total_steps = int(config.total_steps)
@@ -126,8 +128,7 @@ def main(argv):
   with ckpt_lib.PreemptionGuard(mesh) as guard:
     keeper = ckpt_lib.Keeper(manager, guard, config.get("max_nonfinite_steps", 100), start_step)
     while step < total_steps:
-      local = next(train_iter)
-      batch = sharding.make_global_batch(local, mesh)
+      batch = next(train_iter)
       state, metrics = p_train_step(state, batch)
       step += 1
       if step % log_every == 0 or step == total_steps:

@@ -1,5 +1,7 @@
 """Sharding rules and mesh parsing (pure logic; the multi-device runs are in test_train_mesh.py)."""
 
+import json
+
 import jax
 import numpy as np
 import pytest
@@ -49,3 +51,35 @@ def test_local_batch_size_checks_divisibility():
   if jax.device_count() > 1:
     with pytest.raises(ValueError, match="divisible by the data\\*fsdp"):
       sharding.local_batch_size(jax.device_count() + 1, mesh)
+
+
+class _Counter:
+  """A checkpointable iterator of numbered batches (state = next index)."""
+
+  def __init__(self, n=10):
+    self.i, self.n = 0, n
+
+  def __next__(self):
+    if self.i >= self.n:
+      raise StopIteration
+    self.i += 1
+    return {"x": np.full((2, 3), self.i - 1, np.float32)}
+
+  def get_state(self):
+    return {"i": self.i}
+
+  def set_state(self, state):
+    self.i = state["i"]
+
+
+def test_device_prefetch_state_is_the_last_returned_batch():
+  mesh = sharding.make_mesh("data:-1,fsdp:1")
+  inner = _Counter()
+  it = sharding.DevicePrefetch(inner, mesh, depth=3)
+  got = [int(np.asarray(next(it)["x"])[0, 0]) for _ in range(4)]
+  assert got == [0, 1, 2, 3] and inner.i == 6  # three batches read ahead
+  state = it.get_state()
+  assert json.loads(state) == {"i": 4}
+  fresh = sharding.DevicePrefetch(_Counter(), mesh, depth=3)
+  fresh.set_state(state)
+  assert [int(np.asarray(b["x"])[0, 0]) for b in fresh] == [4, 5, 6, 7, 8, 9]

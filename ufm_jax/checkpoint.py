@@ -37,12 +37,11 @@ from flax import traverse_util
 
 
 def _grain_iterator(it) -> bool:
-  try:
-    from grain._src.python import data_loader
-    from grain._src.python.dataset import dataset as gds
-  except ImportError:  # pragma: no cover
-    return False
-  return isinstance(it, (data_loader.DataLoaderIterator, gds.DatasetIterator))
+  """Iterators whose state grain's handler checkpoints per process: grain's own, and wrappers
+  that declare `per_process_state` (sharding.DevicePrefetch)."""
+  import grain
+  return isinstance(it, (grain.DatasetIterator, grain.DataLoaderIterator)) or bool(
+      getattr(it, "per_process_state", False))
 
 
 def make_manager(workdir, save_interval_steps: int, keep: int, async_save: bool = True):

@@ -60,6 +60,7 @@ def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
   c.keep_ckpt = 3
   c.async_checkpoint = True
   c.log_training_steps = 50
+  c.device_prefetch = 2         # global batches transferred ahead of the step (1: none ahead)
   # Consecutive updates skipped for a non-finite loss or gradient before the run stops with exit
   # status 1 (a diverged run; restarting it would only replay the divergence). 0: never stop.
   c.max_nonfinite_steps = 100

@@ -17,6 +17,8 @@ Config:
 
 from __future__ import annotations
 
+import collections
+import json
 import os
 import re
 from typing import Any
@@ -191,6 +193,50 @@ def make_global_batch(local_batch: dict, mesh: Mesh) -> dict:
     if isinstance(v, (np.ndarray, jnp.ndarray)) and getattr(v, "ndim", 0) >= 1:
       out[k] = jax.make_array_from_process_local_data(sharding, np.asarray(v))
   return out
+
+
+class DevicePrefetch:
+  """Global batches from an iterator of this process's numpy batches, `depth` of them already
+  handed to the devices (transfers are asynchronous), so loading and transfer overlap the step.
+
+  Checkpointable like the iterator it wraps: `get_state()` is the wrapped iterator's position
+  after the last batch *returned* (batches still queued are read again after a restore), as JSON
+  bytes, which grain's per-process checkpoint handler stores (`per_process_state`).
+  """
+  per_process_state = True
+
+  def __init__(self, iterator, mesh: Mesh, depth: int = 2):
+    self.iterator, self.mesh, self.depth = iterator, mesh, max(int(depth), 1)
+    self.queue = collections.deque()  # (wrapped state before the batch, global batch)
+
+  def __iter__(self):
+    return self
+
+  def __next__(self):
+    while len(self.queue) < self.depth:
+      before = self._inner_state()
+      try:
+        local = next(self.iterator)
+      except StopIteration:
+        if not self.queue:
+          raise
+        break
+      self.queue.append((before, make_global_batch(local, self.mesh)))
+    return self.queue.popleft()[1]
+
+  def _inner_state(self):
+    return self.iterator.get_state() if hasattr(self.iterator, "get_state") else None
+
+  def get_state(self) -> bytes:
+    state = self.queue[0][0] if self.queue else self._inner_state()
+    return json.dumps(state).encode()
+
+  def set_state(self, state) -> None:
+    self.queue.clear()
+    self.iterator.set_state(json.loads(state) if isinstance(state, (bytes, str)) else state)
+
+  def start_prefetch(self) -> None:  # called by grain's checkpoint handler after a restore
+    pass
 
 
 def local_batch_size(global_batch_size: int, mesh: Mesh) -> int:
