@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from ufm_jax import cli, inference, viz
-from ufm_jax.data.io import read_flo
+from ufm_jax import cli
+from ufm_jax.data.io import read_flo, read_image
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -28,8 +28,8 @@ def io(reference_dir):
 @pytest.fixture()
 def pair_files(io, tmp_path):
   src, tgt = tmp_path / "src.png", tmp_path / "tgt.png"
-  viz.write_png(src, io["hl1_src_uint8"])
-  viz.write_png(tgt, io["hl1_tgt_uint8"])
+  io.write_image(src, io["hl1_src_uint8"])
+  io.write_image(tgt, io["hl1_tgt_uint8"])
   return src, tgt
 
 
@@ -59,7 +59,7 @@ def test_run_infer_writes_all_files(io, pair_files, tmp_path):
   np.testing.assert_allclose(flo, io["hl1_flow"][0].transpose(1, 2, 0), atol=1e-3)
   np.testing.assert_array_equal(np.load(out / "forward_flow.npy"), flo)
   assert read_flo(out / "backward.flo").shape == io["hl1_tgt_uint8"].shape[:2] + (2,)
-  panel = viz.read_image(out / "forward_panel.png")
+  panel = read_image(out / "forward_panel.png")
   assert panel.shape == (200, 4 * 300, 3)
   np.testing.assert_array_equal(panel[:, :300], io["hl1_src_uint8"])
   assert not list(out.glob("*.tmp*"))

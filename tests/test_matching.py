@@ -4,8 +4,8 @@ covisibility in place of a prediction) the matches obey the epipolar geometry an
 import numpy as np
 import pytest
 
-from ufm_jax import cli, matching, metrics, viz
-from ufm_jax.data import synthetic
+from ufm_jax import cli, matching, metrics
+from ufm_jax.data import io, synthetic
 
 
 @pytest.fixture(scope="module")
@@ -65,8 +65,8 @@ class _GroundTruth:
 def test_match_cli_writes_npz_and_drawing(scene, tmp_path, monkeypatch):
   fwd, _ = scene
   src, tgt = tmp_path / "a.png", tmp_path / "b.png"
-  viz.write_png(src, fwd["image0"])
-  viz.write_png(tgt, fwd["image1"])
+  io.write_image(src, fwd["image0"])
+  io.write_image(tgt, fwd["image1"])
   monkeypatch.setattr(cli, "load_model", lambda *a, **k: (_GroundTruth(fwd), {}))
   assert cli.main(["match", str(src), str(tgt), "--checkpoint", str(tmp_path), "--out",
                    str(tmp_path / "m.npz"), "--draw", str(tmp_path / "m.png"), "--num", "200"]) == 0
@@ -74,4 +74,4 @@ def test_match_cli_writes_npz_and_drawing(scene, tmp_path, monkeypatch):
   assert d["keypoints0"].shape == (200, 2) and d["confidence"].shape == (200,)
   flow = fwd["flow"][d["keypoints0"][:, 1].astype(int), d["keypoints0"][:, 0].astype(int)]
   np.testing.assert_allclose(d["keypoints1"], d["keypoints0"] + flow, atol=1e-3)
-  assert viz.read_image(tmp_path / "m.png").shape == (96, 256, 3)
+  assert io.read_image(tmp_path / "m.png").shape == (96, 256, 3)

@@ -5,7 +5,8 @@ import json
 
 import numpy as np
 
-from ufm_jax import cli, sequence, viz
+from ufm_jax import cli, sequence
+from ufm_jax.data import io
 from ufm_jax.data.io import read_flo
 
 
@@ -27,7 +28,7 @@ class _Shift:
 def _frames(folder, n):
   folder.mkdir()
   for i in range(n):  # values 10 * i: a natural-order pair (i, i + 1) has flow -10
-    viz.write_png(folder / f"f{i}.png", np.full((28, 42, 3), 10 * i, np.uint8))
+    io.write_image(folder / f"f{i}.png", np.full((28, 42, 3), 10 * i, np.uint8))
   return folder
 
 

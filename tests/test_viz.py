@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 
 from ufm_jax import viz
+from ufm_jax.data import io
 
 
 def test_colorwheel_is_middlebury():
@@ -61,8 +62,8 @@ def test_grey_out_and_panel(tmp_path):
   p = viz.panel(img, img[:3, :5], np.zeros((6, 8, 2), np.float32), covis)
   assert p.shape == (6, 32, 3) and p.dtype == np.uint8
   path = tmp_path / "panel.png"
-  viz.write_png(path, p)
-  np.testing.assert_array_equal(viz.read_image(path), p)
+  io.write_image(path, p)
+  np.testing.assert_array_equal(io.read_image(path), p)
   grey = viz.covisibility_to_image(covis)
-  viz.write_png(tmp_path / "c.png", grey)
+  io.write_image(tmp_path / "c.png", grey)
   np.testing.assert_array_equal(cv2.imread(str(tmp_path / "c.png"), cv2.IMREAD_UNCHANGED), grey)

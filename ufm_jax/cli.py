@@ -86,18 +86,18 @@ def load_model(path: str | os.PathLike, snapshot: bool = False):
 def write_direction(out_dir: pathlib.Path, name: str, source, target, pred) -> list[pathlib.Path]:
   """Writes the files of one direction (atomically); returns their paths."""
   from ufm_jax import viz
-  from ufm_jax.data.io import write_flo
+  from ufm_jax.data import io
 
   flow = np.asarray(pred["flow"], np.float32)
   covis = np.asarray(pred["covisibility"], np.float32)
   paths = {k: out_dir / f"{name}{suffix}" for k, suffix in (
       ("flo", ".flo"), ("npy", "_flow.npy"), ("cnpy", "_covisibility.npy"),
       ("cpng", "_covisibility.png"), ("panel", "_panel.png"))}
-  write_flo(paths["flo"], flow)
+  io.write_flo(paths["flo"], flow)
   _save_npy(paths["npy"], flow)
   _save_npy(paths["cnpy"], covis)
-  viz.write_png(paths["cpng"], viz.covisibility_to_image(covis))
-  viz.write_png(paths["panel"], viz.panel(source, target, flow, covis))
+  io.write_image(paths["cpng"], viz.covisibility_to_image(covis))
+  io.write_image(paths["panel"], viz.panel(source, target, flow, covis))
   return list(paths.values())
 
 
@@ -110,9 +110,10 @@ def _save_npy(path: pathlib.Path, array: np.ndarray) -> None:
 
 def run_infer(model, params, source_path, target_path, out_dir, bidirectional=False):
   """Reads the two images, predicts, writes the outputs; returns the written paths."""
-  from ufm_jax import inference, viz
+  from ufm_jax import inference
+  from ufm_jax.data import io
 
-  source, target = viz.read_image(source_path), viz.read_image(target_path)
+  source, target = io.read_image(source_path), io.read_image(target_path)
   out_dir = pathlib.Path(out_dir)
   out_dir.mkdir(parents=True, exist_ok=True)
   if bidirectional:
@@ -257,8 +258,9 @@ def _add_match_parser(sub) -> None:
 
 
 def _match_main(args) -> int:
-  from ufm_jax import matching, viz
-  source, target = viz.read_image(args.source), viz.read_image(args.target)
+  from ufm_jax import matching
+  from ufm_jax.data import io
+  source, target = io.read_image(args.source), io.read_image(args.target)
   model, params = load_model(args.checkpoint, snapshot=args.snapshot)
   m = matching.match(model, params, source, target, num=args.num,
                      min_covisibility=args.min_covisibility, bidirectional=args.bidirectional,
@@ -270,7 +272,7 @@ def _match_main(args) -> int:
   os.replace(tmp, out)
   print(f"{out}: {len(m['keypoints0'])} matches")
   if args.draw:
-    viz.write_png(args.draw, matching.draw_matches(source, target, m["keypoints0"], m["keypoints1"]))
+    io.write_image(args.draw, matching.draw_matches(source, target, m["keypoints0"], m["keypoints1"]))
     print(args.draw)
   return 0
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import json
-import os
 import pathlib
 import re
 import time
@@ -85,16 +84,16 @@ def _outputs(out_dir: pathlib.Path, name: str, save) -> dict[str, pathlib.Path]:
 def _write(files, source, target, pred):
   from ufm_jax import viz
   from ufm_jax.cli import _save_npy
-  from ufm_jax.data.io import write_flo
+  from ufm_jax.data import io
   flow, covis = pred["flow"], pred["covisibility"]
   if "npy" in files:
     _save_npy(files["npy"], flow)
     _save_npy(files["cnpy"], covis)
   if "cpng" in files:
-    viz.write_png(files["cpng"], viz.covisibility_to_image(covis))
+    io.write_image(files["cpng"], viz.covisibility_to_image(covis))
   if "panel" in files:
-    viz.write_png(files["panel"], viz.panel(source, target, flow, covis))
-  write_flo(files["flo"], flow)  # last: its presence marks the pair done (resume)
+    io.write_image(files["panel"], viz.panel(source, target, flow, covis))
+  io.write_flo(files["flo"], flow)  # last: its presence marks the pair done (resume)
 
 
 def run(model, params, pairs, out_dir, *, batch: int = 1, save=(), overwrite=False,
@@ -102,7 +101,8 @@ def run(model, params, pairs, out_dir, *, batch: int = 1, save=(), overwrite=Fal
   """pairs: (source, target) of paths or of (name, image). Returns counts (done/skipped/failed)."""
   from tqdm import tqdm
 
-  from ufm_jax import inference, viz
+  from ufm_jax import inference
+  from ufm_jax.data import io
 
   out_dir = pathlib.Path(out_dir)
   out_dir.mkdir(parents=True, exist_ok=True)
@@ -120,8 +120,8 @@ def run(model, params, pairs, out_dir, *, batch: int = 1, save=(), overwrite=Fal
   def load(item):
     a, b = item[0], item[1]
     try:
-      return (a[1] if isinstance(a, tuple) else viz.read_image(a),
-              b[1] if isinstance(b, tuple) else viz.read_image(b), None)
+      return (a[1] if isinstance(a, tuple) else io.read_image(a),
+              b[1] if isinstance(b, tuple) else io.read_image(b), None)
     except (OSError, ValueError) as e:
       return None, None, str(e)
 

@@ -5,7 +5,6 @@ All images are HWC uint8 RGB numpy arrays; flow is [H, W, 2] float (u right, v d
 
 from __future__ import annotations
 
-import os
 
 import cv2
 import numpy as np
@@ -114,24 +113,3 @@ def panel(source: np.ndarray, target: np.ndarray, flow: np.ndarray,
   return np.concatenate([source, tgt_small, colours, warped], axis=1)
 
 
-def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
-  """RGB (or grey) uint8 image -> PNG, written atomically (temp file + rename)."""
-  from ufm_jax.data.io import encode_png
-  try:
-    png = encode_png(image)
-  except ValueError as e:
-    raise ValueError(f"write_png({path}): {e}") from e
-  tmp = f"{path}.tmp{os.getpid()}"
-  with open(tmp, "wb") as f:
-    f.write(png)
-  os.replace(tmp, path)
-
-
-def read_image(path: str | os.PathLike) -> np.ndarray:
-  """Image file -> HWC uint8 RGB; a clear error if missing or unreadable."""
-  if not os.path.isfile(path):
-    raise FileNotFoundError(f"image not found: {path}")
-  img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-  if img is None:
-    raise ValueError(f"{path}: OpenCV could not decode this file as an image")
-  return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

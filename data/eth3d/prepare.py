@@ -31,6 +31,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 from ufm_jax import data  # pylint: disable=g-import-not-at-top
+from ufm_jax.data import io  # pylint: disable=g-import-not-at-top
 from ufm_jax.data.sources import _exr, _posed  # pylint: disable=g-import-not-at-top
 
 
@@ -97,7 +98,7 @@ def prepare_scene(raw, out, scene, scale, progress=True):
     cd = cams_d.get(cam_of_d.get(os.path.basename(name), entry["camera_id"]))
     if cd is None or cd["model"] != "THIN_PRISM_FISHEYE":
       raise ValueError(f"{cams_d_path}: no THIN_PRISM_FISHEYE camera for {name}")
-    img = _posed.read_image(os.path.join(base, "images", name))
+    img = io.read_image(os.path.join(base, "images", name))
     h, w = round(cu["height"] * scale), round(cu["width"] * scale)
     K = _posed.colmap_to_opencv_K(_posed.colmap_K(cu, und))
     K_out = K.copy()

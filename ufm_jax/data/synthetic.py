@@ -35,6 +35,7 @@ import sys
 import numpy as np
 
 from ufm_jax import geometry as geo
+from ufm_jax.data import io
 
 PAIR_TYPES = ("flow", "wide", "mixed", "pan", "shift")
 _SPLITS = {"train": 0, "val": 1, "test": 2}
@@ -436,22 +437,10 @@ def pair_seed(seed: int, split: str, index: int) -> np.random.SeedSequence:
 # Writing the pair-folder format
 
 
-def _write_png(path, array):
-  import cv2
-  tmp = f"{path}.tmp{os.getpid()}.png"
-  img = np.asarray(array)
-  if img.ndim == 3:
-    img = img[..., ::-1]  # RGB -> BGR for OpenCV
-  if not cv2.imwrite(tmp, np.ascontiguousarray(img)):
-    raise OSError(f"could not write {path}")
-  os.replace(tmp, path)
-
-
 def _write_labels(folder, sample):
-  from ufm_jax.data.io import write_flo
-  write_flo(os.path.join(folder, "flow.flo"), sample["flow"])
+  io.write_flo(os.path.join(folder, "flow.flo"), sample["flow"])
   for key in ("covisibility", "flow_valid", "covis_valid"):
-    _write_png(os.path.join(folder, f"{key}.png"), np.asarray(sample[key], np.uint8) * 255)
+    io.write_image(os.path.join(folder, f"{key}.png"), np.asarray(sample[key], np.uint8) * 255)
 
 
 def _jsonable(meta):
@@ -469,8 +458,8 @@ def write_pair(folder: str, forward: dict, backward: dict | None = None, extra_m
   tmp = os.path.join(parent, f".{os.path.basename(folder)}.tmp{os.getpid()}")
   shutil.rmtree(tmp, ignore_errors=True)
   os.makedirs(tmp)
-  _write_png(os.path.join(tmp, "image0.png"), forward["image0"])
-  _write_png(os.path.join(tmp, "image1.png"), forward["image1"])
+  io.write_image(os.path.join(tmp, "image0.png"), forward["image0"])
+  io.write_image(os.path.join(tmp, "image1.png"), forward["image1"])
   _write_labels(tmp, forward)
   meta = _jsonable(forward["meta"])
   meta.update(extra_meta or {})

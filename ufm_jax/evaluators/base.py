@@ -110,18 +110,18 @@ class PredictionWriter:
     if self.root is None:
       return
     from ufm_jax import viz
-    from ufm_jax.data.io import write_flo
+    from ufm_jax.data import io
 
     rel = pathlib.PurePosixPath(relpath_of(sample, index)).with_suffix("")
     base = self.root / bench / rel
     base.parent.mkdir(parents=True, exist_ok=True)
-    write_flo(base.with_suffix(".flo"), pred["flow"])
-    viz.write_png(base.parent / (base.name + "_covisibility.png"),
+    io.write_flo(base.with_suffix(".flo"), pred["flow"])
+    io.write_image(base.parent / (base.name + "_covisibility.png"),
                   viz.covisibility_to_image(pred["covisibility"]))
     if self.written.get(bench, 0) < self.num_panels:
       panels = self.root / bench / "panels"
       panels.mkdir(parents=True, exist_ok=True)
-      viz.write_png(panels / (str(rel).replace("/", "__") + ".png"),
+      io.write_image(panels / (str(rel).replace("/", "__") + ".png"),
                     viz.panel(sample["image0"], sample["image1"], pred["flow"], pred["covisibility"]))
     self.written[bench] = self.written.get(bench, 0) + 1
 

@@ -10,9 +10,8 @@ Each dataset module converts its own conventions (w2c, OpenGL/NED axes, COLMAP +
 point, range depth, millimetres) into a `View` right where it reads the files, so the conversion
 is next to the fact it relies on.
 
-File decoders that several datasets share live here too (PFM, LMB float3, MVSNet cam.txt, COLMAP
-text). `ufm_jax/data/io.py` is being extended with PFM/PNG16/HDF5 helpers in parallel; the PFM
-decoder below is local so this module does not depend on that landing first.
+Camera and pair-list decoders that several posed datasets share live here too (MVSNet cam.txt,
+COLMAP text); array formats (PFM, LMB float3, PNG16) are in `ufm_jax/data/io.py`.
 
 Pair lists: every posed source reads `<root>/pairs_<split>.txt` when present (one pair per line,
 `scene frame0 frame1 [score]`, whitespace separated, `#` comments), the format written by
@@ -24,29 +23,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-import re
 from typing import Sequence
 
-import cv2
 import numpy as np
 
-from ufm_jax.data import decode
-
-# Thresholds for the benchmark sets, which supplementary Table S1 does not list: the static-scene
-# values (tau_d scene units, tau_r relative) in the units each reader returns (metres for DTU and
-# ETH3D; TA-WB is TartanAir geometry and uses the TartanAir row).
-_BENCH_THRESHOLDS = {"eth3d": (0.1, 0.005), "dtu": (0.01, 0.005), "tawb": (0.1, 0.01),
-                     "scannet1500": (0.1, 0.005)}
-
-
-def covis_thresholds(name: str) -> tuple[float, float]:
-  """(tau_d, tau_r) for `name`: geometry's Table S1 first, then the benchmark defaults above."""
-  from ufm_jax import geometry
-  if name in geometry.COVIS_THRESHOLDS:
-    return tuple(geometry.COVIS_THRESHOLDS[name])
-  if name in _BENCH_THRESHOLDS:
-    return _BENCH_THRESHOLDS[name]
-  raise KeyError(f"no covisibility thresholds for dataset {name!r}")
+from ufm_jax import geometry
 
 
 @dataclasses.dataclass
@@ -69,68 +50,6 @@ def require_file(path: str, what: str) -> str:
   if not os.path.isfile(path):
     raise FileNotFoundError(f"{path}: missing file (expected {what})")
   return path
-
-
-def read_image(path: str) -> np.ndarray:
-  """Colour image -> [H, W, 3] uint8 RGB (alpha dropped)."""
-  require_file(path, "an RGB image")
-  with open(path, "rb") as f:
-    buf = f.read()
-  img = decode.decode_png(buf, rgb=True)  # the common PNGs, ~2x faster than OpenCV here
-  if img is not None and img.dtype == np.uint8:
-    if img.ndim == 2:
-      return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
-    return img if img.shape[2] == 3 else cv2.cvtColor(img, cv2.COLOR_RGBA2RGB)
-  # IMREAD_COLOR (not UNCHANGED): JPEGs are turned by their EXIF orientation, as before.
-  img = cv2.imdecode(np.frombuffer(buf, np.uint8), _IMREAD_RGB or cv2.IMREAD_COLOR)
-  if img is None:
-    raise ValueError(f"{path}: not a decodable image")
-  # cvtColor: a plain channel swap, ~20x faster than [..., ::-1]
-  return img if _IMREAD_RGB is not None else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-
-_IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)  # OpenCV >= 4.11 decodes straight to RGB
-
-
-def read_pfm(path: str) -> np.ndarray:
-  """PFM -> [H, W] or [H, W, 3] float32 (rows stored bottom-to-top, scale sign = endianness)."""
-  require_file(path, "a PFM depth map")
-  with open(path, "rb") as f:
-    tag = f.readline().strip()
-    if tag not in (b"PF", b"Pf"):
-      raise ValueError(f"{path}: not a PFM file (header {tag[:8]!r}, expected PF or Pf)")
-    dims = re.match(rb"^\s*(\d+)\s+(\d+)\s*$", f.readline())
-    if not dims:
-      raise ValueError(f"{path}: malformed PFM size line")
-    w, h = int(dims.group(1)), int(dims.group(2))
-    try:
-      scale = float(f.readline())
-    except ValueError as e:
-      raise ValueError(f"{path}: malformed PFM scale line") from e
-    c = 3 if tag == b"PF" else 1
-    data = np.frombuffer(f.read(), "<f4" if scale < 0 else ">f4")
-  if data.size != h * w * c:
-    raise ValueError(f"{path}: PFM holds {data.size} floats, expected {h}x{w}x{c}")
-  shape = (h, w, 3) if c == 3 else (h, w)
-  return np.ascontiguousarray(data.reshape(shape)[::-1]).astype(np.float32)
-
-
-def read_float3(path: str) -> np.ndarray:
-  """LMB `.float3` (StaticThings3D): 'float', ndim, dims fastest-first, raw little-endian f32."""
-  require_file(path, "an LMB .float3 array")
-  with open(path, "rb") as f:
-    if f.readline().strip() != b"float":
-      raise ValueError(f"{path}: not an LMB float3 file (first line must be 'float')")
-    try:
-      ndim = int(f.readline())
-      dims = [int(f.readline()) for _ in range(ndim)]
-    except ValueError as e:
-      raise ValueError(f"{path}: malformed float3 dimension header") from e
-    data = np.frombuffer(f.read(), "<f4")
-  shape = tuple(reversed(dims))
-  if data.size != int(np.prod(shape)):
-    raise ValueError(f"{path}: float3 holds {data.size} floats, expected shape {shape}")
-  return data.reshape(shape).astype(np.float32)
 
 
 def read_mvsnet_cam(path: str) -> tuple[np.ndarray, np.ndarray]:
@@ -302,8 +221,7 @@ def check_view(v: View, where: str) -> View:
 def pair_sample(dataset: str, scene: str, frames: tuple, v0: View, v1: View,
                 thresholds: tuple[float, float] | None = None, extra_meta: dict | None = None):
   """Two posed views -> the common sample dict (flow / covisibility from depth reprojection)."""
-  from ufm_jax import geometry
-  tau_d, tau_r = thresholds if thresholds is not None else covis_thresholds(dataset)
+  tau_d, tau_r = thresholds if thresholds is not None else geometry.covis_thresholds(dataset)
   corr = geometry.correspondence_from_depth(v0.depth, v0.K, v0.cam2world, v1.depth, v1.K,
                                             v1.cam2world, tau_d, tau_r)
   return labelled_sample(dataset, scene, frames, v0, v1, corr, extra_meta)
@@ -313,7 +231,6 @@ def labelled_sample(dataset, scene, frames, v0: View, v1: View, corr: dict, extr
   """Geometry output -> sample dict. flow_valid = flow geometrically defined (valid source depth,
   in front of camera 1), as geometry.labels_from_correspondence; the flow loss additionally
   restricts to `covisibility` (paper eq. 3)."""
-  from ufm_jax import geometry
   labels = geometry.labels_from_correspondence(corr)
   meta = dict(dataset=dataset, scene=scene, frame0=str(frames[0]), frame1=str(frames[1]),
               K0=np.asarray(v0.K, np.float32), K1=np.asarray(v1.K, np.float32),
@@ -382,7 +299,7 @@ class PosedPairSource:
     scene, f0, f1 = self.pairs[i]
     v0 = check_view(self.load_view(scene, f0), f"{self.name}:{scene}/{f0}")
     v1 = check_view(self.load_view(scene, f1), f"{self.name}:{scene}/{f1}")
-    thresholds = self.thresholds or covis_thresholds(self.name)
+    thresholds = self.thresholds or geometry.covis_thresholds(self.name)
     return pair_sample(self.name, scene, (f0, f1), v0, v1, thresholds)
 
 
@@ -400,7 +317,6 @@ def subsample_view(v: View, stride: int) -> View:
 
 def mutual_covisibility(v0: View, v1: View, thresholds) -> tuple[float, float]:
   """Fractions of all pixels of view 0 (resp. 1) that are covisible in the other view."""
-  from ufm_jax import geometry
   f = geometry.correspondence_from_depth(v0.depth, v0.K, v0.cam2world, v1.depth, v1.K,
                                          v1.cam2world, *thresholds)
   b = geometry.correspondence_from_depth(v1.depth, v1.K, v1.cam2world, v0.depth, v0.K,
@@ -415,7 +331,7 @@ def mine_pairs(source: "PosedPairSource", scenes=None, min_covis: float = 0.25,
   Unreadable views are skipped and reported."""
   import itertools
   import tqdm
-  thresholds = source.thresholds or covis_thresholds(source.name)
+  thresholds = source.thresholds or geometry.covis_thresholds(source.name)
   out, skipped = [], []
   for scene in tqdm.tqdm(scenes if scenes is not None else source.scenes(), desc="scenes",
                          disable=not progress):

@@ -18,6 +18,7 @@ import os
 import numpy as np
 
 from ufm_jax.data.registry import register
+from ufm_jax.data import io
 from ufm_jax.data.sources import _posed
 
 
@@ -67,7 +68,7 @@ class BlendedMVS(_posed.PosedPairSource):
   def load_view(self, scene, frame):
     d = os.path.join(self.root, scene)
     w2c, K = _posed.read_mvsnet_cam(os.path.join(d, "cams", f"{frame}_cam.txt"))
-    depth = _posed.sanitize_depth(_posed.read_pfm(
+    depth = _posed.sanitize_depth(io.read_pfm(
         os.path.join(d, "rendered_depth_maps", f"{frame}.pfm")))
-    image = _posed.read_image(os.path.join(d, "blended_images", f"{frame}.jpg"))
+    image = io.read_image(os.path.join(d, "blended_images", f"{frame}.jpg"))
     return _posed.View(image, depth, K, np.linalg.inv(w2c))

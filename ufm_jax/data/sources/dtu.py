@@ -20,6 +20,7 @@ import os
 import numpy as np
 
 from ufm_jax.data.registry import register
+from ufm_jax.data import io
 from ufm_jax.data.sources import _posed
 
 EVAL_SCANS = (1, 4, 9, 10, 11, 12, 13, 15, 23, 24, 29, 32, 33, 34, 48, 49, 62, 75, 77, 110, 114,
@@ -64,8 +65,8 @@ class DTU(_posed.PosedPairSource):
     w2c, K = _posed.read_mvsnet_cam(os.path.join(self.root, "Cameras", f"{v:08d}_cam.txt"))
     c2w = np.linalg.inv(w2c)
     c2w[:3, 3] /= 1000.0
-    image = _posed.read_image(os.path.join(self.root, "Rectified", scene,
+    image = io.read_image(os.path.join(self.root, "Rectified", scene,
                                            f"rect_{v + 1:03d}_{self.light}_r5000.png"))
-    depth = _posed.sanitize_depth(_posed.read_pfm(
+    depth = _posed.sanitize_depth(io.read_pfm(
         os.path.join(self.root, "Depths_raw", scene, f"depth_map_{v:04d}.pfm")), scale=1e-3)
     return _posed.View(image, depth, K, c2w)

@@ -19,6 +19,7 @@ import os
 
 import numpy as np
 
+from ufm_jax.data import io
 from ufm_jax.data.registry import register
 from ufm_jax.data.sources import _exr, _posed
 
@@ -77,6 +78,6 @@ class Habitat(_posed.PosedPairSource):
     K, c2w = read_camera_params(os.path.join(d, f"{frame}_camera_params.json"))
     if not np.isfinite(c2w).all():
       raise ValueError(f"{os.path.join(d, frame)}_camera_params.json: non-finite pose")
-    image = _posed.read_image(os.path.join(d, f"{frame}.jpeg"))
+    image = io.read_image(os.path.join(d, f"{frame}.jpeg"))
     depth = _posed.sanitize_depth(_exr.read_exr(os.path.join(d, f"{frame}_depth.exr")))
     return _posed.View(image, depth, K, c2w)

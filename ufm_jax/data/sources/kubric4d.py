@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from ufm_jax.data.registry import register
+from ufm_jax.data import io
 from ufm_jax.data.sources import _posed
 
 SPLITS = {"train": (0, 2800), "val": (2800, 2900), "test": (2900, 10 ** 9)}
@@ -241,7 +242,7 @@ class Kubric4D(_posed.PosedPairSource):
     v, t = (int(x) for x in frame.split("/"))
     meta = self.metadata(scene, v)
     d = os.path.join(self.root, scene, f"frames_p0_v{v}")
-    image = _posed.read_image(os.path.join(d, f"rgba_{t:05d}.png"))
+    image = io.read_image(os.path.join(d, f"rgba_{t:05d}.png"))
     path = os.path.join(d, f"depth_{t:05d}.tiff")
     _posed.require_file(path, "a Kubric float32 range TIFF")
     rng = cv2.imread(path, cv2.IMREAD_UNCHANGED)
@@ -279,7 +280,7 @@ class Kubric4D(_posed.PosedPairSource):
     if seg0.shape != v0.depth.shape:
       raise ValueError(f"kubric4d:{scene}/{f0}: segmentation {seg0.shape} vs depth "
                        f"{v0.depth.shape}")
-    tau_d, tau_r = self.thresholds or _posed.covis_thresholds(self.name)
+    tau_d, tau_r = self.thresholds or geometry.covis_thresholds(self.name)
     # Object poses are scene properties; every view's metadata carries them.
     corr = geometry.correspondence_from_rigid_objects(
         v0.depth, v0.K, v0.cam2world, seg0, object_poses(m0, t0), v1.depth, v1.K, v1.cam2world,

@@ -24,6 +24,7 @@ import h5py
 import numpy as np
 
 from ufm_jax.data.registry import register
+from ufm_jax.data import io
 from ufm_jax.data.sources import _posed
 
 _VAL_SCENES = ("0015", "0022")
@@ -108,7 +109,7 @@ class MegaDepth(_posed.PosedPairSource):
   def load_view(self, scene, frame):
     s, n = scene.split("/")
     dense = os.path.join(self.root, s, f"dense{n}")
-    image = _posed.read_image(os.path.join(dense, "imgs", frame))
+    image = io.read_image(os.path.join(dense, "imgs", frame))
     depth = _posed.sanitize_depth(read_depth_h5(
         os.path.join(dense, "depths", os.path.splitext(frame)[0] + ".h5")))
     cams_path, cams, images = self._sfm(scene)

@@ -24,6 +24,7 @@ import os
 import numpy as np
 
 from ufm_jax.data.registry import register
+from ufm_jax.data import io
 from ufm_jax.data.sources import _posed
 
 PAIRS_FILE = "scannet_test_pairs_with_gt.txt"
@@ -89,7 +90,7 @@ class ScanNet1500:
     p = self.pairs[i]
     images, Ks = [], []
     for k in (0, 1):
-      img = _posed.read_image(self._image_path(p[f"name{k}"]))
+      img = io.read_image(self._image_path(p[f"name{k}"]))
       K = p[f"K{k}"].copy()
       h, w = img.shape[:2]
       K[0] *= w / ORIGINAL_WH[0]

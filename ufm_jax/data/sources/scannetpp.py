@@ -22,6 +22,7 @@ import os
 
 import numpy as np
 
+from ufm_jax.data import io
 from ufm_jax.data.registry import register
 from ufm_jax.data.sources import _exr, _posed
 
@@ -49,7 +50,7 @@ def wai_view(scene_dir: str, meta: dict, frame: dict, depth_keys=("rendered_dept
     c2w = np.array(frame["transform_matrix"], np.float64)
   except KeyError as e:
     raise ValueError(f"{where}: frame {frame.get('frame_name')} lacks {e}") from e
-  image = _posed.read_image(os.path.join(scene_dir, frame.get("file_path", frame.get("image", ""))))
+  image = io.read_image(os.path.join(scene_dir, frame.get("file_path", frame.get("image", ""))))
   rel = next((frame[k] for k in depth_keys if isinstance(frame.get(k), str)), None)
   rel = rel or os.path.join(depth_keys[0], f"{frame['frame_name']}.exr")
   depth = _posed.sanitize_depth(_exr.read_exr(os.path.join(scene_dir, rel)))

@@ -21,6 +21,7 @@ import os
 import numpy as np
 
 from ufm_jax.data.registry import register
+from ufm_jax.data import io
 from ufm_jax.data.sources import _posed
 
 _CAMS = {"l": "left", "r": "right", b"l": "left", b"r": "right"}
@@ -67,14 +68,14 @@ class StaticThings(_posed.PosedPairSource):
 
   def load_view(self, scene, frame):
     cam, idx = frame.split("/")
-    image = _posed.read_image(os.path.join(self.root, f"frames_{self.frames_pass}pass", scene,
+    image = io.read_image(os.path.join(self.root, f"frames_{self.frames_pass}pass", scene,
                                            cam, f"{idx}.png"))
-    depth = _posed.sanitize_depth(_posed.read_float3(
+    depth = _posed.sanitize_depth(io.read_float3(
         os.path.join(self.root, "depths", scene, cam, f"{idx}.float3")))
     if self.max_depth is not None:
       depth[depth > self.max_depth] = 0
-    w2c = _posed.read_float3(os.path.join(self.root, "poses", scene, cam, f"{idx}.float3"))
-    K = _posed.read_float3(os.path.join(self.root, "intrinsics", scene, f"{idx}.float3"))
+    w2c = io.read_float3(os.path.join(self.root, "poses", scene, cam, f"{idx}.float3"))
+    K = io.read_float3(os.path.join(self.root, "intrinsics", scene, f"{idx}.float3"))
     if w2c.shape != (4, 4) or K.shape != (3, 3):
       raise ValueError(f"{os.path.join(self.root, 'poses', scene, cam, idx)}: expected a 4x4 pose "
                        f"and 3x3 intrinsics, got {w2c.shape} and {K.shape}")

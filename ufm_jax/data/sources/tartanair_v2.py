@@ -28,6 +28,7 @@ import numpy as np
 
 from ufm_jax.data import decode
 from ufm_jax.data.registry import register
+from ufm_jax.data import io
 from ufm_jax.data.sources import _posed
 
 CUBE_CAMERAS = ("front", "back", "left", "right", "top", "bottom")
@@ -130,7 +131,7 @@ class TartanAirV2(_posed.PosedPairSource):
   def load_view(self, scene, frame):
     cam, idx = frame.split("/")
     d = os.path.join(self.root, scene)
-    image = _posed.read_image(os.path.join(d, f"image_{cam}", f"{idx}_{cam}.png"))
+    image = io.read_image(os.path.join(d, f"image_{cam}", f"{idx}_{cam}.png"))
     depth = _posed.sanitize_depth(read_depth_png(
         os.path.join(d, f"depth_{cam}", f"{idx}_{cam}_depth.png")))
     if self.max_depth is not None:

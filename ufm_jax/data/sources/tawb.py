@@ -18,6 +18,7 @@ import os
 
 import numpy as np
 
+from ufm_jax.data import io
 from ufm_jax.data.registry import register
 from ufm_jax.data.sources import _exr, _posed
 
@@ -63,7 +64,7 @@ class TAWB(_posed.PosedPairSource):
 
   def load_view(self, scene, frame):
     d = os.path.join(self.base, scene)
-    image = _posed.read_image(os.path.join(d, "images", f"{frame}.png"))
+    image = io.read_image(os.path.join(d, "images", f"{frame}.png"))
     depth = _posed.sanitize_depth(_exr.read_exr(os.path.join(d, "depth", f"{frame}.exr")))
     if self.percentile_cut is not None and (depth > 0).any():
       depth[depth > np.percentile(depth[depth > 0], self.percentile_cut)] = 0
