@@ -4,7 +4,6 @@ A stand-in "model" predicts a constant flow at the inference resolution; after t
 that is a known constant at the native resolution, so every metric is computable by hand.
 """
 
-import json
 
 import numpy as np
 import pytest

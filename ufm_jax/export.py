@@ -28,7 +28,7 @@ import os
 import pathlib
 import shutil
 import tempfile
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
