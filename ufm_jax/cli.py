@@ -1,4 +1,4 @@
-"""Command line: `python -m ufm_jax infer|convert ...` (also installed as `ufm-jax`).
+"""Command line: `python -m ufm_jax infer|convert|to-official ...` (also installed as `ufm-jax`).
 
   python -m ufm_jax infer SOURCE TARGET --checkpoint DIR --out DIR [--snapshot] [--bidirectional]
       Writes, per direction (`forward`: SOURCE -> TARGET, `backward` with --bidirectional):
@@ -9,6 +9,9 @@
         <dir>_panel.png          source | target | flow colours | target warped into the source
   python -m ufm_jax convert SNAPSHOT_DIR OUT_DIR ...
       Converts an official Hugging Face snapshot (see `ufm_jax.convert`).
+  python -m ufm_jax to-official CHECKPOINT OUT_DIR [--step N]
+      The inverse: a converted checkpoint or a train.py workdir (newest step, or step N) -> an
+      official snapshot (config.json, model.safetensors, README.md; `ufm_jax.save_official`).
 
 `--checkpoint` takes a converted checkpoint (`python -m ufm_jax convert`), a train.py workdir
 (latest step) or, with `--snapshot` (or when the folder holds config.json + model.safetensors),
@@ -96,6 +99,29 @@ def load_model(path: str | os.PathLike, snapshot: bool = False):
   return ufm_jax.load(p)
 
 
+def _to_official_main(args) -> int:
+  import ufm_jax
+  from ufm_jax import checkpoint
+
+  p = pathlib.Path(args.checkpoint)
+  if pathlib.Path(args.out_dir).exists():  # before loading: the export never overwrites
+    raise FileExistsError(f"{args.out_dir} already exists; refusing to overwrite it")
+  step = None
+  if is_workdir(p):
+    model, params = load_workdir(p, args.step)
+    step = args.step if args.step is not None else checkpoint.checkpoint_steps(p)[-1]
+  elif args.step is not None:
+    raise ValueError(f"--step {args.step}: {p} is not a train.py workdir (config.json + "
+                     "checkpoints/)")
+  else:
+    model, params = load_model(p)
+  notes = ufm_jax.save_official(model, params, args.out_dir, source=str(p.absolute()), step=step)
+  print(f"wrote {args.out_dir} ({type(model).__name__}" + (f", step {step})" if step is not None else ")"))
+  for n in notes:
+    print(f"  {n}")
+  return 0
+
+
 def write_direction(out_dir: pathlib.Path, name: str, source, target, pred) -> list[pathlib.Path]:
   """Writes the files of one direction (atomically); returns their paths."""
   from ufm_jax import viz
@@ -163,13 +189,17 @@ def main(argv: list[str] | None = None) -> int:
   p.add_argument("--bidirectional", action="store_true", help="also write target -> source")
   sub.add_parser("convert", help="official HF snapshot -> orbax checkpoint (ufm_jax.convert)",
                  add_help=False)
+  p = sub.add_parser("to-official", help="checkpoint or train.py workdir -> official HF snapshot")
+  p.add_argument("checkpoint", help="converted checkpoint or train.py workdir")
+  p.add_argument("out_dir", help="new folder for config.json, model.safetensors, README.md")
+  p.add_argument("--step", type=int, help="workdir checkpoint step (default: the newest)")
   if argv and argv[0] == "convert":
     from ufm_jax import convert
     return convert.main(argv[1:]) or 0
   args = parser.parse_args(argv)
   try:
-    return _infer_main(args)
-  except (FileNotFoundError, ValueError) as e:
+    return _to_official_main(args) if args.command == "to-official" else _infer_main(args)
+  except (FileNotFoundError, FileExistsError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
 
