@@ -170,6 +170,9 @@ def test_trained_workdir_exports_and_loads_back(tmp_path, capsys):
   printed = capsys.readouterr().out
   assert "step 3" in printed and "pretrained_checkpoint_path = null" in printed
   assert cli.main(["to-official", str(workdir), str(tmp_path / "s2"), "--step", "2"]) == 0
+  capsys.readouterr()
+  assert cli.main(["to-official", str(workdir), str(tmp_path / "s7"), "--step", "7"]) == 2
+  assert "no checkpoint step 7" in capsys.readouterr().err and not (tmp_path / "s7").exists()
   assert "Step: 3" in (tmp_path / "latest" / "README.md").read_text()
   assert str(workdir) in (tmp_path / "latest" / "README.md").read_text()
 
@@ -216,7 +219,8 @@ def test_unrepresentable_models_are_refused(tmp_path, small):
 def test_jax_only_options_are_dropped_and_listed(tmp_path, small):
   model, params = small
   cfg = model.config.replace(dtype="bfloat16", remat=True)
-  notes = ufm_jax.save_official(ufm.model_from_config(cfg), params, tmp_path / "out")
+  # (the variables dict that model.apply takes is accepted too)
+  notes = ufm_jax.save_official(ufm.model_from_config(cfg), {"params": params}, tmp_path / "out")
   assert "not written (JAX-only option): dtype='bfloat16'" in notes
   assert "not written (JAX-only option): remat=True" in notes
   back, _ = ufm_jax.load_official(tmp_path / "out")

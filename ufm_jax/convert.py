@@ -702,6 +702,9 @@ def save_official(model, params, out_dir, *, source: Optional[str] = None,
   model (e.g. an encoder that is no DINOv2 hub size).
   """
   from safetensors.numpy import save_file
+  params = _unfreeze(params)
+  if set(params) == {"params"}:   # the variables dict given to model.apply
+    params = params["params"]
   cfg = model.config
   class_name = _class_name(model)
   cj = official_config_dict(cfg)
