@@ -8,12 +8,11 @@ import sys
 
 import jax
 import numpy as np
-from flax import traverse_util
 import pytest
-from safetensors.numpy import load_file, save_file
+from safetensors.numpy import load_file
 
-from ufm_jax import convert
-from ufm_jax.models import dinov2, dpt, info_sharing, ufm
+from ufm_jax import convert, testing
+from ufm_jax.models import dpt, ufm
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -29,11 +28,7 @@ def loaded(fixture_dir):
 
 
 def _snapshot(tmp_path, config, state):
-  d = tmp_path / "snap"
-  d.mkdir(exist_ok=True)
-  (d / "config.json").write_text(json.dumps(config))
-  save_file({k: np.ascontiguousarray(v) for k, v in state.items()}, str(d / "model.safetensors"))
-  return d
+  return testing.write_snapshot(tmp_path / "snap", config, state)
 
 
 def _fixture_files(fixture_dir):
@@ -152,55 +147,13 @@ def test_config_errors(tmp_path, fixture_dir):
 # --------------------------------------------------------------------------- unseen structures
 
 
-def _perturbed_params(model, seed):
-  # Random values for every parameter of the model's tree (shapes via jax.eval_shape; compiling
-  # flax's initialisers for a many-module tree is slow on CPU and not what is tested here).
-  rng = np.random.default_rng(seed)
-  flat = {}
-  for path, shape in convert.expected_param_shapes(model).items():
-    fan_in = int(np.prod(shape[:-1])) if len(shape) > 1 else 1
-    scale = 0.05 if len(shape) == 1 or path[-1] in ("cls_token", "pos_embed", "register_tokens") \
-        else (1.0 / fan_in) ** 0.5
-    base = 1.0 if path[-1] in ("scale", "gamma") else 0.0
-    flat[path] = (base + scale * rng.standard_normal(shape)).astype(np.float32)
-  return traverse_util.unflatten_dict(flat)
-
-
-UNSEEN = {
-    # ViT-S with registers (antialiased pos-embed), 1 block; LayerScale + qk-norm in the fusion
-    # transformer; processor hidden dims; x-only flow scaling.
-    "registers_layerscale_qknorm": ufm.UFMConfig(
-        encoder=dinov2.dinov2_config("small", depth=1, indices=(0,), num_register_tokens=4,
-                                     interpolate_antialias=True, interpolate_offset=0.0),
-        info_sharing=info_sharing.InfoSharingConfig(
-            input_embed_dim=384, dim=64, depth=3, num_heads=2, qk_norm=True, init_values=0.5,
-            indices=(0, 1)),
-        flow_head=dpt.DPTConfig((384, 64, 64, 64), (8, 16, 32, 48), 16, output_dim=2,
-                                hidden_dims=(12, 6)),
-        covisibility_head=dpt.DPTConfig((384, 64, 64, 64), (16, 16, 16, 16), 24, output_dim=1),
-        flow_adaptor=dpt.FlowAdaptorConfig((0.5, 0.25), (3.0, 4.0), (70, 98), "scale_width"),
-        inference_resolution=(70, 98)),
-    # ViT-S cut to 2 blocks, taps by "last n", identity input projection (dim == 384),
-    # coordinate-style flow output, no gradient stop before the covisibility head.
-    "identity_proj_coords": ufm.UFMConfig(
-        encoder=dinov2.dinov2_config("small", depth=2, indices=2),
-        info_sharing=info_sharing.InfoSharingConfig(
-            input_embed_dim=384, dim=384, depth=2, num_heads=6, indices=(0, 1)),
-        flow_head=dpt.DPTConfig((384, 384, 384, 384), (8, 8, 8, 8), 8, output_dim=2),
-        covisibility_head=dpt.DPTConfig((384, 384, 384, 384), (8, 8, 8, 8), 8, output_dim=1),
-        flow_adaptor=dpt.FlowAdaptorConfig((0.0, 0.0), (1.0, 1.0), (42, 70), "none",
-                                           output_normalized_coordinate=True),
-        detach_uncertainty_head=False, inference_resolution=(42, 70)),
-}
-
-
-@pytest.mark.parametrize("name", sorted(UNSEEN))
+@pytest.mark.parametrize("name", ["identity_proj_coords", "registers_layerscale_qknorm"])
 def test_loader_on_unseen_structure(tmp_path, name):
   """Flax params -> torch-named safetensors + official config.json -> load_official -> same
   model, same outputs. The loader has no fixture-specific constants."""
-  cfg = UNSEEN[name]
+  cfg = testing.STRUCTURES[name]
   model = ufm.model_from_config(cfg)
-  params = _perturbed_params(model, 3)
+  params = testing.perturbed_params(model, 3)
   state = convert.state_dict_from_params(params, convert.ufm_buffers(cfg))
   if cfg.encoder.num_register_tokens:
     assert state["encoder.model.register_tokens"].shape == (1, 4, 384)

@@ -1,4 +1,4 @@
-"""`python -m ufm_jax infer|convert ...`: see ufm_jax/cli.py."""
+"""`python -m ufm_jax infer|convert|to-official ...`: see ufm_jax/cli.py."""
 
 import sys
 

@@ -537,6 +537,8 @@ def read_state_numpy(path, step: int | None = None) -> tuple[dict, int]:
   if not steps:
     raise FileNotFoundError(f"no checkpoint steps under {d}")
   step = steps[-1] if step is None else step
+  if step not in steps:
+    raise FileNotFoundError(f"no checkpoint step {step} under {d} (steps: {steps})")
   ckptr = ocp.PyTreeCheckpointer()
   item = d / str(step) / "state"
   tree = ckptr.metadata(item).item_metadata.tree

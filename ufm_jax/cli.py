@@ -1,4 +1,5 @@
-"""Command line: `python -m ufm_jax infer|export|match|convert ...` (also installed as `ufm-jax`).
+"""Command line: `python -m ufm_jax infer|export|match|convert|to-official ...` (also installed as
+`ufm-jax`).
 
   python -m ufm_jax infer SOURCE TARGET --checkpoint DIR --out DIR [--snapshot] [--bidirectional]
       Writes, per direction (`forward`: SOURCE -> TARGET, `backward` with --bidirectional):
@@ -16,6 +17,9 @@
       [--num 5000] [--min-covisibility 0.5] [--bidirectional]   (see `ufm_jax.matching`)
   python -m ufm_jax convert SNAPSHOT_DIR OUT_DIR ...
       Converts an official Hugging Face snapshot (see `ufm_jax.convert`).
+  python -m ufm_jax to-official CHECKPOINT OUT_DIR [--step N]
+      The inverse: a converted checkpoint or a train.py workdir (newest step, or step N) -> an
+      official snapshot (config.json, model.safetensors, README.md; `ufm_jax.save_official`).
 
 `--checkpoint` takes a converted checkpoint (`python -m ufm_jax convert`), a train.py workdir
 (latest step) or, with `--snapshot` (or when the folder holds config.json + model.safetensors),
@@ -81,6 +85,29 @@ def load_model(path: str | os.PathLike, snapshot: bool = False):
   if is_workdir(p):
     return load_workdir(p)
   return ufm_jax.load(p)
+
+
+def _to_official_main(args) -> int:
+  import ufm_jax
+  from ufm_jax import checkpoint
+
+  p = pathlib.Path(args.checkpoint)
+  if pathlib.Path(args.out_dir).exists():  # before loading: the export never overwrites
+    raise FileExistsError(f"{args.out_dir} already exists; refusing to overwrite it")
+  step = None
+  if is_workdir(p):
+    model, params = load_workdir(p, args.step)
+    step = args.step if args.step is not None else checkpoint.checkpoint_steps(p)[-1]
+  elif args.step is not None:
+    raise ValueError(f"--step {args.step}: {p} is not a train.py workdir (config.json + "
+                     "checkpoints/)")
+  else:
+    model, params = load_model(p)
+  notes = ufm_jax.save_official(model, params, args.out_dir, source=str(p.absolute()), step=step)
+  print(f"wrote {args.out_dir} ({type(model).__name__}" + (f", step {step})" if step is not None else ")"))
+  for n in notes:
+    print(f"  {n}")
+  return 0
 
 
 def write_direction(out_dir: pathlib.Path, name: str, source, target, pred) -> list[pathlib.Path]:
@@ -277,8 +304,16 @@ def _match_main(args) -> int:
   return 0
 
 
+def _add_to_official_parser(sub) -> None:
+  p = sub.add_parser("to-official", help="checkpoint or train.py workdir -> official HF snapshot")
+  p.add_argument("checkpoint", help="converted checkpoint or train.py workdir")
+  p.add_argument("out_dir", help="new folder for config.json, model.safetensors, README.md")
+  p.add_argument("--step", type=int, help="workdir checkpoint step (default: the newest)")
+  p.set_defaults(func=_to_official_main)
+
+
 # Subcommands: each adds its parser (with set_defaults(func=...)) to the subparsers.
-SUBCOMMANDS = [_add_infer_parser, _add_export_parser, _add_match_parser]
+SUBCOMMANDS = [_add_infer_parser, _add_export_parser, _add_match_parser, _add_to_official_parser]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -295,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
   args = parser.parse_args(argv)
   try:
     return args.func(args)
-  except (FileNotFoundError, ValueError) as e:
+  except (FileNotFoundError, FileExistsError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
 

@@ -1,9 +1,10 @@
-"""Official PyTorch UFM checkpoints (Hugging Face snapshot: config.json + model.safetensors) ->
+"""Official PyTorch UFM checkpoints (Hugging Face snapshot: config.json + model.safetensors) <->
 (Flax model, params); and the orbax checkpoint format of this project.
 
     model, params = load_official("path/to/UFM-Base")      # HF snapshot folder
     python -m ufm_jax.convert SNAPSHOT_DIR OUT_DIR          # -> orbax params + model_config.json
     model, params = load(OUT_DIR)
+    save_official(model, params, "path/to/export")         # the inverse: a new HF snapshot
 
 Key map (PyTorch state-dict name -> Flax param path), one rule each:
   1. aliases: `scratch.layer{k}_rn.*` / `scratch.layer_rn.{k-1}.*` -> `input_process.{k-1}.1.*`
@@ -17,9 +18,13 @@ Key map (PyTorch state-dict name -> Flax param path), one rule each:
 Buffers (view_pos_table, flow_mean/flow_std) are not parameters: they are checked against the
 values the config implies. Other official model classes register a builder with
 `register_official_class` (dispatch on config.json).
+
+The export (save_official) runs the same rules backwards (path_to_torch_key, flax_to_torch_array,
+alias_keys, official_config_dict) and then reads its result back with the loader before writing.
 """
 
 import dataclasses
+import functools
 import json
 import os
 import pathlib
@@ -38,9 +43,12 @@ from ufm_jax.models import dinov2, dpt, info_sharing, ufm
 
 # ----------------------------------------------------------------------------- key map
 
+# One module registered under several names: (alias, canonical) name templates, {i} the 0-based
+# DPT level and {i1} = i + 1. The canonical name is the one safetensors keeps (alphabetically
+# first); `save_pretrained` records every other name in the file's metadata as alias -> kept.
 ALIASES = [
-    (re.compile(r"scratch\.layer(\d)_rn\."), lambda m: f"input_process.{int(m.group(1)) - 1}.1."),
-    (re.compile(r"scratch\.layer_rn\.(\d)\."), lambda m: f"input_process.{m.group(1)}.1."),
+    ("scratch.layer{i1}_rn.", "input_process.{i}.1."),
+    ("scratch.layer_rn.{i}.", "input_process.{i}.1."),
 ]
 PREFIXES = [("encoder.model.", "encoder.")]
 # Weights stored [in, out, kh, kw] by torch ConvTranspose2d.
@@ -49,10 +57,32 @@ CONV_TRANSPOSE = [re.compile(r"input_process\.[01]\.0\.1\.weight$")]
 BufferFn = Callable[[Any, "re.Match"], np.ndarray]
 
 
+@functools.lru_cache(maxsize=None)
+def _template_regex(template: str) -> "re.Pattern":
+  parts = re.split(r"(\{i1?\})", template)
+  return re.compile("".join(r"(?P<%s>\d+)" % p[1:-1] if p in ("{i}", "{i1}") else re.escape(p)
+                            for p in parts))
+
+
+def _level(m: "re.Match") -> int:
+  groups = m.groupdict()
+  return int(groups["i"]) if "i" in groups else int(groups["i1"]) - 1
+
+
 def canonical_key(key: str) -> str:
-  for pattern, repl in ALIASES:
-    key = pattern.sub(repl, key)
+  for alias, canonical in ALIASES:
+    key = _template_regex(alias).sub(lambda m: canonical.format(i=_level(m)), key)
   return key
+
+
+def alias_keys(key: str) -> List[str]:
+  """The other names of the tensor stored as canonical `key` (inverse of canonical_key)."""
+  out = []
+  for alias, canonical in ALIASES:
+    for m in _template_regex(canonical).finditer(key):
+      i = _level(m)
+      out.append(key[:m.start()] + alias.format(i=i, i1=i + 1) + key[m.end():])
+  return out
 
 
 def torch_key_to_path(key: str, ndim: int) -> Tuple[str, ...]:
@@ -270,13 +300,39 @@ def ufm_buffers(cfg: ufm.UFMConfig) -> Dict[str, np.ndarray]:
   }
 
 
+# Official constructor kwargs that the JAX config does not carry: an exported config.json gets
+# these values (the official defaults; the loader rejects other values of use_bn,
+# output_width_ratio, custom_positional_encoding and the random view embedding).
+OFFICIAL_DEFAULTS = {
+    "encoder_kwargs.data_norm_type": "dinov2",
+    "encoder_kwargs.pretrained_checkpoint_path": None,
+    "info_sharing_kwargs.attn_drop": 0.0,
+    "info_sharing_kwargs.proj_drop": 0.0,
+    "info_sharing_kwargs.drop_path": 0.0,
+    "info_sharing_kwargs.custom_positional_encoding": None,
+    "info_sharing_kwargs.use_rand_idx_pe_for_non_reference_views": False,
+    "info_sharing_kwargs.pretrained_checkpoint_path": None,
+    "feature_head_kwargs.dpt_feature.use_bn": False,
+    "feature_head_kwargs.dpt_feature.output_width_ratio": 1,
+    "uncertainty_head_kwargs.dpt_feature.use_bn": False,
+    "uncertainty_head_kwargs.dpt_feature.output_width_ratio": 1,
+    "pretrained_backbone_checkpoint_path": None,
+    "pretrained_checkpoint_path": None,
+}
+# For model classes beyond the base one: (config class, fn(cfg) -> extra config.json keys,
+# fn(cfg) -> what the official code builds differently, see official_limits).
+OFFICIAL_CONFIG_EXTRAS: List[Tuple[type, Callable[[Any], dict], Callable[[Any], List[str]]]] = []
+
+
 def official_config_dict(cfg: ufm.UFMConfig) -> dict:
   """The official constructor kwargs (config.json) describing cfg; inverse of
   ufm_config_from_official (used to export and to test the loader on unseen structures)."""
   e, s, fa = cfg.encoder, cfg.info_sharing, cfg.flow_adaptor
   size = {v[0]: k for k, v in dinov2.SIZES.items()}.get(e.embed_dim)
   if size is None or dinov2.SIZES[size][2] != e.num_heads:
-    raise ValueError(f"encoder width {e.embed_dim} / {e.num_heads} heads is not a DINOv2 hub size")
+    raise ValueError(f"encoder width {e.embed_dim} / {e.num_heads} heads is not a DINOv2 hub size "
+                     f"(expected one of {[(k, v[0], v[2]) for k, v in dinov2.SIZES.items()]}); "
+                     "the official UFM classes cannot build this encoder")
   full_depth = dinov2.SIZES[size][1]
 
   def head(d: dpt.DPTConfig):
@@ -285,17 +341,15 @@ def official_config_dict(cfg: ufm.UFMConfig) -> dict:
       proc["hidden_dims"] = list(d.hidden_dims)
     return {"dpt_feature": {"feature_dim": d.feature_dim, "hooks": list(d.hooks),
                             "input_feature_dims": list(d.input_feature_dims),
-                            "layer_dims": list(d.layer_dims), "output_width_ratio": 1,
-                            "patch_size": e.patch_size, "use_bn": False},
+                            "layer_dims": list(d.layer_dims), "patch_size": e.patch_size},
             "dpt_processor": proc}
 
-  enc = {"data_norm_type": "dinov2", "name": f"dinov2_{size}", "norm_intermediate":
-         e.norm_intermediate, "patch_size": e.patch_size, "pretrained_checkpoint_path": None,
-         "size": size, "with_registers": bool(e.num_register_tokens),
+  enc = {"name": f"dinov2_{size}", "norm_intermediate": e.norm_intermediate,
+         "patch_size": e.patch_size, "size": size, "with_registers": bool(e.num_register_tokens),
          "indices": e.indices if isinstance(e.indices, int) else list(e.indices)}
   if e.depth != full_depth:
     enc["keep_first_n_layers"] = e.depth
-  return {
+  out = {
       "adaptors_kwargs": {"flow": {"class": "FlowAdaptor", "kwargs": {
           "base_shape": list(fa.base_shape), "flow_mean": list(fa.flow_mean),
           "flow_std": list(fa.flow_std), "name": "flow",
@@ -307,19 +361,50 @@ def official_config_dict(cfg: ufm.UFMConfig) -> dict:
       "inference_resolution": [cfg.inference_resolution[1], cfg.inference_resolution[0]],
       "info_sharing_and_head_structure": "dual+single",
       "info_sharing_kwargs": {
-          "attn_drop": 0.0, "custom_positional_encoding": None, "depth": s.depth, "dim": s.dim,
-          "drop_path": 0.0, "indices": list(s.indices), "init_values": s.init_values,
-          "input_embed_dim": s.input_embed_dim, "max_num_views": s.max_num_views,
-          "mlp_ratio": s.mlp_ratio, "name": "info_sharing",
+          "depth": s.depth, "dim": s.dim, "indices": list(s.indices),
+          "init_values": s.init_values, "input_embed_dim": s.input_embed_dim,
+          "max_num_views": s.max_num_views, "mlp_ratio": s.mlp_ratio, "name": "info_sharing",
           "norm_intermediate": s.norm_intermediate, "num_heads": s.num_heads,
-          "pretrained_checkpoint_path": None, "proj_drop": 0.0, "qk_norm": s.qk_norm,
-          "qkv_bias": s.qkv_bias, "use_rand_idx_pe_for_non_reference_views": False},
+          "qk_norm": s.qk_norm, "qkv_bias": s.qkv_bias},
       "info_sharing_str": "global_attention",
-      "pretrained_backbone_checkpoint_path": None, "pretrained_checkpoint_path": None,
       "uncertainty_adaptors_kwargs": {"non_occluded_mask": {
           "class": "MaskAdaptor", "kwargs": {"name": "non_occluded_mask"}}},
       "uncertainty_head_kwargs": head(cfg.covisibility_head), "uncertainty_head_type": "dpt",
   }
+  for dotted, value in OFFICIAL_DEFAULTS.items():
+    *parents, leaf = dotted.split(".")
+    d = out
+    for k in parents:
+      d = d[k]
+    d[leaf] = value
+  for cls, extra, _ in OFFICIAL_CONFIG_EXTRAS:
+    if isinstance(cfg, cls):
+      out.update(extra(cfg))
+  return out
+
+
+def official_limits(cfg: ufm.UFMConfig) -> List[str]:
+  """Where the official code builds something else than cfg whatever config.json says (such a
+  snapshot round-trips through load_official, but `from_pretrained` needs the official code
+  patched, as the refine fixture's README describes for its U-Net)."""
+  e = cfg.encoder
+  size = {v[0]: k for k, v in dinov2.SIZES.items()}[e.embed_dim]
+  out = []
+  # torch.hub DINOv2: img_size 518, patch 14, LayerScale, 4 registers in the *_reg models.
+  if (e.patch_size, e.pos_grid) != (14, 37):
+    out.append(f"encoder patch size {e.patch_size} / position grid {e.pos_grid}x{e.pos_grid}: "
+               "torch.hub DINOv2 has 14 px patches and a 37x37 grid")
+  if e.init_values is None:
+    out.append("encoder without LayerScale: torch.hub DINOv2 blocks always have ls1/ls2")
+  if e.num_register_tokens not in (0, 4):
+    out.append(f"encoder with {e.num_register_tokens} register tokens: the hub's *_reg models "
+               "have 4")
+  if e.ffn != dinov2.SIZES[size][3]:
+    out.append(f"encoder FFN {e.ffn!r}: the hub's {size} model has {dinov2.SIZES[size][3]!r}")
+  for cls, _, limits in OFFICIAL_CONFIG_EXTRAS:
+    if isinstance(cfg, cls):
+      out.extend(limits(cfg))
+  return out
 
 
 def _is_base(cj: dict) -> bool:
@@ -358,8 +443,10 @@ def _unfreeze(tree):
 
 
 def params_from_state_dict(state: Dict[str, np.ndarray], model, buffers: Dict[str, np.ndarray],
-                           source: str = "state dict"):
-  """Map a torch-named state dict onto the model's parameter tree; raise listing every problem."""
+                           source: str = "state dict", as_jax: bool = True):
+  """Map a torch-named state dict onto the model's parameter tree; raise listing every problem.
+
+  as_jax=False returns numpy views of `state` (no copy), for checking an export."""
   expected = expected_param_shapes(model)
   flat: Dict[Tuple[str, ...], np.ndarray] = {}
   origin: Dict[Tuple[str, ...], str] = {}
@@ -397,7 +484,7 @@ def params_from_state_dict(state: Dict[str, np.ndarray], model, buffers: Dict[st
         lines.append(f"  {title} ({len(items)}):")
         lines.extend(f"    {s}" for s in items)
     raise ValueError("\n".join(lines))
-  return traverse_util.unflatten_dict({k: jnp.asarray(v) for k, v in flat.items()})
+  return traverse_util.unflatten_dict({k: jnp.asarray(v) if as_jax else v for k, v in flat.items()})
 
 
 def state_dict_from_params(params, buffers: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
@@ -476,6 +563,8 @@ def _build_refine(cj: dict, shapes: dict) -> OfficialSpec:
 
 
 register_official_class(_is_refine, _build_refine)
+OFFICIAL_CONFIG_EXTRAS.append((refine.UFMRefineConfig, refine.refine_config_to_official,
+                               refine.official_limits))
 SAVED_CLASSES["UniFlowMatchClassificationRefinement"] = (refine.refine_config_from_dict,
                                                          refine.refine_model_from_config)
 CLASS_NAMES[refine.UFMRefine] = "UniFlowMatchClassificationRefinement"
@@ -487,22 +576,33 @@ def _class_name(model) -> str:
   return CLASS_NAMES[type(model)]
 
 
-def save(out_dir, model, params, class_name: Optional[str] = None):
-  """Write params (orbax) + model_config.json into a new folder, atomically (temp + rename)."""
-  import orbax.checkpoint as ocp
+def _write_new_dir(out_dir, write: Callable[[pathlib.Path], None]) -> pathlib.Path:
+  """write(tmp) fills a temp folder beside out_dir, which is then renamed to out_dir (never
+  overwritten); on any error nothing is left behind."""
   out = pathlib.Path(out_dir).absolute()
   if out.exists():
     raise FileExistsError(f"{out} already exists; refusing to overwrite a checkpoint")
   out.parent.mkdir(parents=True, exist_ok=True)
   tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
   try:
-    ocp.PyTreeCheckpointer().save(tmp / PARAMS_DIR, jax.tree.map(np.asarray, params))
-    meta = {"class": class_name or _class_name(model), "config": dataclasses.asdict(model.config)}
-    (tmp / CONFIG_FILE).write_text(json.dumps(meta, indent=2))
+    write(tmp)
     os.replace(tmp, out)
   except BaseException:
     shutil.rmtree(tmp, ignore_errors=True)
     raise
+  return out
+
+
+def save(out_dir, model, params, class_name: Optional[str] = None):
+  """Write params (orbax) + model_config.json into a new folder, atomically (temp + rename)."""
+  import orbax.checkpoint as ocp
+
+  def write(tmp):
+    ocp.PyTreeCheckpointer().save(tmp / PARAMS_DIR, jax.tree.map(np.asarray, params))
+    meta = {"class": class_name or _class_name(model), "config": dataclasses.asdict(model.config)}
+    (tmp / CONFIG_FILE).write_text(json.dumps(meta, indent=2))
+
+  _write_new_dir(out_dir, write)
 
 
 def load(ckpt_dir):
@@ -530,6 +630,105 @@ def load(ckpt_dir):
                      + ", ".join("/".join(k) for k in bad[:20]))
   params = jax.tree.map(jnp.asarray, params)
   return model, params
+
+
+# ----------------------------------------------------------------------------- export
+
+# UFMConfig fields a snapshot does not carry: compute options and initialisers (the encoder's
+# LayerScale initial value included; the loader sets the hub's 1.0).
+JAX_ONLY_FIELDS = ("dtype", "remat", "attention_impl", "refine_chunk", "encoder.pos_embed_init",
+                   "encoder.init_values", "info_sharing.tied_qk_init")
+
+
+def _check_export(model, params, cj: dict, state: Dict[str, np.ndarray], class_name: str
+                  ) -> List[str]:
+  """Reads an export back as load_official would: the same class, config and params, or raise.
+  Returns the JAX-only config values that the snapshot drops."""
+  spec = official_spec(cj, state, "exported config.json")
+  if spec.class_name != class_name:
+    raise ValueError(f"exported config.json reads back as {spec.class_name}, not {class_name}")
+  ours = _flatten(dataclasses.asdict(model.config))
+  back = _flatten(dataclasses.asdict(spec.model.config))
+  dropped, lost = [], []
+  for k in sorted(set(ours) | set(back)):
+    a, b = ours.get(k), back.get(k)
+    if a != b:
+      name = ".".join(k)
+      if name in JAX_ONLY_FIELDS:
+        dropped.append(f"{name}={a!r}")
+      else:
+        lost.append(f"{name}={a!r} (an official config.json gives {b!r})")
+  if lost:
+    raise ValueError(f"{class_name}: config.json cannot describe this model config: "
+                     + "; ".join(lost))
+  back_params = _flatten(params_from_state_dict(state, spec.model, spec.buffers,
+                                                "exported model.safetensors", as_jax=False))
+  for path, v in _flatten(_unfreeze(params)).items():
+    if not np.array_equal(np.asarray(v, np.float32), back_params[path], equal_nan=True):
+      raise ValueError(f"exported {path_to_torch_key(path)} does not read back to "
+                       f"{'/'.join(path)}")
+  return dropped
+
+
+def _model_card(class_name: str, source: Optional[str], step: Optional[int],
+                notes: List[str]) -> str:
+  from ufm_jax import __version__
+  lines = [
+      "---", "tags:", "- ufm", "- optical-flow", "- dense-correspondence", "- ufm-jax",
+      "- model_hub_mixin", "- pytorch_model_hub_mixin", "---", "",
+      f"# {class_name} exported from UFM-JAX", "",
+      f"- Source checkpoint: `{source if source is not None else 'parameters in memory'}`",
+      f"- Step: {step if step is not None else 'n/a (not a train.py checkpoint step)'}",
+      f"- Written by: ufm_jax {__version__} (`ufm_jax.save_official`)", "",
+      "PyTorch (official UFM code): `from uniflowmatch.models.ufm import "
+      f"{class_name}` then `{class_name}.from_pretrained(DIR)`. JAX: `ufm_jax.load_official(DIR)`.",
+  ]
+  if notes:
+    lines += ["", "## Export notes", ""] + [f"- {n}" for n in notes]
+  return "\n".join(lines) + "\n"
+
+
+def save_official(model, params, out_dir, *, source: Optional[str] = None,
+                  step: Optional[int] = None) -> List[str]:
+  """Write (model, params) as an official Hugging Face snapshot: the inverse of load_official.
+
+  out_dir (new; written atomically) gets config.json (the official constructor kwargs, as
+  `save_pretrained` writes them), model.safetensors (every parameter and persistent buffer in
+  float32 under its official name and layout; a tensor shared by several modules once, under the
+  name safetensors keeps, the other names in the file's metadata) and a README.md model card
+  naming `source`, `step` and the ufm_jax version. Returns notes for the user: the official
+  kwargs written as defaults, the JAX-only options dropped, and where the official code builds a
+  different model (see official_limits). Raises ValueError when config.json cannot describe the
+  model (e.g. an encoder that is no DINOv2 hub size).
+  """
+  from safetensors.numpy import save_file
+  params = _unfreeze(params)
+  if set(params) == {"params"}:   # the variables dict given to model.apply
+    params = params["params"]
+  if getattr(model.config, "scan_blocks", False):  # official names are per layer
+    from ufm_jax.models import scan
+    params = scan.unstack_blocks(params, model.config)
+    model = model.clone(config=model.config.replace(scan_blocks=False))
+  cfg = model.config
+  class_name = _class_name(model)
+  cj = official_config_dict(cfg)
+  state = {k: np.ascontiguousarray(v, dtype=np.float32)
+           for k, v in state_dict_from_params(params, ufm_buffers(cfg)).items()}
+  dropped = _check_export(model, params, cj, state, class_name)
+  aliases = {a: k for k in sorted(state) for a in alias_keys(k)}
+  notes = [f"written with the official default (not in the JAX config): {k} = {json.dumps(v)}"
+           for k, v in OFFICIAL_DEFAULTS.items()]
+  notes += [f"not written (JAX-only option): {d}" for d in dropped]
+  notes += [f"the official code cannot load this snapshot unchanged: {n}"
+            for n in official_limits(cfg)]
+
+  def write(tmp):
+    (tmp / "config.json").write_text(json.dumps(cj, indent=2, sort_keys=True))
+    save_file(state, str(tmp / "model.safetensors"), metadata=aliases or None)
+    (tmp / "README.md").write_text(_model_card(class_name, source, step, notes))
+
+  _write_new_dir(out_dir, write)
+  return notes
 
 
 def main(argv=None):

@@ -505,3 +505,33 @@ def refine_config_from_official(cj, shapes, base: ufm.UFMConfig) -> UFMRefineCon
       refine_mlp_ratio=float(head.get("mlp_ratio", 4.0)), use_unet_feature=use_unet,
       feature_combine_method=cj.get("feature_combine_method", "conv"),
       refinement_range=int(cj["refinement_range"]), temperature=float(cj["temperature"]))
+
+
+# The official ufm.py builds UNet(features=[64, 128, 256, 512]) whatever config.json says.
+OFFICIAL_UNET_FEATURES = (64, 128, 256, 512)
+
+
+def refine_config_to_official(cfg: UFMRefineConfig) -> dict:
+  """The refiner's config.json keys (inverse of refine_config_from_official)."""
+  ratio = float(cfg.refine_mlp_ratio)
+  return {
+      # Written as the official configs write them: "1024 + 768" and an integral ratio as int.
+      "classification_head_kwargs": {
+          "input_feature_dim": f"{cfg.encoder.embed_dim} + {cfg.info_sharing.dim}",
+          "mlp_ratio": int(ratio) if ratio.is_integer() else ratio,
+          "output_dim": cfg.refine_feature_dim, "patch_size": cfg.encoder.patch_size},
+      "classification_head_type": "patch_mlp",
+      "feature_combine_method": cfg.feature_combine_method,
+      "refinement_range": cfg.refinement_range,
+      "temperature": float(cfg.temperature),
+      "use_unet_feature": cfg.use_unet_feature,
+  }
+
+
+def official_limits(cfg: UFMRefineConfig) -> list:
+  """See ufm_jax.convert.official_limits."""
+  if cfg.use_unet_feature and tuple(cfg.unet_features) != OFFICIAL_UNET_FEATURES:
+    return [f"U-Net widths {list(cfg.unet_features)}: the official ufm.py hard-codes "
+            f"{list(OFFICIAL_UNET_FEATURES)} (the refine fixture's README shows the substitution "
+            "from_pretrained then needs)"]
+  return []

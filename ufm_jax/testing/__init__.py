@@ -1,9 +1,129 @@
-"""Helpers the tests and benchmarks share: tiny files and trees written in real on-disk formats
-(`wide_trees`: the wide-baseline and benchmark datasets), random weights in official namings."""
+"""Helpers shared by the tests and benchmarks (tests never import each other): model structures
+the public fixtures do not cover, random parameters for them, official-style snapshot folders,
+random weights in official namings. Submodules: `wide_trees` (tiny trees in the real on-disk
+formats of the wide-baseline and benchmark datasets), `train_support` (a stand-in model, data and
+config for the training-machinery tests)."""
 
 from __future__ import annotations
 
+import json
+import pathlib
+
 import numpy as np
+from flax import traverse_util
+
+from ufm_jax import convert
+from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
+
+
+def write_snapshot(folder, config: dict, state: dict, metadata=None) -> pathlib.Path:
+  """A Hugging Face snapshot folder (config.json + model.safetensors) from a torch-named state."""
+  from safetensors.numpy import save_file
+  d = pathlib.Path(folder)
+  d.mkdir(parents=True, exist_ok=True)
+  (d / "config.json").write_text(json.dumps(config))
+  save_file({k: np.ascontiguousarray(v) for k, v in state.items()}, str(d / "model.safetensors"),
+            metadata=metadata)
+  return d
+
+
+def perturbed_params(model, seed: int):
+  """Random values for every parameter of the model's tree (shapes via jax.eval_shape; compiling
+  flax's initialisers for a many-module tree is slow on CPU and not what the tests check)."""
+  rng = np.random.default_rng(seed)
+  flat = {}
+  for path, shape in convert.expected_param_shapes(model).items():
+    fan_in = int(np.prod(shape[:-1])) if len(shape) > 1 else 1
+    scale = 0.05 if len(shape) == 1 or path[-1] in ("cls_token", "pos_embed", "register_tokens") \
+        else (1.0 / fan_in) ** 0.5
+    base = 1.0 if path[-1] in ("scale", "gamma") else 0.0
+    flat[path] = (base + scale * rng.standard_normal(shape)).astype(np.float32)
+  return traverse_util.unflatten_dict(flat)
+
+
+def _small_dpt(enc_dim: int, dim: int, output_dim: int, layer_dims=(8, 16, 32, 48), feature_dim=16):
+  return dpt.DPTConfig((enc_dim, dim, dim, dim), layer_dims, feature_dim, output_dim=output_dim)
+
+
+def _refine(base: ufm.UFMConfig, **kw) -> refine.UFMRefineConfig:
+  fields = {f: getattr(base, f) for f in ufm.UFMConfig.__dataclass_fields__}
+  return refine.UFMRefineConfig(**fields, **kw)
+
+
+# Structures with which the loader and the export are tested beyond the two public fixtures.
+STRUCTURES = {
+    # ViT-S with registers (antialiased pos-embed), 1 block; LayerScale + qk-norm in the fusion
+    # transformer; processor hidden dims; x-only flow scaling.
+    "registers_layerscale_qknorm": ufm.UFMConfig(
+        encoder=dinov2.dinov2_config("small", depth=1, indices=(0,), num_register_tokens=4,
+                                     interpolate_antialias=True, interpolate_offset=0.0),
+        info_sharing=info_sharing.InfoSharingConfig(
+            input_embed_dim=384, dim=64, depth=3, num_heads=2, qk_norm=True, init_values=0.5,
+            indices=(0, 1)),
+        flow_head=dpt.DPTConfig((384, 64, 64, 64), (8, 16, 32, 48), 16, output_dim=2,
+                                hidden_dims=(12, 6)),
+        covisibility_head=dpt.DPTConfig((384, 64, 64, 64), (16, 16, 16, 16), 24, output_dim=1),
+        flow_adaptor=dpt.FlowAdaptorConfig((0.5, 0.25), (3.0, 4.0), (70, 98), "scale_width"),
+        inference_resolution=(70, 98)),
+    # ViT-S cut to 2 blocks, taps by "last n", identity input projection (dim == 384),
+    # coordinate-style flow output, no gradient stop before the covisibility head.
+    "identity_proj_coords": ufm.UFMConfig(
+        encoder=dinov2.dinov2_config("small", depth=2, indices=2),
+        info_sharing=info_sharing.InfoSharingConfig(
+            input_embed_dim=384, dim=384, depth=2, num_heads=6, indices=(0, 1)),
+        flow_head=dpt.DPTConfig((384, 384, 384, 384), (8, 8, 8, 8), 8, output_dim=2),
+        covisibility_head=dpt.DPTConfig((384, 384, 384, 384), (8, 8, 8, 8), 8, output_dim=1),
+        flow_adaptor=dpt.FlowAdaptorConfig((0.0, 0.0), (1.0, 1.0), (42, 70), "none",
+                                           output_normalized_coordinate=True),
+        detach_uncertainty_head=False, inference_resolution=(42, 70)),
+    # ViT-g (SwiGLU FFN, 1536 wide) cut to its first block.
+    "giant_swiglu": ufm.UFMConfig(
+        encoder=dinov2.dinov2_config("giant", depth=1, indices=(0,)),
+        info_sharing=info_sharing.InfoSharingConfig(
+            input_embed_dim=1536, dim=64, depth=2, num_heads=2, indices=(0, 1)),
+        flow_head=_small_dpt(1536, 64, 2), covisibility_head=_small_dpt(1536, 64, 1),
+        flow_adaptor=dpt.FlowAdaptorConfig((0.0, 0.0), (8.0, 8.0), (42, 70), "scale_height"),
+        inference_resolution=(42, 70)),
+    # The UFM 980 configuration: ViT-L (cut to one block), 980 px inference resolution over the
+    # 560 base shape of the flow normalisation, fusion taps as the release's (5, 8 of 12).
+    "ufm980": ufm.UFMConfig(
+        encoder=dinov2.dinov2_config("large", depth=1, indices=(0,)),
+        info_sharing=info_sharing.InfoSharingConfig(
+            input_embed_dim=1024, dim=32, depth=12, num_heads=2, indices=(5, 8)),
+        flow_head=_small_dpt(1024, 32, 2), covisibility_head=_small_dpt(1024, 32, 1),
+        flow_adaptor=dpt.FlowAdaptorConfig((0.1, -0.2), (20.0, 15.0), (420, 560), "scale_both"),
+        inference_resolution=(742, 980)),
+    # UFM-Refine with a non-integral head ratio, a 5 x 5 window and another temperature.
+    "refine_window5": _refine(
+        ufm.UFMConfig(
+            encoder=dinov2.dinov2_config("small", depth=1, indices=(0,)),
+            info_sharing=info_sharing.InfoSharingConfig(
+                input_embed_dim=384, dim=32, depth=2, num_heads=2, indices=(0, 1)),
+            flow_head=_small_dpt(384, 32, 2), covisibility_head=_small_dpt(384, 32, 1),
+            flow_adaptor=dpt.FlowAdaptorConfig((0.0, 0.0), (4.0, 4.0), (42, 70), "scale_both"),
+            inference_resolution=(42, 70)),
+        unet_features=(8, 16), refine_feature_dim=8, refine_mlp_ratio=1.5, refinement_range=5,
+        temperature=2.0),
+}
+
+
+def official_small_config(**overrides) -> ufm.UFMConfig:
+  """The smallest structure the official classes build (ViT-S/14 cut to one block, narrow fusion
+  and heads), for training a few steps and exporting the result."""
+  cfg = ufm.UFMConfig(
+      encoder=dinov2.dinov2_config("small", depth=1, indices=(0,)),
+      info_sharing=info_sharing.InfoSharingConfig(
+          input_embed_dim=384, dim=32, depth=2, num_heads=2, indices=(0, 1)),
+      flow_head=_small_dpt(384, 32, 2, (8, 8, 16, 16), 8),
+      covisibility_head=_small_dpt(384, 32, 1, (8, 8, 16, 16), 8),
+      flow_adaptor=dpt.FlowAdaptorConfig((0.0, 0.0), (8.0, 8.0), (56, 56), "scale_both"),
+      inference_resolution=(56, 56))
+  return cfg.replace(**overrides)
+
+
+def official_small_model(model_kw=None):
+  """`model_fn` of a train.py workdir config (called with the config's `model` block)."""
+  return ufm.model_from_config(official_small_config(**dict(model_kw or {})))
 
 
 def hf_dinov2(depth=2, dim=8, grid=3, seed=0):
