@@ -1,4 +1,4 @@
-"""The fast decoding paths give exactly what the plain decoders give (perf2 helper's changes).
+"""The fast decoding paths give exactly what the plain decoders give.
 
 Expected values come from independent straightforward code written here: a per-byte running
 sum for EXR ZIP un-prediction, h5py's own full read for .flo5, a dict lookup for palette
