@@ -304,6 +304,21 @@ def _match_main(args) -> int:
   return 0
 
 
+def _convert_main(args) -> int:
+  from ufm_jax import convert
+  print(convert.convert_snapshot(args.snapshot_dir, args.out_dir))
+  return 0
+
+
+def _add_convert_parser(sub) -> None:
+  p = sub.add_parser("convert", help="official HF snapshot -> orbax checkpoint (ufm_jax.convert)",
+                     description="Converts an official Hugging Face snapshot into an orbax "
+                     "checkpoint that ufm_jax.load reads back.")
+  p.add_argument("snapshot_dir", help="Hugging Face snapshot (config.json + model.safetensors)")
+  p.add_argument("out_dir", help="new folder for the orbax params + model_config.json")
+  p.set_defaults(func=_convert_main)
+
+
 def _add_to_official_parser(sub) -> None:
   p = sub.add_parser("to-official", help="checkpoint or train.py workdir -> official HF snapshot")
   p.add_argument("checkpoint", help="converted checkpoint or train.py workdir")
@@ -313,7 +328,8 @@ def _add_to_official_parser(sub) -> None:
 
 
 # Subcommands: each adds its parser (with set_defaults(func=...)) to the subparsers.
-SUBCOMMANDS = [_add_infer_parser, _add_export_parser, _add_match_parser, _add_to_official_parser]
+SUBCOMMANDS = [_add_infer_parser, _add_export_parser, _add_match_parser, _add_convert_parser,
+               _add_to_official_parser]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -322,11 +338,6 @@ def main(argv: list[str] | None = None) -> int:
   sub = parser.add_subparsers(dest="command", required=True)
   for add in SUBCOMMANDS:
     add(sub)
-  sub.add_parser("convert", help="official HF snapshot -> orbax checkpoint (ufm_jax.convert)",
-                 add_help=False)
-  if argv and argv[0] == "convert":
-    from ufm_jax import convert
-    return convert.main(argv[1:]) or 0
   args = parser.parse_args(argv)
   try:
     return args.func(args)

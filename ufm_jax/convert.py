@@ -731,18 +731,18 @@ def save_official(model, params, out_dir, *, source: Optional[str] = None,
   return notes
 
 
-def main(argv=None):
-  argv = sys.argv[1:] if argv is None else argv
-  if len(argv) != 2 or argv[0] in ("-h", "--help"):
-    print("usage: python -m ufm_jax.convert SNAPSHOT_DIR OUT_DIR\n"
-          "  SNAPSHOT_DIR: Hugging Face snapshot (config.json + model.safetensors)\n"
-          "  OUT_DIR: new folder for the orbax params + model_config.json", file=sys.stderr)
-    return 2
-  model, params = load_official(argv[0])
-  save(argv[1], model, params)
+def convert_snapshot(snapshot_dir, out_dir) -> str:
+  """Official snapshot -> orbax checkpoint + model_config.json; returns a one-line summary."""
+  model, params = load_official(snapshot_dir)
+  save(out_dir, model, params)
   n = sum(int(np.prod(v.shape)) for v in jax.tree.leaves(params))
-  print(f"wrote {argv[1]} ({type(model).__name__}, {n:,} parameters)")
-  return 0
+  return f"wrote {out_dir} ({type(model).__name__}, {n:,} parameters)"
+
+
+def main(argv=None):
+  """`python -m ufm_jax.convert ...` is `python -m ufm_jax convert ...`."""
+  from ufm_jax import cli
+  return cli.main(["convert", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":
