@@ -206,3 +206,14 @@ def test_load_errors(tmp_path):
   (tmp_path / convert.CONFIG_FILE).write_text(json.dumps({"class": "Nope", "config": {}}))
   with pytest.raises(ValueError, match="unknown model class 'Nope'"):
     convert.load(tmp_path)
+
+
+def test_truncated_safetensors_says_so(fixture_dir, tmp_path):
+  snap = tmp_path / "snap"
+  snap.mkdir()
+  (snap / "config.json").write_bytes((fixture_dir / "config.json").read_bytes())
+  data = (fixture_dir / "model.safetensors").read_bytes()
+  (snap / "model.safetensors").write_bytes(data[:len(data) // 3])
+  with pytest.raises(ValueError, match=rf"looks truncated: its header describes {len(data):,} "
+                                       rf"bytes, the file has {len(data) // 3:,}"):
+    convert.load_official(snap)

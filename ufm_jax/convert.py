@@ -512,8 +512,28 @@ def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
   try:
     state = load_file(str(w_path))
   except Exception as e:  # safetensors raises its own error types
-    raise ValueError(f"{w_path}: cannot read safetensors ({e})") from e
+    raise ValueError(f"{w_path}: cannot read safetensors ({e}){_truncation_hint(w_path)}") from e
   return cj, state
+
+
+def _truncation_hint(path: pathlib.Path) -> str:
+  """'; the file looks truncated: ...' when its header promises more bytes than it has."""
+  size = path.stat().st_size
+  try:
+    with open(path, "rb") as f:
+      n = int.from_bytes(f.read(8), "little")
+      header = json.loads(f.read(n)) if 0 < n <= size - 8 else None
+  except (OSError, ValueError):
+    header = None
+  if header is None:
+    return ""
+  ends = [int(v["data_offsets"][1]) for k, v in header.items()
+          if k != "__metadata__" and isinstance(v, dict) and "data_offsets" in v]
+  expected = 8 + n + max(ends, default=0)
+  if size < expected:
+    return (f"; the file looks truncated: its header describes {expected:,} bytes, the file has "
+            f"{size:,} (an interrupted download?)")
+  return ""
 
 
 def official_spec(cj: dict, state: Dict[str, np.ndarray], where: str = "config.json"
