@@ -41,7 +41,7 @@ def test_two_processes_same_loss(tmp_path):
         "JAX_PROCESS_ID": str(pid), "JAX_CPU_COLLECTIVES_IMPLEMENTATION": "gloo"})
     cmd = [sys.executable, str(REPO / "train.py"), f"--config={REPO}/ufm_jax/testing/train_support.py",
            f"--workdir={tmp_path / 'mp'}", "--config.total_steps=2", "--config.ckpt_steps=2",
-           "--config.mesh=data:-1,fsdp:2"]
+           "--config.mesh=data:-1,fsdp:2", "--verbosity=0"]  # per-process metrics logs
     procs.append(subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                   text=True, cwd=REPO))
   outs = []
@@ -63,7 +63,7 @@ def test_two_processes_same_loss(tmp_path):
   r = subprocess.run([sys.executable, str(REPO / "train.py"),
                       f"--config={REPO}/ufm_jax/testing/train_support.py",
                       f"--workdir={tmp_path / 'sp'}", "--config.total_steps=2",
-                      "--config.ckpt_steps=2", "--config.mesh=data:-1,fsdp:2"],
+                      "--config.ckpt_steps=2", "--config.mesh=data:-1,fsdp:2", "--verbosity=0"],
                      env=env, capture_output=True, text=True, timeout=240, cwd=REPO)
   assert r.returncode == 0, r.stderr[-3000:]
   ls = _losses(r.stderr)

@@ -59,6 +59,7 @@ class Run:
     self.err_path = workdir.parent / f"{name}.err"
     cmd = [sys.executable] + (["-c", wrapper] if wrapper else [])
     cmd += [str(REPO / "train.py"), f"--workdir={workdir}", CONFIG, "--config.log_training_steps=1",
+            "--verbosity=0",  # the per-process metrics lines the tests read
             *args]
     with open(self.out_path, "w") as out, open(self.err_path, "w") as err:
       self.proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=err, cwd=REPO)
