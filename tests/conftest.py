@@ -4,8 +4,16 @@ import os
 import pathlib
 import subprocess
 import sys
+import tempfile
 
 import pytest
+
+# One persistent XLA compilation cache for the whole run, this process and every train.py /
+# evaluate.py / CLI subprocess it starts (they inherit the environment): many tests compile the
+# same small models, and compiling dominates the suite's time on a CPU. Set before jax is imported.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
+                      os.path.join(tempfile.gettempdir(), "ufm_jax_tests_xla_cache"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1")
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 # CI clones main with shared/ beside it; UFM_FIXTURES points elsewhere when needed.
