@@ -78,25 +78,16 @@ def bench_forward(variant, hw, batch, dtype, attention, iters):
 
 def bench_train(config_spec, model_name, hw, batch, steps):
   import jax
-  import numpy as np
-  from ufm_jax import config_lib, optim, sharding, trainer
+  from ufm_jax import config_lib, sharding, trainer
   config = config_lib.load_config(config_spec)
   config.unlock()
   config.model_name = model_name
   config.mesh = "data:-1,fsdp:1"
   mesh = sharding.make_mesh(config.mesh)
   ts = trainer.setup(config, mesh, hw, total_steps=1000)
-  params = jax.jit(ts.init_fn, out_shardings=ts.param_sh)(jax.random.PRNGKey(0))
-  state = jax.jit(lambda p: optim.TrainState.create(p, ts.tx), out_shardings=ts.state_sh)(params)
-  del params
-  rng = np.random.default_rng(0)
+  state = ts.init_state()
+  b = ts.random_batch(mesh, batch, hw)
   h, w = hw
-  host = {"image0": rng.integers(0, 256, (batch, h, w, 3), dtype=np.uint8),
-          "image1": rng.integers(0, 256, (batch, h, w, 3), dtype=np.uint8),
-          "flow": rng.normal(0, 5, (batch, h, w, 2)).astype(np.float32),
-          "covisibility": rng.random((batch, h, w)) < 0.7,
-          "flow_valid": np.ones((batch, h, w), bool), "covis_valid": np.ones((batch, h, w), bool)}
-  b = sharding.make_global_batch(host, mesh)
   t0 = time.perf_counter()
   compiled = ts.train_step.lower(state, b).compile()
   compile_s = time.perf_counter() - t0

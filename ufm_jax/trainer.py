@@ -145,6 +145,27 @@ class TrainSetup:
               "covis_valid": ((batch_size, h, w), jnp.bool_)}
     return {k: jax.ShapeDtypeStruct(s, d, sharding=self.batch_sh) for k, (s, d) in shapes.items()}
 
+  def init_state(self, seed: int = 0):
+    """A fresh sharded TrainState from the modules' initializers (benchmarks, smoke runs)."""
+    import jax
+    from ufm_jax import optim
+    params = jax.jit(self.init_fn, out_shardings=self.param_sh)(jax.random.PRNGKey(seed))
+    return jax.jit(lambda p: optim.TrainState.create(p, self.tx),
+                   out_shardings=self.state_sh)(params)
+
+  def random_batch(self, mesh, batch_size: int, image_shape, seed: int = 0):
+    """A global batch of random images and labels in the training layout (benchmarks)."""
+    import numpy as np
+    from ufm_jax import sharding
+    rng = np.random.default_rng(seed)
+    b, (h, w) = batch_size, image_shape
+    host = {"image0": rng.integers(0, 256, (b, h, w, 3), dtype=np.uint8),
+            "image1": rng.integers(0, 256, (b, h, w, 3), dtype=np.uint8),
+            "flow": rng.normal(0, 5, (b, h, w, 2)).astype(np.float32),
+            "covisibility": rng.random((b, h, w)) < 0.7,
+            "flow_valid": np.ones((b, h, w), bool), "covis_valid": np.ones((b, h, w), bool)}
+    return sharding.make_global_batch(host, mesh)
+
   def sharded_abstract_state(self):
     import jax
     return jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
