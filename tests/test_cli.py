@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ufm_jax import cli
-from ufm_jax.data.io import read_flo, read_image
+from ufm_jax.data.io import read_flo, read_image, write_image
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -28,8 +28,8 @@ def io(reference_dir):
 @pytest.fixture()
 def pair_files(io, tmp_path):
   src, tgt = tmp_path / "src.png", tmp_path / "tgt.png"
-  io.write_image(src, io["hl1_src_uint8"])
-  io.write_image(tgt, io["hl1_tgt_uint8"])
+  write_image(src, io["hl1_src_uint8"])
+  write_image(tgt, io["hl1_tgt_uint8"])
   return src, tgt
 
 
