@@ -88,11 +88,15 @@ def test_stablehlo_roundtrip_in_fresh_process(fixture_model, tmp_path):
                    "--out", str(art), "--batch", "2" if refine else "dynamic",
                    "--outputs", ",".join(outputs)]) == 0
   got = _fresh_call(art, fm["src"], fm["tgt"], tmp_path)
+  ref_one = ({k: v[:1] for k, v in fm["ref"].items()} if refine else   # padded to batch 2
+             _apply(fm["model"], fm["params"], fm["src"][:1], fm["tgt"][:1]))
   for k in outputs:
     for how in ("raw", "full"):
       err = _max_err(got[f"{how}_{k}"], fm["ref"][k])
       assert got[f"{how}_{k}"].shape == fm["ref"][k].shape and err <= 1e-5, (how, k, err)
-    assert _max_err(got[f"one_{k}"], fm["ref"][k][:1]) <= 1e-5, k
+    # Like for like: the CPU attention sizes its query chunks by the batch, so a batch of one
+    # rounds differently from row 0 of a batch of two (1.5e-5 px on the base fixture).
+    assert _max_err(got[f"one_{k}"], ref_one[k]) <= 1e-5, k
   assert sorted(k[4:] for k in got if k.startswith("raw_")) == sorted(outputs)
 
   meta = json.loads(export.sidecar_path(art).read_text())

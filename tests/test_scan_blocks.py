@@ -189,16 +189,17 @@ def test_bf16_heads_close_to_float32(official):
 
 def test_attention_implementation_by_platform(monkeypatch):
   choose = layers.attention_implementation
-  assert choose(None, jnp.bfloat16, 64) == "xla"          # this CPU
+  assert choose(None, jnp.bfloat16, 64) == "auto"         # this CPU: cpu/xla per platform
   assert choose("cudnn", jnp.float32, 64) == "cudnn"      # forced
   assert choose("xla", jnp.bfloat16, 64) == "xla"
+  assert choose("cpu", jnp.bfloat16, 64) == "cpu"
   with pytest.raises(ValueError, match="attention_impl"):
     choose("flash", jnp.bfloat16, 64)
   monkeypatch.setattr(layers.jax, "default_backend", lambda: "gpu")
   assert choose(None, jnp.bfloat16, 64) == "cudnn"
   assert choose("auto", jnp.float16, 128) == "cudnn"
-  assert choose(None, jnp.float32, 64) == "xla"           # cuDNN flash takes bf16/f16 only
-  assert choose(None, jnp.bfloat16, 100) == "xla"         # head dim not a multiple of 8
-  assert choose(None, jnp.bfloat16, 160) == "xla"
+  assert choose(None, jnp.float32, 64) == "auto"          # cuDNN flash takes bf16/f16 only
+  assert choose(None, jnp.bfloat16, 100) == "auto"        # head dim not a multiple of 8
+  assert choose(None, jnp.bfloat16, 160) == "auto"
   with pytest.raises(ValueError, match="attention_impl"):
     ufm.UFMConfig(attention_impl="flash")

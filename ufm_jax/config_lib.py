@@ -77,8 +77,8 @@ def model_options(dtype: str = "bfloat16", remat: bool = True, scan_blocks: bool
   """The `model` block: UFMConfig compute options passed to the variant (trainer.build_model).
 
   Every option is present so each can be overridden from the command line (the block is locked):
-  `--config.model.attention_impl=cudnn|xla` (typed None = auto: cuDNN on GPU for bf16, XLA
-  elsewhere), `--config.model.scan_blocks=False` (unrolled blocks: slower compile, same numbers),
+  `--config.model.attention_impl=cudnn|xla|cpu` (typed None = auto: cuDNN on GPU for bf16,
+  the cache-blocked loop on CPU, XLA elsewhere), `--config.model.scan_blocks=False` (unrolled blocks: slower compile, same numbers),
   `--config.model.head_dtype=bfloat16` (DPT heads in bf16; the official heads are float32).
   """
   return ml_collections.ConfigDict({

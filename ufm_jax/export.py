@@ -52,8 +52,11 @@ def sidecar_path(path: str | os.PathLike) -> pathlib.Path:
 # Export
 
 
-def _prepare(model, params, size, dtype, outputs):
-  """(forward fn(source, target) -> {name: array}, the model as exported, output names)."""
+def _prepare(model, params, size, dtype, outputs, attention_impl=None):
+  """(forward fn(source, target) -> {name: array}, the model as exported, output names).
+
+  attention_impl None picks per platform inside the artifact (the CPU loop, XLA on CUDA); ONNX
+  asks for "xla": one portable graph for other runtimes."""
   import jax
   import jax.numpy as jnp
 
@@ -61,7 +64,8 @@ def _prepare(model, params, size, dtype, outputs):
     raise ExportError(f"--dtype {dtype!r}; expected one of {', '.join(DTYPES)}")
   cfg = model.config
   # remat only matters for gradients; the fused cuDNN attention cannot lower for the cpu platform.
-  model = model.clone(config=dataclasses.replace(cfg, dtype=dtype, remat=False, attention_impl=None))
+  model = model.clone(config=dataclasses.replace(cfg, dtype=dtype, remat=False,
+                                                 attention_impl=attention_impl))
   h, w = size
   patch = cfg.encoder.patch_size
   if h <= 0 or w <= 0 or h % patch or w % patch:
@@ -200,7 +204,7 @@ def export_onnx(model, params, size, path, *, batch=1, dtype="float32",
     raise ExportError("--format onnx needs a fixed --batch N (a symbolic batch does not survive "
                       "jax2onnx's conversion of the two-view split); use --format stablehlo for "
                       "a dynamic batch")
-  forward, model, outputs = _prepare(model, params, size, dtype, outputs)
+  forward, model, outputs = _prepare(model, params, size, dtype, outputs, attention_impl="xla")
   spec = jax.ShapeDtypeStruct((_batch_dim(batch),) + tuple(size) + (3,), jnp.uint8)
   specs = [spec, spec]
   write_onnx(lambda s, t: tuple(forward(s, t)[k] for k in outputs), specs, INPUT_NAMES, outputs,

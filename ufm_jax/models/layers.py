@@ -55,21 +55,62 @@ def tied_qkv_init(scale: float = 1.0, base=nn.initializers.lecun_normal()):
   return init
 
 
-ATTENTION_IMPLS = (None, "auto", "xla", "cudnn")
+ATTENTION_IMPLS = (None, "auto", "xla", "cudnn", "cpu")
+
+# The "cpu" path's logits tile ([batch, query chunk, keys] float32): small enough to stay in cache
+# between the two matmuls and the softmax. benchmarks/inference.py --breakdown measures it.
+CPU_ATTENTION_TILE = 4 * 2**20
 
 
 def attention_implementation(impl: Optional[str], dtype, head_dim: int) -> str:
-  """"xla" or "cudnn" for jax.nn.dot_product_attention. None/"auto": cuDNN's fused flash kernel
-  on GPU for bf16/f16 with a head dim it takes (a multiple of 8, at most 128; 256 on Hopper is
-  not assumed), XLA otherwise (CPU, TPU, float32)."""
+  """"xla", "cudnn" or "cpu" for `dot_product_attention`. None/"auto": cuDNN's fused flash
+  kernel on GPU for bf16/f16 with a head dim it takes (a multiple of 8, at most 128; 256 on
+  Hopper is not assumed); elsewhere "auto" (the cpu path on CPU, XLA on TPU/GPU, chosen per
+  platform at lowering so a multi-platform export carries both)."""
   if impl not in ATTENTION_IMPLS:
     raise ValueError(f"attention_impl {impl!r}; expected one of {ATTENTION_IMPLS}")
-  if impl in ("xla", "cudnn"):
+  if impl in ("xla", "cudnn", "cpu"):
     return impl
   if (jax.default_backend() == "gpu" and jnp.dtype(dtype) in (jnp.bfloat16, jnp.float16)
       and head_dim % 8 == 0 and head_dim <= 128):
     return "cudnn"
-  return "xla"
+  return "auto"
+
+
+def cpu_attention(q, k, v, scale: float, tile: int = CPU_ATTENTION_TILE):
+  """Exact softmax attention as a loop over heads and query chunks ([B, N, heads, hd] in/out).
+
+  XLA:CPU runs the one-shot formulation (all heads' [B, heads, N, M] logits at once) at 20-35%
+  of its matmul peak on UFM's shapes, memory-bound on the logits; one head and query chunk at a
+  time keeps each logits tile in cache and reaches ~90%. Logits and the softmax are float32 for
+  any input dtype, as in jax.nn.dot_product_attention. The batch stays a dimension of every op
+  (no loop over it), so a batch-sharded input needs no collective.
+  """
+  b, n, h, d = q.shape
+  m = k.shape[1]
+  q = q * jnp.asarray(scale, q.dtype)
+  # A symbolic batch (jax.export) sizes the chunks for one pair.
+  chunks = max(1, -(-(b if isinstance(b, int) else 1) * n * m // tile))
+  cq = -(-n // chunks)
+  pad = chunks * cq - n
+  if pad:
+    q = jnp.pad(q, ((0, 0), (0, pad), (0, 0), (0, 0)))
+  qs = jnp.moveaxis(q.reshape(b, chunks, cq, h, d), (3, 1), (0, 1))  # [h, chunks, b, cq, d]
+  ks, vs = jnp.moveaxis(k, 2, 0), jnp.moveaxis(v, 2, 0)  # [h, b, m, d]
+
+  def head(args):
+    qh, kh, vh = args
+
+    def chunk(qc):
+      s = jnp.einsum("bqd,bkd->bqk", qc, kh, preferred_element_type=jnp.float32)
+      p = jnp.exp(s - jnp.max(s, axis=-1, keepdims=True))
+      o = jnp.einsum("bqk,bkd->bqd", p.astype(vh.dtype), vh, preferred_element_type=jnp.float32)
+      return (o / jnp.sum(p, axis=-1, keepdims=True)).astype(q.dtype)
+    return jax.lax.map(chunk, qh)
+
+  o = jax.lax.map(head, (qs, ks, vs))  # [h, chunks, b, cq, d]
+  o = jnp.moveaxis(o, (0, 1), (3, 1)).reshape(b, chunks * cq, h, d)
+  return o[:, :n] if pad else o
 
 
 def dot_product_attention(q, k, v, scale: float, impl: Optional[str] = None):
@@ -77,11 +118,19 @@ def dot_product_attention(q, k, v, scale: float, impl: Optional[str] = None):
   at trace time (cuDNN missing, an unsupported GPU or shape) falls back to XLA; a forced
   "cudnn" raises it."""
   chosen = attention_implementation(impl, q.dtype, q.shape[-1])
+  xla = lambda q, k, v: jax.nn.dot_product_attention(q, k, v, scale=scale, implementation="xla")  # noqa: E731
   if chosen == "cudnn" and impl in (None, "auto"):
     try:
       return jax.nn.dot_product_attention(q, k, v, scale=scale, implementation="cudnn")
     except (NotImplementedError, RuntimeError, ValueError):
       chosen = "xla"
+  if chosen == "auto":
+    return jax.lax.platform_dependent(q, k, v, cpu=lambda q, k, v: cpu_attention(q, k, v, scale),
+                                      default=xla)
+  if chosen == "cpu":
+    return cpu_attention(q, k, v, scale)
+  if chosen == "xla":
+    return xla(q, k, v)
   return jax.nn.dot_product_attention(q, k, v, scale=scale, implementation=chosen)
 
 
@@ -91,7 +140,7 @@ class Attention(nn.Module):
   qkv_bias: bool = True
   qk_norm: bool = False
   dtype: Optional[Dtype] = None
-  implementation: Optional[str] = None  # None/"auto", "xla", "cudnn" (attention_implementation)
+  implementation: Optional[str] = None  # None/"auto", "xla", "cudnn", "cpu" (attention_implementation)
   tied_qk_init: Optional[float] = None  # from-scratch: W_k = W_q, this scale (tied_qkv_init)
 
   @nn.compact

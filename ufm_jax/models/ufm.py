@@ -41,8 +41,9 @@ class UFMConfig:
   # official autocast does), or "float64" (everything; needs jax_enable_x64, for testing).
   dtype: str = "float32"
   remat: bool = False  # gradient checkpointing per transformer block
-  # None or "auto": cuDNN fused attention on GPU when dtype and head size allow, else XLA
-  # (layers.attention_implementation); "xla" or "cudnn" force one.
+  # None or "auto": cuDNN fused attention on GPU when dtype and head size allow, else the
+  # cache-blocked loop on CPU and XLA's on other platforms (layers.attention_implementation);
+  # "xla", "cudnn" or "cpu" force one.
   attention_impl: Optional[str] = None
   # Encoder and fusion blocks as one stacked parameter tree run by lax.scan (models/scan.py):
   # one compiled block body instead of 24 + 12. Changes the param layout (scan.stack_blocks).
