@@ -30,7 +30,7 @@ import pathlib
 import sys
 import time
 
-from ufm_jax import evaluators
+from ufm_jax import compile_cache, evaluators
 from ufm_jax.data import io
 from ufm_jax.evaluators import base, report
 
@@ -51,6 +51,7 @@ def parse_args(argv=None):
   ap.add_argument("--out", default="results", help="results.json goes here")
   ap.add_argument("--seed", type=int, default=0, help="pose RANSAC/sampling seed")
   ap.add_argument("--no_progress", action="store_true", help="no progress bars (logs, CI)")
+  compile_cache.add_argument(ap)
   args = ap.parse_args(argv)
   if args.resolution is not None and args.resolution != "native":
     try:
@@ -109,6 +110,7 @@ def random_model(name: str = None):
 
 def main(argv=None) -> int:
   args = parse_args(argv)
+  compile_cache.enable(args.compile_cache)
   if args.bench == "all":
     names, explicit = list(evaluators.BENCHES), False
   else:

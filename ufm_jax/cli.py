@@ -35,6 +35,8 @@ import sys
 
 import numpy as np
 
+from ufm_jax import compile_cache
+
 
 def is_snapshot(path: str | os.PathLike) -> bool:
   """A Hugging Face snapshot folder as written by `save_pretrained`."""
@@ -338,7 +340,10 @@ def main(argv: list[str] | None = None) -> int:
   sub = parser.add_subparsers(dest="command", required=True)
   for add in SUBCOMMANDS:
     add(sub)
+  for p in sub.choices.values():
+    compile_cache.add_argument(p)
   args = parser.parse_args(argv)
+  compile_cache.enable(args.compile_cache)
   try:
     return args.func(args)
   except (FileNotFoundError, FileExistsError, ValueError) as e:

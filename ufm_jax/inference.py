@@ -210,6 +210,8 @@ def _forward_fn(model):
 
   entry = _FORWARDS.get(id(model))
   if entry is None or entry[0] is not model:
+    from ufm_jax import compile_cache
+    compile_cache.enable()  # a new process on the same shapes loads the executable from disk
     def fwd(params, source, target):
       out = model.apply({"params": params}, source, target)
       return {"flow": out["flow"], "covisibility": out["covisibility"]}
