@@ -3,6 +3,8 @@ r"""Train-step benchmark: the exact train.py step (ufm_jax.trainer.setup), timed
   python benchmarks/train_step.py --config synthetic                 # time the tiny config here
   python benchmarks/train_step.py --config ufm560 --model ufm_base --mesh data:2,fsdp:4 \
       --devices 8 --batch 96 --size 420x560 --aot --hlo_out /tmp/ufm560.hlo.txt
+  python benchmarks/train_step.py --config ufm560 --mesh data:2,fsdp:4 --devices 8 --batch 96 \
+      --size 420x560 --aot --scan false     # compile time with unrolled blocks
   python benchmarks/train_step.py --config ufm560 --estimate_only    # memory of the full config
 
 --aot compiles (never runs) the step on --devices fake CPU devices (set before jax is imported)
@@ -65,6 +67,8 @@ def load(args):
     config.mesh = args.mesh
   if args.remat is not None:
     config.model.remat = args.remat == "true"
+  if args.scan is not None:
+    config.model.scan_blocks = args.scan == "true"
   batch = args.batch or int(config.input.batch_size)
   if args.size:
     hw = tuple(int(x) for x in args.size.lower().split("x"))
@@ -99,7 +103,7 @@ def aot(config, batch, hw, hlo_out=None):
   print(f"config {config.get('model_name', config.get('model_fn'))}: {n_params / 1e6:.1f}M params, "
         f"global batch {batch} at {hw[0]}x{hw[1]}, mesh {dict(mesh.shape)} on {len(jax.devices())} "
         f"{jax.devices()[0].platform} devices, dtype {config.model.get('dtype', 'float32')}, "
-        f"remat {config.model.get('remat', False)}")
+        f"remat {config.model.get('remat', False)}, scan_blocks {config.model.get('scan_blocks', False)}")
   print(f"  params {_gib(p_bytes)} total, {_gib(p_dev)} per device; optimizer state "
         f"{_gib(opt_dev)} per device (train state {_gib(state_dev)})")
   print(f"  XLA memory per device: temp {_gib(ma.temp_size_in_bytes)}, args "
@@ -200,6 +204,8 @@ def main():
   ap.add_argument("--batch", type=int, default=None, help="global pairs per step")
   ap.add_argument("--size", default=None, help="HxW (multiples of 14)")
   ap.add_argument("--remat", choices=("true", "false"), default=None)
+  ap.add_argument("--scan", choices=("true", "false"), default=None,
+                  help="model.scan_blocks: one compiled block body (true) or unrolled blocks")
   ap.add_argument("--steps", type=int, default=5)
   ap.add_argument("--aot", action="store_true", help="compile only: memory, collectives, JSON")
   ap.add_argument("--hlo_out", default=None, help="with --aot: write compiled.as_text() here")
