@@ -10,8 +10,9 @@ synthetic pairs are rendered at 84x112, upsampled to 3:4 of the side with consis
 written once in the pairs_folder format under --cache_dir, so the figure covers PNG/.flo/npz decoding
 plus augmentation at that size, as for a real dataset read from disk.
 
-"samples" are pairs as the train step sees them (both directions when symmetrized). Prints figures,
-asserts nothing about timings.
+""samples" are pairs as the train step sees them (both directions when symmetrized). "host CPU
+ms/row" (workers=0 only) is the process CPU time per such row: what sizing the grain workers of a
+host needs. Prints figures, asserts nothing about timings; the last line is one JSON object.
 """
 
 from __future__ import annotations
@@ -100,15 +101,17 @@ def measure(block, num_batches, warmup):
     for _ in range(warmup):
       next(it)
     t_first = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     pairs = 0
     for _ in range(num_batches):
       pairs += next(it)["image0"].shape[0]
-    dt = time.perf_counter() - t0
+    dt, cpu = time.perf_counter() - t0, time.process_time() - c0
   finally:
     if hasattr(it, "close"):
       it.close()
-  return pairs / dt, num_batches / dt, t_first
+  # With worker processes the work happens in children this process cannot time while they run.
+  cpu_ms = 1e3 * cpu / pairs if not block.num_workers else None
+  return pairs / dt, num_batches / dt, t_first, cpu_ms
 
 
 def main(argv=None):
@@ -138,13 +141,20 @@ def main(argv=None):
     print("CPU ms per sample, single thread, 420x560 test trees (budget < 50 ms)")
     source_load.measure((420, 560))
   print(f"{'longest':>7} {'workers':>7} {'batch':>5} {'pairs/s':>9} {'batches/s':>9} "
-        f"{'startup+warmup s':>16}")
+        f"{'startup+warmup s':>16} {'host CPU ms/row':>15}")
+  rows = []
   for side in (int(s) for s in args.longest_side.split(",")):
     for workers in (int(w) for w in args.workers.split(",")):
       block = _input_block(args, side, workers)
-      sps, bps, t_first = measure(block, args.batches, args.warmup)
-      print(f"{side:>7} {workers:>7} {args.batch_size:>5} {sps:>9.1f} {bps:>9.2f} {t_first:>16.1f}",
-            flush=True)
+      sps, bps, t_first, cpu_ms = measure(block, args.batches, args.warmup)
+      cpu = f"{cpu_ms:>15.1f}" if cpu_ms is not None else f"{'(workers)':>15}"
+      print(f"{side:>7} {workers:>7} {args.batch_size:>5} {sps:>9.1f} {bps:>9.2f} {t_first:>16.1f} "
+            f"{cpu}", flush=True)
+      rows.append({"longest_side": side, "workers": workers, "batch_size": args.batch_size,
+                   "pairs_per_s": round(sps, 2), "host_cpu_ms_per_row": cpu_ms and round(cpu_ms, 2)})
+  print("host CPU ms/row: process CPU time per training row with workers=0 (all decoding, labels "
+        "and augmentation in this process); a host feeding R rows/s needs about R x ms / 1000 cores")
+  print(json.dumps({"load_avg_1m": round(os.getloadavg()[0], 2), "settings": rows}))
 
 
 if __name__ == "__main__":

@@ -178,30 +178,37 @@ def warp_labels(sample: Mapping[str, np.ndarray], view0: View, view1: View, out_
   valid = np.asarray(sample["flow_valid"], bool)
   flow = np.asarray(sample["flow"], np.float32)
   h, w = valid.shape
-  flow = np.where(valid[..., None] & np.isfinite(flow), flow, 0).astype(np.float32)
   xp = np.arange(out_w, dtype=np.float64)
   yp = np.arange(out_h, dtype=np.float64)
   x = (xp + view0.cx + 0.5) / view0.sx - 0.5   # original source coordinates of output pixels
   y = (yp + view0.cy + 0.5) / view0.sy - 0.5
   x0, x1, wx, xn = _taps(x, w)
   y0, y1, wy, yn = _taps(y, h)
-  # Separable: blend the two source rows, then the two columns (4 gathers instead of 8).
-  wy = wy[:, None, None]
-  rows = flow[y0] * (1 - wy) + flow[y1] * wy
-  wx = wx[None, :, None]
-  flow_r = rows[:, x0] * (1 - wx) + rows[:, x1] * wx
+
+  # u and v as two planes [2, h, w]: every broadcast below runs over a contiguous last axis
+  # (numpy is several times slower broadcasting over a trailing axis of 2).
+  planes = np.moveaxis(flow, -1, 0)
+
+  def tap_rows(rows):  # only the rows the output reads are cleaned
+    f = planes.take(rows, 1)
+    return np.where(valid.take(rows, 0) & np.isfinite(f), f, np.float32(0))
+
+  # Separable: blend the two source rows, then the two columns (np.take, not fancy indexing).
+  wy = wy[:, None]
+  rows = tap_rows(y0) * (1 - wy) + tap_rows(y1) * wy
+  flow_r = rows.take(x0, 2) * (1 - wx) + rows.take(x1, 2) * wx
   # A label is valid only if every bilinear tap with weight was valid (no blending with garbage).
-  vrows = valid[y0] & valid[y1]
-  flow_valid = vrows[:, x0] & vrows[:, x1] & valid[yn][:, xn]
+  vrows = valid.take(y0, 0) & valid.take(y1, 0)
+  flow_valid = vrows.take(x0, 1) & vrows.take(x1, 1) & valid.take(yn, 0).take(xn, 1)
   # flow' = A1(x + flow) - x' = s1 * flow + (s1 * x + b1 - x'); the bracket is 1-D, in float64.
   a1 = view1.matrix()
   off_x = (a1[0, 0] * x + a1[0, 2] - xp).astype(np.float32)
   off_y = (a1[1, 1] * y + a1[1, 2] - yp).astype(np.float32)
-  u = np.float32(a1[0, 0]) * flow_r[..., 0] + off_x[None, :]
-  v = np.float32(a1[1, 1]) * flow_r[..., 1] + off_y[:, None]
+  u = np.float32(a1[0, 0]) * flow_r[0] + off_x[None, :]
+  v = np.float32(a1[1, 1]) * flow_r[1] + off_y[:, None]
   out = {"flow": np.stack([u, v], -1), "flow_valid": flow_valid}
   for key in ("covisibility", "covis_valid"):
-    out[key] = np.asarray(sample[key], bool)[yn][:, xn]
+    out[key] = np.asarray(sample[key], bool).take(yn, 0).take(xn, 1)
   return out
 
 
