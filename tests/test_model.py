@@ -45,7 +45,14 @@ def test_bfloat16_compute(fixture):
   m16 = model.clone(config=model.config.replace(dtype="bfloat16"))
   a, b = io["img1_uint8"], io["img2_uint8"]
   jaxpr = jax.make_jaxpr(lambda p: m16.apply({"params": p}, a, b))(params)
-  dots = [e for e in jaxpr.jaxpr.eqns if e.primitive.name == "dot_general"]
+  def eqns(j):  # into sub-jaxprs too: on CPU the Dense dots sit in a platform_dependent branch
+    for e in j.eqns:
+      yield e
+      for v in e.params.values():
+        for sub in v if isinstance(v, (tuple, list)) else (v,):
+          if hasattr(sub, "eqns"):
+            yield from eqns(sub)
+  dots = [e for e in eqns(jaxpr.jaxpr) if e.primitive.name == "dot_general"]
   assert any(e.invars[0].aval.dtype == jnp.bfloat16 for e in dots)  # encoder/fusion matmuls
   out = jax.jit(m16.apply)({"params": params}, a, b)
   assert out["flow"].dtype == jnp.float32 and out["covisibility_logits"].dtype == jnp.float32

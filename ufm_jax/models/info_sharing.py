@@ -69,7 +69,7 @@ class InfoSharing(nn.Module):
     constrain = self.activation_sharding or layers.identity
     x = jnp.concatenate([feat1.reshape(b, n, c), feat2.reshape(b, n, c)], axis=1)
     if cfg.input_embed_dim != cfg.dim:
-      x = nn.Dense(cfg.dim, dtype=self.dtype, name="proj_embed")(x)
+      x = layers.Dense(cfg.dim, dtype=self.dtype, name="proj_embed")(x)
     self.sow("intermediates", "proj_embed_out", x)
     # A buffer in the PyTorch module, not a parameter: constant here (the loader checks it).
     table = jnp.asarray(sinusoid_table(cfg.max_num_views, cfg.dim))

@@ -5,6 +5,7 @@ weight conversion in `ufm_jax.convert` is a mechanical rename: `qkv`, `proj`, `f
 `norm1`, `norm2`, `ls1.gamma`, `ls2.gamma`, `q_norm`, `k_norm`, `w12`, `w3`.
 """
 
+import functools
 from typing import Any, Callable, Optional
 
 import flax.linen as nn
@@ -53,6 +54,25 @@ def tied_qkv_init(scale: float = 1.0, base=nn.initializers.lecun_normal()):
     wq = scale * base(kq, (c, c), dtype)
     return jnp.concatenate([wq, wq, base(kv, (c, c), dtype)], axis=-1)
   return init
+
+
+def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None, **kw):
+  """lax.dot_general for the model's Dense layers. bf16/f16 operands on CPU accumulate into a
+  float32 result that is then rounded: XLA:CPU runs that form with its bf16 (AVX-512 BF16/AMX)
+  kernels, while a bf16-out dot is upcast to a float32 dot and gains nothing over float32.
+  Other platforms (chosen when lowering) keep the plain dot, which already accumulates in f32."""
+  plain = functools.partial(jax.lax.dot_general, dimension_numbers=dimension_numbers,
+                            precision=precision, preferred_element_type=preferred_element_type, **kw)
+  dtype = jnp.result_type(lhs, rhs)
+  if preferred_element_type is not None or dtype not in (jnp.bfloat16, jnp.float16):
+    return plain(lhs, rhs)
+  def wide(l, r):
+    return jax.lax.dot_general(l, r, dimension_numbers, precision,
+                               preferred_element_type=jnp.float32, **kw).astype(dtype)
+  return jax.lax.platform_dependent(lhs, rhs, cpu=wide, default=plain)
+
+
+Dense = functools.partial(nn.Dense, dot_general=dot_general)
 
 
 ATTENTION_IMPLS = (None, "auto", "xla", "cudnn", "cpu")
@@ -149,7 +169,7 @@ class Attention(nn.Module):
     head_dim = c // self.num_heads
     kernel_init = (nn.initializers.lecun_normal() if self.tied_qk_init is None
                    else tied_qkv_init(self.tied_qk_init))
-    qkv = nn.Dense(3 * c, use_bias=self.qkv_bias, dtype=self.dtype, kernel_init=kernel_init,
+    qkv = Dense(3 * c, use_bias=self.qkv_bias, dtype=self.dtype, kernel_init=kernel_init,
                    name="qkv")(x)
     # torch: reshape(B, N, 3, heads, head_dim); jax.nn.dot_product_attention wants [B, N, heads, hd].
     qkv = qkv.reshape(b, n, 3, self.num_heads, head_dim)
@@ -164,7 +184,7 @@ class Attention(nn.Module):
     else:
       out = dot_product_attention(q, k, v, head_dim ** -0.5, self.implementation)
     out = out.reshape(b, n, c)
-    return nn.Dense(c, dtype=self.dtype, name="proj")(out)
+    return Dense(c, dtype=self.dtype, name="proj")(out)
 
 
 class Mlp(nn.Module):
@@ -175,9 +195,9 @@ class Mlp(nn.Module):
   @nn.compact
   def __call__(self, x):
     c = x.shape[-1]
-    h = nn.Dense(self.hidden_dim, dtype=self.dtype, name="fc1")(x)
+    h = Dense(self.hidden_dim, dtype=self.dtype, name="fc1")(x)
     h = jax.nn.gelu(h, approximate=False)
-    return nn.Dense(c, dtype=self.dtype, name="fc2")(h)
+    return Dense(c, dtype=self.dtype, name="fc2")(h)
 
 
 class SwiGLUFFN(nn.Module):
@@ -188,9 +208,9 @@ class SwiGLUFFN(nn.Module):
   @nn.compact
   def __call__(self, x):
     c = x.shape[-1]
-    x12 = nn.Dense(2 * self.hidden_dim, dtype=self.dtype, name="w12")(x)
+    x12 = Dense(2 * self.hidden_dim, dtype=self.dtype, name="w12")(x)
     x1, x2 = jnp.split(x12, 2, axis=-1)
-    return nn.Dense(c, dtype=self.dtype, name="w3")(jax.nn.silu(x1) * x2)
+    return Dense(c, dtype=self.dtype, name="w3")(jax.nn.silu(x1) * x2)
 
 
 def swiglu_hidden_dim(dim: int, mlp_ratio: float) -> int:
