@@ -16,6 +16,22 @@ from ufm_jax import convert
 from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
 
 
+def require_extra(extra: str, modules) -> None:
+  """Skips the calling test when an optional extra's modules are missing, naming the pip command;
+  fails instead under CI=true (CI installs the test extra, which includes every extra tested)."""
+  import importlib.util
+  import os
+
+  import pytest
+  missing = [m for m in modules if importlib.util.find_spec(m) is None]
+  if missing:
+    msg = (f"the [{extra}] extra is not installed ({', '.join(missing)} missing): "
+           f"pip install -e '.[{extra}]'")
+    if os.environ.get("CI") == "true":
+      pytest.fail(msg + " (CI installs the test extra, which includes it)")
+    pytest.skip(msg)
+
+
 def write_snapshot(folder, config: dict, state: dict, metadata=None) -> pathlib.Path:
   """A Hugging Face snapshot folder (config.json + model.safetensors) from a torch-named state."""
   from safetensors.numpy import save_file
