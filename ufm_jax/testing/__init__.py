@@ -1,8 +1,8 @@
 """Helpers shared by the tests and benchmarks (tests never import each other): model structures
 the public fixtures do not cover, random parameters for them, official-style snapshot folders,
-random weights in official namings. Submodules: `wide_trees` (tiny trees in the real on-disk
-formats of the wide-baseline and benchmark datasets), `train_support` (a stand-in model, data and
-config for the training-machinery tests)."""
+random weights in official namings, the skip-or-fail rule of optional extras. Submodules:
+`wide_trees` (tiny trees in the real on-disk formats of the wide-baseline and benchmark datasets),
+`train_support` (a stand-in model, data and config for the training-machinery tests)."""
 
 from __future__ import annotations
 
