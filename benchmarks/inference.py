@@ -5,6 +5,9 @@
   python benchmarks/inference.py --config ufm_base --size 420x560 --set attention_impl=xla
   python benchmarks/inference.py --config ufm_base --size 420x560 --compile_only \
       --set scan_blocks=true          # compile time only (abstract params, nothing runs)
+  python benchmarks/inference.py --config ufm_base --size 420x560 --batch 8 --frames [DIR]
+      # also end to end: frames read from DIR (default: random PNGs in a temp dir), predicted
+      # and written as .flo through ufm_jax.sequence, the path of `infer --frames`
 
 Prints: latency (median and min of --runs timed calls after --warmup untimed ones), pairs/s, the
 model's FLOPs per pair from XLA's cost analysis of the compiled forward, achieved GFLOP/s, and the
@@ -12,6 +15,8 @@ f32 matmul peak: the best of >= 2 x --runs samples of a square --matmul_n dot an
 model's encoder-MLP shape, sampled between the model runs. The share of peak is min(model)
 against best(peak), printed with the load average and thread count, so a loaded machine shows
 as a low peak sample rather than a flattering share. --breakdown times each stage on its own.
+--frames adds end-to-end pairs/s (reading, resizing, forward, unmapping, writing) next to the
+model-only figure, the model run at --size as its inference resolution.
 Params are random (`jax.jit(model.init)`) unless --snapshot gives an official snapshot. Figures
 are printed, never asserted; the last line is one JSON object.
 """
@@ -139,7 +144,14 @@ def main(argv=None) -> dict:
   ap.add_argument("--grad", action="store_true",
                   help="with --compile_only: compile forward + gradient w.r.t. the params (a "
                        "one-device stand-in for the train step; --set remat=true to match it)")
+  ap.add_argument("--frames", nargs="?", const="", default=None, metavar="DIR",
+                  help="also time `infer --frames` end to end (ufm_jax.sequence) on the frames in "
+                       "DIR, or on --frames_pairs + 1 random PNGs in a temp dir when DIR is omitted")
+  ap.add_argument("--frames_pairs", type=int, default=16,
+                  help="pairs of the generated frames folder (consecutive frames)")
   args = ap.parse_args(argv)
+  if args.frames is not None and args.compile_only:
+    ap.error("--frames runs the model; it does not combine with --compile_only")
 
   if args.snapshot:
     import ufm_jax
@@ -211,10 +223,50 @@ def main(argv=None) -> dict:
         f"-> {100 * res['fraction_of_peak']:.0f}% of peak (min(model) vs best(peak))")
   if args.breakdown:
     res["stages"] = breakdown(model, params, src, tgt, peak, args.runs, t_model=fastest)
+  if args.frames is not None:
+    res.update(end_to_end(model, params, (h, w), args.batch, args.frames, args.frames_pairs))
+    print(f"  end to end ({res['frames_pairs']} pairs of {res['frames_dir']}: read, predict, write "
+          f".flo, through ufm_jax.sequence): {res['end_to_end_pairs_per_s']:.3f} pairs/s, "
+          f"{100 * res['end_to_end_pairs_per_s'] / res['pairs_per_s']:.0f}% of the model-only "
+          f"{res['pairs_per_s']:.3f} pairs/s (min)")
   print(json.dumps(res))
   if args.json:
     pathlib.Path(args.json).write_text(json.dumps(res, indent=1))
   return res
+
+
+def end_to_end(model, params, size_hw, batch: int, frames: str, n_pairs: int) -> dict:
+  """Pairs/s of `python -m ufm_jax infer --frames` (ufm_jax.sequence.run: thread-pool reads,
+  batched predict, .flo writes) on `frames` (empty: n_pairs + 1 random PNGs written to a temp dir),
+  with the model's inference resolution set to size_hw. A first run over one batch compiles;
+  the timed run rewrites everything (overwrite)."""
+  import tempfile
+
+  from ufm_jax import sequence
+  from ufm_jax.data import io
+
+  model = model.clone(config=model.config.replace(inference_resolution=tuple(size_hw)))
+  label = frames or f"{n_pairs + 1} random {size_hw[0]}x{size_hw[1]} PNGs"
+  with tempfile.TemporaryDirectory(prefix="ufm_bench_frames_") as tmp:
+    if not frames:
+      frames = os.path.join(tmp, "frames")
+      os.makedirs(frames)
+      rng = np.random.default_rng(0)
+      for i in range(n_pairs + 1):
+        io.write_image(os.path.join(frames, f"{i:06d}.png"),
+                       rng.integers(0, 256, (*size_hw, 3), dtype=np.uint8))
+    elif not os.path.isdir(frames):
+      raise SystemExit(f"--frames {frames}: folder not found")
+    pairs = sequence.frame_pairs(frames)
+    sequence.run(model, params, pairs[:batch], os.path.join(tmp, "warmup"), batch=batch,
+                 progress=False)
+    counts = sequence.run(model, params, pairs, os.path.join(tmp, "out"), batch=batch,
+                          overwrite=True, progress=False)
+  if counts["failed"]:
+    raise SystemExit(f"--frames {frames}: {counts['failed']} pairs had unreadable images")
+  return {"frames_dir": label, "frames_pairs": counts["done"],
+          "end_to_end_s": round(counts["seconds"], 3),
+          "end_to_end_pairs_per_s": counts["done"] / counts["seconds"]}
 
 
 # Stages of --breakdown: (label, module path pattern, method). The first call of each pattern is

@@ -2,7 +2,6 @@
 code, ONNX parity through onnxruntime, the sidecar, and the errors that name what is wrong."""
 
 import dataclasses
-import importlib.util
 import json
 import os
 import pathlib
@@ -17,7 +16,7 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import cli, convert, export
+from ufm_jax import cli, convert, export, testing
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -156,13 +155,7 @@ def test_export_errors_name_the_problem(reference_dir, tmp_path, capsys):
 
 
 def _need_onnx():
-  missing = [m for m in ("jax2onnx", "onnxruntime") if importlib.util.find_spec(m) is None]
-  if missing:
-    msg = (f"the [onnx] extra is not installed ({', '.join(missing)} missing): "
-           "pip install -e '.[onnx]'")
-    if os.environ.get("CI") == "true":
-      pytest.fail(msg + " (CI installs the test extra, which includes it)")
-    pytest.skip(msg)
+  testing.require_extra("onnx", ("jax2onnx", "onnxruntime"))
 
 
 def _onnx_parity(fm, tmp_path, batch):

@@ -1,5 +1,5 @@
-"""Command line: `python -m ufm_jax infer|export|match|convert|to-official ...` (also installed as
-`ufm-jax`).
+"""Command line: `python -m ufm_jax infer|export|match|demo|convert|to-official ...` (also installed
+as `ufm-jax`).
 
   python -m ufm_jax infer SOURCE TARGET --checkpoint DIR --out DIR [--snapshot] [--bidirectional]
       Writes, per direction (`forward`: SOURCE -> TARGET, `backward` with --bidirectional):
@@ -15,6 +15,8 @@
       A deployable artifact of the forward pass plus PATH.json (see `ufm_jax.export`).
   python -m ufm_jax match SOURCE TARGET --checkpoint DIR --out matches.npz [--draw m.png]
       [--num 5000] [--min-covisibility 0.5] [--bidirectional]   (see `ufm_jax.matching`)
+  python -m ufm_jax demo --checkpoint DIR [--port 7860] [--host 127.0.0.1] [--max-side 2048] [--share]
+      A local Gradio page: flow, covisibility, warp and matches (see `ufm_jax.demo`; [demo] extra).
   python -m ufm_jax convert SNAPSHOT_DIR OUT_DIR ...
       Converts an official Hugging Face snapshot (see `ufm_jax.convert`).
   python -m ufm_jax to-official CHECKPOINT OUT_DIR [--step N]
@@ -294,16 +296,17 @@ def _match_main(args) -> int:
   m = matching.match(model, params, source, target, num=args.num,
                      min_covisibility=args.min_covisibility, bidirectional=args.bidirectional,
                      max_fb_error_px=args.max_fb_error, seed=args.seed)
-  out = pathlib.Path(args.out)
-  out.parent.mkdir(parents=True, exist_ok=True)
-  tmp = out.with_name(f".{out.name}.tmp{os.getpid()}.npz")
-  np.savez(tmp, **m, image0_hw=np.array(source.shape[:2]), image1_hw=np.array(target.shape[:2]))
-  os.replace(tmp, out)
+  out = matching.save_matches(args.out, m, source.shape, target.shape)
   print(f"{out}: {len(m['keypoints0'])} matches")
   if args.draw:
     io.write_image(args.draw, matching.draw_matches(source, target, m["keypoints0"], m["keypoints1"]))
     print(args.draw)
   return 0
+
+
+def _add_demo_parser(sub) -> None:
+  from ufm_jax import demo
+  demo.add_parser(sub)
 
 
 def _convert_main(args) -> int:
@@ -331,7 +334,7 @@ def _add_to_official_parser(sub) -> None:
 
 # Subcommands: each adds its parser (with set_defaults(func=...)) to the subparsers.
 SUBCOMMANDS = [_add_infer_parser, _add_export_parser, _add_match_parser, _add_convert_parser,
-               _add_to_official_parser]
+               _add_to_official_parser, _add_demo_parser]
 
 
 def main(argv: list[str] | None = None) -> int:

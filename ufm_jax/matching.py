@@ -11,6 +11,9 @@ KDE-balanced), so matches fed to a solver here are distributed as in the paper's
 
 from __future__ import annotations
 
+import os
+import pathlib
+
 import numpy as np
 
 from ufm_jax import metrics
@@ -60,6 +63,17 @@ def match(model, params, source, target, num=5000, min_covisibility=0.5, bidirec
                             min_covisibility=min_covisibility, target_hw=target.shape[:2],
                             backward_flow=None if bwd is None else bwd["flow"],
                             max_fb_error_px=max_fb_error_px, seed=seed)
+
+
+def save_matches(path, m: dict, image0_hw, image1_hw) -> pathlib.Path:
+  """Writes a match dict as .npz (keypoints0, keypoints1, confidence, image0_hw, image1_hw)
+  atomically, creating the folder; the file `python -m ufm_jax match --out` writes."""
+  path = pathlib.Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.npz")  # np.savez appends .npz otherwise
+  np.savez(tmp, **m, image0_hw=np.array(image0_hw[:2]), image1_hw=np.array(image1_hw[:2]))
+  os.replace(tmp, path)
+  return path
 
 
 def draw_matches(source, target, keypoints0, keypoints1, max_lines=300, seed=0) -> np.ndarray:

@@ -94,6 +94,23 @@ def covisibility_to_image(covisibility: np.ndarray) -> np.ndarray:
   return np.clip(np.round(np.asarray(covisibility, np.float32) * 255), 0, 255).astype(np.uint8)
 
 
+def flow_views(target: np.ndarray, flow: np.ndarray, covisibility: np.ndarray | None = None,
+               threshold: float = 0.5, max_flow: float | None = None):
+  """(flow colours, target warped into the source frame), both at the flow's size.
+
+  With `covisibility`, pixels below `threshold` are greyed out in both, and the colour scale
+  (max_flow=None) is the largest flow over the covisible pixels, so occluded outliers do not
+  wash out the colours.
+  """
+  mask = None if covisibility is None else np.asarray(covisibility) >= threshold
+  colours = flow_to_color(flow, max_flow=max_flow, mask=mask if mask is not None and mask.any() else None)
+  warped = warp_by_flow(target, flow)
+  if covisibility is not None:
+    warped = grey_out(warped, covisibility, threshold)
+    colours = grey_out(colours, covisibility, threshold)
+  return colours, warped
+
+
 def panel(source: np.ndarray, target: np.ndarray, flow: np.ndarray,
           covisibility: np.ndarray | None = None, max_flow: float | None = None) -> np.ndarray:
   """One RGB row: source | target | flow colours | target warped into the source frame.
@@ -104,12 +121,7 @@ def panel(source: np.ndarray, target: np.ndarray, flow: np.ndarray,
   h, w = source.shape[:2]
   tgt_small = target if target.shape[:2] == (h, w) else cv2.resize(
       np.ascontiguousarray(target), (w, h), interpolation=cv2.INTER_AREA)
-  mask = None if covisibility is None else np.asarray(covisibility) >= 0.5
-  colours = flow_to_color(flow, max_flow=max_flow, mask=mask if mask is not None and mask.any() else None)
-  warped = warp_by_flow(target, flow)
-  if covisibility is not None:
-    warped = grey_out(warped, covisibility)
-    colours = grey_out(colours, covisibility)
+  colours, warped = flow_views(target, flow, covisibility, max_flow=max_flow)
   return np.concatenate([source, tgt_small, colours, warped], axis=1)
 
 

@@ -1,8 +1,8 @@
 """Helpers shared by the tests and benchmarks (tests never import each other): model structures
 the public fixtures do not cover, random parameters for them, official-style snapshot folders,
-random weights in official namings. Submodules: `wide_trees` (tiny trees in the real on-disk
-formats of the wide-baseline and benchmark datasets), `train_support` (a stand-in model, data and
-config for the training-machinery tests)."""
+random weights in official namings, the skip-or-fail rule of optional extras. Submodules:
+`wide_trees` (tiny trees in the real on-disk formats of the wide-baseline and benchmark datasets),
+`train_support` (a stand-in model, data and config for the training-machinery tests)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,22 @@ from flax import traverse_util
 
 from ufm_jax import convert
 from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
+
+
+def require_extra(extra: str, modules) -> None:
+  """Skips the calling test when an optional extra's modules are missing, naming the pip command;
+  fails instead under CI=true (CI installs the test extra, which includes every extra tested)."""
+  import importlib.util
+  import os
+
+  import pytest
+  missing = [m for m in modules if importlib.util.find_spec(m) is None]
+  if missing:
+    msg = (f"the [{extra}] extra is not installed ({', '.join(missing)} missing): "
+           f"pip install -e '.[{extra}]'")
+    if os.environ.get("CI") == "true":
+      pytest.fail(msg + " (CI installs the test extra, which includes it)")
+    pytest.skip(msg)
 
 
 def write_snapshot(folder, config: dict, state: dict, metadata=None) -> pathlib.Path:

@@ -1,0 +1,160 @@
+"""`python -m ufm_jax demo`: the page served by the CLI on a free local port with the base parity
+fixture, driven end to end through its API with gradio_client; loopback-only binding; refused
+inputs; and the message when the [demo] extra is missing."""
+
+import os
+import pathlib
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+
+from ufm_jax import cli, testing
+from ufm_jax.data import io, synthetic
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+MAX_SIDE = 320          # the example pair (240x320) still fits
+MAX_FILE_SIZE_KB = 200
+
+
+def _free_port() -> int:
+  with socket.socket() as s:
+    s.bind(("127.0.0.1", 0))
+    return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server(reference_dir, tmp_path_factory):
+  """(url, port, log path) of `python -m ufm_jax demo` on the base fixture, default --host."""
+  testing.require_extra("demo", ("gradio", "gradio_client"))
+  port = _free_port()
+  log = tmp_path_factory.mktemp("demo") / "server.log"
+  cmd = [sys.executable, "-m", "ufm_jax", "demo", "--checkpoint", str(reference_dir / "base"),
+         "--snapshot", "--port", str(port), "--max-side", str(MAX_SIDE),
+         "--max-file-size", f"{MAX_FILE_SIZE_KB}kb"]
+  with open(log, "w") as out:
+    proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=REPO)
+  url = f"http://127.0.0.1:{port}/"
+  try:
+    deadline = time.monotonic() + 600
+    while True:
+      if proc.poll() is not None:
+        pytest.fail(f"the demo exited with {proc.returncode}:\n{log.read_text()[-3000:]}")
+      try:
+        with urllib.request.urlopen(url, timeout=5) as r:
+          if r.status == 200:
+            break
+      except OSError:
+        pass
+      if time.monotonic() > deadline:
+        pytest.fail(f"the demo did not answer on {url} within 600 s:\n{log.read_text()[-3000:]}")
+      time.sleep(1)
+    yield url, port, log
+  finally:
+    proc.terminate()
+    try:
+      proc.wait(30)
+    except subprocess.TimeoutExpired:
+      proc.kill()
+      proc.wait()
+
+
+@pytest.fixture(scope="module")
+def client(server, tmp_path_factory):
+  from gradio_client import Client
+  return Client(server[0], verbose=False, analytics_enabled=False,
+                download_files=str(tmp_path_factory.mktemp("downloads")))
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+  """A wide-baseline synthetic pair; the target cropped so the two sizes differ."""
+  d = tmp_path_factory.mktemp("pair")
+  fwd, = synthetic.generate_pair(0, synthetic.SyntheticConfig(size=(96, 128), pair_type="wide"),
+                                 directions=(0,))
+  src, tgt = d / "source.png", d / "target.png"
+  io.write_image(src, fwd["image0"])
+  io.write_image(tgt, fwd["image1"][:84, :112])
+  return src, tgt
+
+
+def test_api_end_to_end_and_threshold_changes_matches(client, pair):
+  from gradio_client import handle_file
+  src, tgt = pair
+  num = 20000  # more than the 96 x 128 source pixels: every eligible pixel is drawn
+  runs = {}
+  for thr in (0.1, 0.9):
+    out = client.predict(handle_file(str(src)), handle_file(str(tgt)), thr, num,
+                         api_name="/analyse")
+    flow, covis, warped, drawing, npz, summary = out
+    for img in (flow, covis, warped):
+      assert io.read_image(img).shape == (96, 128, 3)
+    assert io.read_image(drawing).shape == (96, 128 + 112, 3)  # side by side, heights padded
+    m = np.load(npz)
+    assert m["image0_hw"].tolist() == [96, 128] and m["image1_hw"].tolist() == [84, 112]
+    k0, k1, conf = m["keypoints0"], m["keypoints1"], m["confidence"]
+    assert len(k0) == len(k1) == len(conf) > 0 and (conf >= thr).all()
+    assert (k0 >= 0).all() and (k0[:, 0] <= 127).all() and (k0[:, 1] <= 95).all()
+    assert (k1 >= -0.5).all() and (k1[:, 0] < 111.5).all() and (k1[:, 1] < 83.5).all()
+    # the covisibility view and the matches' confidences are the same prediction
+    grey = io.read_image(covis)[..., 0].astype(np.float32) / 255
+    at = grey[k0[:, 1].astype(int), k0[:, 0].astype(int)]
+    np.testing.assert_allclose(at, conf, atol=0.5 / 255 + 1e-6)
+    assert f"{len(k0)} matches" in summary
+    runs[thr] = (len(k0), summary, grey)
+  (n_low, s_low, grey), (n_high, s_high, _) = runs[0.1], runs[0.9]
+  assert n_high < n_low <= int((grey >= 0.1 - 0.5 / 255).sum())
+  assert "forward" in s_low and "prediction cached" in s_high  # the slider does not re-run the model
+
+
+def test_too_large_image_and_file_are_refused(server, client, pair, tmp_path):
+  from gradio_client import handle_file
+  from gradio_client.exceptions import AppError
+  _, tgt = pair
+  tall = tmp_path / "tall.png"
+  io.write_image(tall, np.zeros((MAX_SIDE + 80, 100, 3), np.uint8))
+  with pytest.raises(AppError) as e:
+    client.predict(handle_file(str(tall)), handle_file(str(tgt)), 0.5, 100, api_name="/analyse")
+  assert f"{MAX_SIDE + 80}x100" in str(e.value) and f"--max-side {MAX_SIDE}" in str(e.value)
+  noise = tmp_path / "noise.png"  # incompressible: over the upload limit, within --max-side
+  io.write_image(noise, np.random.default_rng(0).integers(0, 256, (300, 300, 3), dtype=np.uint8))
+  assert noise.stat().st_size > MAX_FILE_SIZE_KB * 1000
+  with pytest.raises(ValueError, match="exceeds the maximum file size"):  # the client checks first
+    client.predict(handle_file(str(noise)), handle_file(str(tgt)), 0.5, 100, api_name="/analyse")
+  import httpx
+  with open(noise, "rb") as f:  # and the server refuses it without a client's check
+    r = httpx.post(server[0] + "gradio_api/upload", files={"files": f}, timeout=60)
+  assert r.status_code == 413, (r.status_code, r.text)
+
+
+def _listening(port: int) -> list[str]:
+  """Local addresses (hex, as /proc/net/tcp* write them) of sockets listening on `port`."""
+  found = []
+  for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+    if not os.path.exists(table):
+      continue
+    for line in open(table).read().splitlines()[1:]:
+      fields = line.split()
+      addr, p = fields[1].split(":")
+      if int(p, 16) == port and fields[3] == "0A":  # 0A: LISTEN
+        found.append(addr)
+  return found
+
+
+def test_binds_loopback_only_by_default(server):
+  if not os.path.exists("/proc/net/tcp"):
+    pytest.skip("reads the listening sockets from /proc/net/tcp (Linux)")
+  _, port, log = server
+  assert _listening(port) == ["0100007F"], (_listening(port), log.read_text()[-2000:])
+  text = log.read_text()
+  assert f"http://127.0.0.1:{port}" in text and "gradio.live" not in text
+
+
+def test_without_the_extra_exits_2_naming_it(monkeypatch, tmp_path, capsys):
+  monkeypatch.setitem(sys.modules, "gradio", None)  # `import gradio` raises ImportError
+  assert cli.main(["demo", "--checkpoint", str(tmp_path)]) == 2
+  assert 'pip install -e ".[demo]"' in capsys.readouterr().err

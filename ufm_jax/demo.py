@@ -1,0 +1,228 @@
+"""Local demo page: `python -m ufm_jax demo --checkpoint DIR [--snapshot] [--port 7860]`.
+
+A Gradio app (the optional `[demo]` extra): upload two images (or pick the generated example
+pair) and see the flow in the Middlebury colour wheel, the covisibility, the target warped into
+the source and sampled matches drawn as lines; a slider sets the covisibility threshold (pixels
+below it are greyed out and never matched) and the matches download as the `.npz` that
+`python -m ufm_jax match` writes. The forward pass is `ufm_jax.predict` (one jitted forward per
+inference shape); a changed threshold re-samples the cached prediction without running the model.
+
+It binds 127.0.0.1 unless --host says otherwise, refuses uploads over --max-file-size and images
+with a side over --max-side (with a message naming the limit and the image's size), and makes a
+public share link only with --share. Its API (`gradio_client`): `Client(url).predict(source,
+target, threshold, num, api_name="/analyse")` -> (flow colours, covisibility, warped target,
+matches drawing, matches.npz, summary).
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import ipaddress
+import os
+import pathlib
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+INSTALL_HINT = 'the demo needs the [demo] extra (gradio): pip install -e ".[demo]"'
+DEFAULT_MAX_SIDE = 2048
+DEFAULT_MAX_FILE_SIZE = "20mb"
+DEFAULT_NUM = 2000
+EXAMPLE_SIZE = (240, 320)  # (H, W): the 3:4 aspect of the released models' 420x560
+MAX_LINES = 300            # matches drawn; the .npz holds all of them
+
+
+def check_size(image: np.ndarray, what: str, max_side: int) -> None:
+  """Refuses an image with a side over max_side, naming the limit and the image's size."""
+  h, w = image.shape[:2]
+  if max(h, w) > max_side:
+    raise ValueError(f"the {what} image is {h}x{w} px (HxW), over this demo's limit of {max_side} "
+                     f"px per side (--max-side {max_side}); downscale it or restart the demo "
+                     "with a larger --max-side")
+
+
+def example_pair(folder) -> list[str]:
+  """Renders one synthetic two-view pair (ufm_jax.data.synthetic) into `folder`: [source, target]."""
+  from ufm_jax.data import io, synthetic
+  fwd, = synthetic.generate_pair(3, synthetic.SyntheticConfig(size=EXAMPLE_SIZE, pair_type="flow"),
+                                 directions=(0,))
+  paths = [pathlib.Path(folder) / "example_source.png", pathlib.Path(folder) / "example_target.png"]
+  io.write_image(paths[0], fwd["image0"])
+  io.write_image(paths[1], fwd["image1"])
+  return [str(p) for p in paths]
+
+
+def colour_key(side: int = 96) -> np.ndarray:
+  """The flow colour wheel as an image: the colour of a flow pointing from the centre to a pixel."""
+  from ufm_jax import viz
+  r = np.linspace(-1.0, 1.0, side, dtype=np.float32)
+  u, v = np.meshgrid(r, r)
+  key = viz.flow_to_color(np.stack([u, v], -1), max_flow=1.0)
+  key[u * u + v * v > 1.0] = 255
+  return key
+
+
+class Analyser:
+  """Prediction (cached by image content) -> the demo's views; no gradio in here."""
+
+  def __init__(self, model, params, out_dir, max_side: int = DEFAULT_MAX_SIDE, cache_size: int = 8):
+    self.model, self.params = model, params
+    self.out_dir = pathlib.Path(out_dir)
+    self.max_side = max_side
+    self.cache_size = cache_size
+    self._cache: collections.OrderedDict = collections.OrderedDict()
+    self._lock = threading.Lock()
+
+  def predict(self, source: np.ndarray, target: np.ndarray) -> tuple[str, dict, float]:
+    """(content key, prediction at the source size, forward ms; 0 when it came from the cache)."""
+    from ufm_jax import inference
+    key = hashlib.sha1(b"".join(np.ascontiguousarray(x).tobytes() + str(x.shape).encode()
+                                for x in (source, target))).hexdigest()[:16]
+    with self._lock:  # gradio runs events in threads; one forward at a time on one model
+      if key in self._cache:
+        self._cache.move_to_end(key)
+        return key, self._cache[key], 0.0
+      t0 = time.perf_counter()
+      pred = inference.predict(self.model, self.params, source, target)
+      ms = 1e3 * (time.perf_counter() - t0)
+      self._cache[key] = pred
+      while len(self._cache) > self.cache_size:
+        self._cache.popitem(last=False)
+    return key, pred, ms
+
+  def __call__(self, source, target, threshold: float = 0.5, num: int = DEFAULT_NUM):
+    """-> (flow colours, covisibility, warped target, matches drawing, matches .npz path, summary)."""
+    from ufm_jax import matching, viz
+    if source is None or target is None:
+      raise ValueError("upload a source and a target image (or pick the example pair)")
+    source, target = np.asarray(source), np.asarray(target)
+    check_size(source, "source", self.max_side)
+    check_size(target, "target", self.max_side)
+    key, pred, ms = self.predict(source, target)
+    flow, covis = pred["flow"], pred["covisibility"]
+    threshold, num = float(threshold), int(num)
+    colours, warped = viz.flow_views(target, flow, covis, threshold=threshold)
+    m = matching.matches_from_dense(flow, covis, num=num, min_covisibility=threshold,
+                                    target_hw=target.shape[:2])
+    drawing = matching.draw_matches(source, target, m["keypoints0"], m["keypoints1"],
+                                    max_lines=MAX_LINES)
+    npz = matching.save_matches(self.out_dir / f"matches_{key}_{threshold:.3f}_{num}.npz", m,
+                                source.shape, target.shape)
+    n = len(m["keypoints0"])
+    summary = (f"{n} matches at covisibility >= {threshold:.2f} ({min(n, MAX_LINES)} drawn); "
+               f"{100 * float(np.mean(covis >= threshold)):.1f}% of source pixels covisible; "
+               + (f"forward {ms:.0f} ms" if ms else "prediction cached"))
+    return colours, viz.covisibility_to_image(covis), warped, drawing, str(npz), summary
+
+
+def build_app(analyser: Analyser, examples: list[list[str]] | None = None):
+  """The gr.Blocks page around `analyser`; its API endpoint is /analyse."""
+  import gradio as gr
+
+  def analyse(source, target, threshold, num):
+    try:
+      return analyser(source, target, threshold, num)
+    except ValueError as e:  # a refused input, not a bug: shown to the user (and API clients)
+      raise gr.Error(str(e), title="Input refused", print_exception=False) from None
+
+  with gr.Blocks(title="UFM-JAX demo", analytics_enabled=False, delete_cache=(3600, 3600)) as app:
+    gr.Markdown("## UFM: dense flow and covisibility between two images\n"
+                "Upload a source and a target image. The flow is defined on the source's pixels "
+                "(where does each one land in the target); pixels below the covisibility "
+                f"threshold are greyed out and never matched. Images up to {analyser.max_side} px "
+                "per side.")
+    with gr.Row():
+      source = gr.Image(type="numpy", image_mode="RGB", label="source", sources=["upload", "clipboard"])
+      target = gr.Image(type="numpy", image_mode="RGB", label="target", sources=["upload", "clipboard"])
+    with gr.Row():
+      threshold = gr.Slider(0.0, 1.0, value=0.5, step=0.01, label="covisibility threshold")
+      num = gr.Slider(100, 20000, value=DEFAULT_NUM, step=100, label="matches to sample")
+      run = gr.Button("Run", variant="primary")
+    if examples:
+      gr.Examples(examples=examples, inputs=[source, target], label="example pair (synthetic)")
+    summary = gr.Textbox(label="summary", interactive=False)
+    with gr.Row():
+      flow = gr.Image(format="png", label="flow (hue: direction, saturation: magnitude)",
+                      interactive=False)
+      gr.Image(value=colour_key(), format="png", label="colour key", interactive=False,
+               show_label=True, width=120, height=120)
+      covis = gr.Image(format="png", label="covisibility (white: seen in the target)",
+                       interactive=False)
+      warped = gr.Image(format="png", label="target warped into the source", interactive=False)
+    drawing = gr.Image(format="png", label="sampled matches", interactive=False)
+    npz = gr.File(label="matches.npz (keypoints0, keypoints1, confidence)", interactive=False)
+    outputs = [flow, covis, warped, drawing, npz, summary]
+    inputs = [source, target, threshold, num]
+    run.click(analyse, inputs, outputs, api_name="analyse")
+    # The sliders re-sample the cached prediction; only the button is the public API.
+    for s in (threshold, num):
+      s.release(analyse, inputs, outputs, api_visibility="private")
+  return app
+
+
+def is_loopback(host: str) -> bool:
+  if host == "localhost":
+    return True
+  try:
+    return ipaddress.ip_address(host).is_loopback
+  except ValueError:
+    return False
+
+
+def add_parser(sub) -> None:
+  from ufm_jax.cli import _add_checkpoint_args
+  p = sub.add_parser("demo", help="local Gradio page: flow, covisibility, warp and matches of two "
+                     "images (the [demo] extra)", description=__doc__.split("\n")[0])
+  _add_checkpoint_args(p)
+  p.add_argument("--port", type=int, default=7860)
+  p.add_argument("--host", default="127.0.0.1",
+                 help="address to bind; anything but a loopback address exposes the page to the "
+                      "network")
+  p.add_argument("--share", action="store_true",
+                 help="also open a PUBLIC gradio.live link (off unless given)")
+  p.add_argument("--max-side", "--max_side", dest="max_side", type=int, default=DEFAULT_MAX_SIDE,
+                 help="refuse images with a side longer than this many px")
+  p.add_argument("--max-file-size", default=DEFAULT_MAX_FILE_SIZE,
+                 help="refuse uploads over this size (gradio syntax: 20mb, 500kb)")
+  p.set_defaults(func=main)
+
+
+def main(args) -> int:
+  """The `demo` subcommand: load the model, warm it up on the example pair, serve until Ctrl-C."""
+  try:
+    import gradio  # noqa: F401
+  except ImportError:
+    print(f"error: {INSTALL_HINT}", file=sys.stderr)
+    return 2
+  from ufm_jax.cli import load_model
+  if args.max_side < 14:
+    raise ValueError(f"--max-side {args.max_side}: must be at least the 14 px patch size")
+  os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")  # no calls home from a local tool
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  with tempfile.TemporaryDirectory(prefix="ufm_jax_demo_") as tmp:
+    examples_dir, out_dir = pathlib.Path(tmp, "examples"), pathlib.Path(tmp, "out")
+    examples_dir.mkdir()
+    out_dir.mkdir()
+    analyser = Analyser(model, params, out_dir, max_side=args.max_side)
+    pair = example_pair(examples_dir)
+    if max(EXAMPLE_SIZE) <= args.max_side:
+      from ufm_jax.data import io
+      t0 = time.perf_counter()
+      analyser(io.read_image(pair[0]), io.read_image(pair[1]))  # compiles before the first visitor
+      print(f"model ready ({time.perf_counter() - t0:.1f} s warm-up on the example pair)", flush=True)
+    else:
+      pair = None
+    app = build_app(analyser, [pair] if pair else None)
+    if not is_loopback(args.host):
+      print(f"warning: binding {args.host}: the demo is reachable from other machines", flush=True)
+    if args.share:
+      print("warning: --share makes the demo reachable by anyone with the public link", flush=True)
+    app.queue(default_concurrency_limit=1).launch(
+        server_name=args.host, server_port=args.port, share=args.share,
+        max_file_size=args.max_file_size, allowed_paths=[str(examples_dir), str(out_dir)],
+        show_error=True, ssr_mode=False, inbrowser=False)
+  return 0
