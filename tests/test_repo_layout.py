@@ -48,3 +48,14 @@ def test_data_tool_runs_from_any_directory(tool, tmp_path):
                      capture_output=True, text=True, timeout=120)
   assert r.returncode == 0, r.stderr[-2000:]
   assert "usage:" in r.stdout
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (REPO / "configs").glob("*.py")))
+def test_config_docstring_is_a_command_not_a_lab_notebook(name):
+  """A config's docstring gives the command that runs it; measured figures live in docs/."""
+  import ast
+  doc = ast.get_docstring(ast.parse((REPO / "configs" / f"{name}.py").read_text())) or ""
+  assert f"python train.py --config=configs/{name}.py" in doc
+  assert not re.search(r"\bmeasured\b|\d+(\.\d+)? ?-> ?\d+(\.\d+)? ?px", doc, re.IGNORECASE), doc
+  for path in re.findall(r"\bdocs/[\w./-]+\.md", doc):
+    assert (REPO / path).is_file(), path
