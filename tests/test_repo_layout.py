@@ -59,3 +59,9 @@ def test_config_docstring_is_a_command_not_a_lab_notebook(name):
   assert not re.search(r"\bmeasured\b|\d+(\.\d+)? ?-> ?\d+(\.\d+)? ?px", doc, re.IGNORECASE), doc
   for path in re.findall(r"\bdocs/[\w./-]+\.md", doc):
     assert (REPO / path).is_file(), path
+
+
+def test_default_outputs_are_ignored_by_git():
+  """evaluate.py's default --out (results/) and the README's workdirs/ never show up as changes."""
+  ignored = {line.strip() for line in (REPO / ".gitignore").read_text().splitlines()}
+  assert {"/results/", "/workdirs/"} <= ignored
