@@ -333,6 +333,7 @@ class PlaneFake(FakeSource):
   """Fronto-parallel plane at depth 4 seen by two cameras 0.2 apart along x (f = 20): the forward
   flow is u = -f * tx / Z = -1 px everywhere; no backward accessor, depth + poses in meta."""
   static_scene = True
+  dataset = "habitat"
 
   def __getitem__(self, i):
     sample = self._pair(i, False)
@@ -341,20 +342,28 @@ class PlaneFake(FakeSource):
     c2w1 = np.eye(4)
     c2w1[0, 3] = 0.2
     sample["flow"] = np.tile(np.float32([-1, 0]), HW + (1,))
-    sample["meta"] = {"dataset": "habitat", "K0": k, "K1": k, "cam2world0": np.eye(4),
+    sample["meta"] = {"dataset": self.dataset, "K0": k, "K1": k, "cam2world0": np.eye(4),
                       "cam2world1": c2w1, "depth0": np.full(HW, 4.0, np.float32),
                       "depth1": np.full(HW, 4.0, np.float32)}
     return sample
 
 
+class OwnStaticFake(PlaneFake):
+  """A static scene under a name no table lists, with its own covisibility thresholds: the source's
+  declaration, not its dataset name, lets the pipeline compute backward labels from geometry."""
+  dataset = "_tp_own_static"
+  thresholds = (0.1, 0.005)
+
+
 register("_tp_plane")(PlaneFake)
+register("_tp_own_static")(OwnStaticFake)
 
 
-def test_symmetrize_backward_from_depth_and_poses(tmp_path):
-  pytest.importorskip("ufm_jax.geometry")
-  cfg = make_config(tmp_path, [])
+@pytest.mark.parametrize("name", ["_tp_plane", "_tp_own_static"])
+def test_symmetrize_backward_from_depth_and_poses(tmp_path, name):
+  cfg = make_config(tmp_path, [], backward_fallback="error")
   (tmp_path / "p").mkdir()
-  cfg["datasets"] = {"_tp_plane": {"quota": 4, "root": str(tmp_path / "p"), "options": {"n": 4}}}
+  cfg["datasets"] = {name: {"quota": 4, "root": str(tmp_path / "p"), "options": {"n": 4}}}
   cfg["augment"] = {"color_prob": 0.0, "zoom": (1.0, 1.0), "view_scale_jitter": 0.0}
   b = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)))
   for row in range(4):
@@ -367,13 +376,9 @@ def test_symmetrize_backward_from_depth_and_poses(tmp_path):
 
 
 class DynamicPlaneFake(PlaneFake):
-  """Same geometry, but a dynamic dataset: depth + poses alone do not give its reverse."""
+  """Same geometry and dataset name, but the source declares a dynamic scene: depth + poses alone
+  do not give its backward labels."""
   static_scene = False
-
-  def __getitem__(self, i):
-    sample = super().__getitem__(i)
-    sample["meta"]["dataset"] = "kubric4d"
-    return sample
 
 
 register("_tp_dynamic")(DynamicPlaneFake)
@@ -388,34 +393,6 @@ def test_no_static_geometry_backward_for_dynamic_scenes(tmp_path):
   cfg["backward_fallback"] = "error"
   with pytest.raises(ValueError, match="not static-scene pairs"):
     pipeline.create(cfg, seed=0, process_index=0, process_count=1)
-
-
-class OwnStaticFake(PlaneFake):
-  """A static scene under a name no table lists, with its own covisibility thresholds: the source's
-  declaration, not its dataset name, lets the pipeline compute backward labels from geometry."""
-  thresholds = (0.1, 0.005)
-
-  def __getitem__(self, i):
-    sample = super().__getitem__(i)
-    sample["meta"]["dataset"] = "_tp_own_static"
-    return sample
-
-
-register("_tp_own_static")(OwnStaticFake)
-
-
-def test_static_scene_declared_by_the_source(tmp_path):
-  cfg = make_config(tmp_path, [])
-  (tmp_path / "o").mkdir()
-  cfg["datasets"] = {"_tp_own_static": {"quota": 4, "root": str(tmp_path / "o"),
-                                        "options": {"n": 4}}}
-  cfg["backward_fallback"] = "error"
-  b = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)))
-  for row in range(4):
-    fwd, bwd = 2 * row, 2 * row + 1
-    m = b["flow_valid"][bwd] & b["covisibility"][bwd]
-    assert m.mean() > 0.5
-    np.testing.assert_allclose(b["flow"][bwd][m], -b["flow"][fwd][m], atol=1e-4)
 
 
 class UndeclaredFake:
