@@ -65,3 +65,20 @@ def test_default_outputs_are_ignored_by_git():
   """evaluate.py's default --out (results/) and the README's workdirs/ never show up as changes."""
   ignored = {line.strip() for line in (REPO / ".gitignore").read_text().splitlines()}
   assert {"/results/", "/workdirs/"} <= ignored
+
+
+def test_model_code_passes_no_bare_bool_positionally():
+  """`Block(..., True, False)` reads as nothing; flags go by keyword (dict.get/getattr defaults aside)."""
+  import ast
+  bad = []
+  for p in sorted((REPO / "ufm_jax" / "models").glob("*.py")):
+    for node in ast.walk(ast.parse(p.read_text())):
+      if not isinstance(node, ast.Call):
+        continue
+      fn = node.func
+      if (isinstance(fn, ast.Attribute) and fn.attr == "get") or \
+          (isinstance(fn, ast.Name) and fn.id == "getattr"):
+        continue
+      if any(isinstance(a, ast.Constant) and isinstance(a.value, bool) for a in node.args):
+        bad.append(f"{p.relative_to(REPO)}:{node.lineno}: {ast.unparse(node)[:80]}")
+  assert not bad, bad

@@ -567,9 +567,9 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   if layout.num_steps == 0:
     raise ValueError(f"epoch of {layout.epoch_size} pairs is smaller than one global batch of "
                      f"{layout.unique_per_step} unique pairs")
-  load = LoadPair(sources, names, modes, layout, shapes,
-                  augment_lib.AugmentConfig.from_dict(cfg["augment"]), symmetrize,
-                  int(cfg["max_retries"]))
+  load = LoadPair(sources, names, backward_modes=modes, layout=layout, shapes=shapes,
+                  augment_cfg=augment_lib.AugmentConfig.from_dict(cfg["augment"]),
+                  symmetrize=symmetrize, max_retries=int(cfg["max_retries"]))
   ds = MixtureIndex(layout).map(load).batch(unique_per_host, drop_remainder=True, batch_fn=collate)
   ds = ds.to_iter_dataset(grain.ReadOptions(
       num_threads=int(cfg["read_threads"]),
