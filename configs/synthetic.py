@@ -3,18 +3,10 @@ download.
 
   python train.py --config=configs/synthetic.py --workdir=workdirs/synthetic
 
-By default the task is `pairs=shift` (ufm_jax.data.synthetic, rendered on the fly): a smooth
-random texture and the same texture translated by up to `max_shift` = 10 px, with exact flow and
-covisibility labels. The model is `synth` (ufm_jax/models/variants.py: 7 px patches, sin-cos positions,
-16-wide DPT heads, fusion blocks whose key projections start equal to their query projections),
-the flow loss L1-like (`loss=l1`). The held-out eval renders the synthetic `val` split (pairs never
-seen in training) and logs EPE and the zero-flow EPE before training (step 0), every 100 steps
-and at the end.
-
-Measured (2 CPU cores, ~59 pairs/s once compiled, 5.6 min in all): held-out covisible EPE
-7.88 -> 1.45 px after 2000 steps (2x by step 600; zero-flow EPE 7.48 px).
-
-How the task, the model and the loss were chosen, with the measurements: docs/synthetic_training.md.
+Task `pairs=shift` (ufm_jax.data.synthetic, rendered on the fly): a smooth random texture and the
+same texture translated by up to `max_shift` px, exact flow and covisibility labels, not augmented.
+Model `synth` (ufm_jax/models/variants.py), flow loss `l1`. The held-out eval renders the `val`
+split and logs EPE and the zero-flow EPE at step 0, every 100 steps and at the end.
 
 Args (`configs/synthetic.py:steps=100,size=56`): pairs=flow|wide|mixed|pan|shift (pair types),
 steps, batch (global pairs per step, both directions of 4 unique pairs by default), size (square
@@ -23,7 +15,8 @@ variant, e.g. tiny_synth or synth), lr (peak learning rate of every parameter gr
 (paper: alpha 0.5, c 0.24; l1: alpha 1, c 0.01, i.e. ~100 x EPE), and for pairs=shift: max_shift
 (px) and aligned (fraction of patch-aligned shifts in training, default 0; the held-out pairs have
 none).
-Shift pairs are not augmented.
+
+Training curves and how the task, model and loss were chosen: docs/synthetic_training.md.
 """
 
 import ml_collections
@@ -58,8 +51,8 @@ def get_config(arg=None):
   elif arg.loss != "paper":
     raise ValueError(f"configs/synthetic.py: loss must be 'l1' or 'paper', got {arg.loss!r}")
   c.model_name = arg.model
-  # Unrolled: segments of 1-2 blocks gain nothing from scan, and the docstring's measured
-  # figures are of this layout.
+  # Unrolled: segments of 1-2 blocks gain nothing from scan, and the measured figures of
+  # docs/synthetic_training.md are of this layout.
   c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
   c.model_init = ml_collections.FieldReference(None, field_type=str)  # e.g. ckpt:WORKDIR
   c.optim = config_lib.ufm_optim(lr=arg.lr, encoder_lr=arg.lr)

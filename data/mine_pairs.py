@@ -9,6 +9,9 @@ thresholds, computed on depth subsampled to `--max_side` pixels). Pairs above `-
 (default 0.25, the supplementary's ScanNet++ rule) are written to `<root>/pairs_<split>.txt`
 (`scene frame0 frame1 score`), which every posed source reads. Dataset options go through
 `--option key=value` (e.g. `--option cameras='["lcam_front"]'` for tartanair_v2).
+
+A script, not a module: it imports the installed package (`pip install -e .` at the repository
+root) and runs from any directory.
 """
 
 from __future__ import annotations
@@ -18,10 +21,8 @@ import json
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from ufm_jax import data  # pylint: disable=g-import-not-at-top
-from ufm_jax.data.sources import _posed  # pylint: disable=g-import-not-at-top
+from ufm_jax import data
+from ufm_jax.data.sources import _posed
 
 
 def main(argv=None):

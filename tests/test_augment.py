@@ -132,11 +132,11 @@ def test_symmetric_output_swaps_images_and_uses_reverse_labels():
          "covisibility": (sx >= 0) & (sx <= w - 1) & (sy >= 0) & (sy <= h - 1),
          "flow_valid": np.ones((h, w), bool), "covis_valid": np.ones((h, w), bool)}
   cfg = augment.AugmentConfig(view_scale_jitter=0.1, hflip_prob=0.5, asymmetric_color_prob=1.0)
-  f, b = augment.augment(fwd, np.random.default_rng(3), (42, 70), cfg, reverse=rev)
+  f, b = augment.augment(fwd, np.random.default_rng(3), (42, 70), cfg, backward=rev)
   np.testing.assert_array_equal(f["image0"], b["image1"])
   np.testing.assert_array_equal(f["image1"], b["image0"])
   cfg_nocolor = dataclasses_replace(cfg, color_prob=0.0)
-  f, b = augment.augment(fwd, np.random.default_rng(3), (42, 70), cfg_nocolor, reverse=rev)
+  f, b = augment.augment(fwd, np.random.default_rng(3), (42, 70), cfg_nocolor, backward=rev)
   assert _photo_error(f)[0] < 2.0 and _photo_error(b)[0] < 2.0
 
 
@@ -178,7 +178,7 @@ def test_synthetic_pairs_stay_consistent_after_augmentation():
   good, bad = [], []
   for i in range(6):
     fwd, bwd = src.both(i)
-    for out in augment.augment(fwd, np.random.default_rng(i), (42, 84), cfg, reverse=bwd):
+    for out in augment.augment(fwd, np.random.default_rng(i), (42, 84), cfg, backward=bwd):
       good.append(_photo_error(out, 0.1)[0])
       bad.append(_photo_error(dict(out, flow=out["flow"] + np.float32([2, 0])), 0.1)[0])
   assert np.median(good) < 4.0 and np.mean(good) < 0.4 * np.mean(bad), (good, bad)

@@ -125,3 +125,50 @@ def test_load_train_workdir(tmp_path):
   assert loaded_model.config == model.config
   for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params)):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b) + 2, rtol=0, atol=1e-6)  # latest step
+
+
+def test_convert_help_matches_the_readme():
+  r = _run("convert", "--help", timeout=120)
+  assert r.returncode == 0, r.stderr
+  usage = " ".join(r.stdout.split("\n\n")[0].split())
+  # The README's form: `python -m ufm_jax convert UFM-Base/ ckpt/`.
+  assert usage.startswith("usage: python -m ufm_jax convert") and usage.endswith("snapshot_dir out_dir")
+  readme = (REPO / "README.md").read_text()
+  assert "python -m ufm_jax convert UFM-Base/ ckpt/" in readme
+
+
+def test_infer_help_says_checkpoint_takes_a_workdir():
+  r = _run("infer", "--help", timeout=120)
+  assert r.returncode == 0, r.stderr
+  text = " ".join(r.stdout.split())
+  help_of_checkpoint = text.split("--checkpoint CHECKPOINT", 2)[2].split(" --", 1)[0]
+  assert "train.py workdir" in help_of_checkpoint and "converted checkpoint" in help_of_checkpoint
+
+
+def test_evaluate_help_states_its_description_once_and_documents_every_flag():
+  r = subprocess.run([sys.executable, str(REPO / "evaluate.py"), "--help"], capture_output=True,
+                     text=True, timeout=120, cwd=REPO)
+  assert r.returncode == 0, r.stderr
+  assert r.stdout.count("Evaluates UFM on the paper's benchmarks") == 1, r.stdout
+  lines = r.stdout.split("options:", 1)[1].splitlines()
+  undocumented = []
+  for k, line in enumerate(lines):
+    if not line.startswith("  -"):
+      continue
+    # argparse puts the help after two spaces, or on the next, deeper-indented line.
+    same_line = "  " in line.strip()
+    next_line = k + 1 < len(lines) and lines[k + 1].startswith(" " * 8) \
+        and not lines[k + 1].lstrip().startswith("-")
+    if not (same_line or next_line):
+      undocumented.append(line.strip())
+  assert not undocumented, undocumented
+
+
+def test_mistyped_config_override_prints_one_hint_and_exits_2(tmp_path):
+  r = subprocess.run([sys.executable, str(REPO / "train.py"), "--config=configs/synthetic.py",
+                      f"--workdir={tmp_path / 'w'}", "--config.totl_steps=5"],
+                     capture_output=True, text=True, timeout=300, cwd=REPO)
+  assert r.returncode == 2
+  lines = (r.stdout + r.stderr).splitlines()
+  assert len(lines) == 1 and 'Did you mean "total_steps"' in lines[0], lines
+  assert not (tmp_path / "w").exists()

@@ -11,6 +11,7 @@ import pytest
 from ufm_jax import evaluators, metrics
 from ufm_jax.data.io import read_flo
 from ufm_jax.evaluators import base, report
+from ufm_jax.testing import wide_trees
 
 
 
@@ -90,8 +91,7 @@ def test_dense_bench_pooled_over_covisible():
 
 def test_pose_bench_on_exact_flow():
   """A model replaying the exact flow of a two-view scene recovers the pose (AUC ~ 100)."""
-  from test_metrics import _two_view_scene
-  flow, K, R, t = _two_view_scene(h=56, w=84)
+  flow, K, R, t = wide_trees.two_view_flow(h=56, w=84)
 
   class Exact:
     inference_resolution = (56, 84)

@@ -64,8 +64,7 @@ def write_all(root):
   with open(os.path.join(root, "eth3d", "pairs_test.txt"), "w") as f:
     f.write(" ".join(pair) + "\n")
   trees.write_tawb(os.path.join(root, "tawb"), trees.tartanair_scene())
-  from test_sources_wide_bench import _write_scannet1500
-  _write_scannet1500(os.path.join(root, "scannet1500"), trees.PlaneScene(hw0=(48, 64)), (48, 64))
+  trees.write_scannet1500(os.path.join(root, "scannet1500"), trees.PlaneScene(hw0=(48, 64)), (48, 64))
 
 
 @pytest.fixture(scope="module")

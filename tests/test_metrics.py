@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from ufm_jax import metrics
+from ufm_jax.testing import wide_trees
 
 
 def _gt(h=6, w=8, seed=0):
@@ -116,22 +117,8 @@ def test_pose_errors():
   np.testing.assert_allclose(t, -_rot(1, 10).T @ [1, 0, 0], atol=1e-12)
 
 
-def _two_view_scene(h=48, w=64):
-  """Dense flow of a smooth depth field seen by two pinhole cameras (x1 = R x0 + t)."""
-  K = np.array([[60.0, 0, w / 2 - 0.5], [0, 58.0, h / 2 - 0.5], [0, 0, 1]])
-  ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-  depth = 4 + np.sin(xs / 9) + 0.5 * np.cos(ys / 7)
-  rays = np.linalg.inv(K) @ np.stack([xs.ravel(), ys.ravel(), np.ones(h * w)])
-  X0 = rays * depth.ravel()
-  R, t = _rot(1, 6) @ _rot(0, -3), np.array([0.4, 0.05, 0.1])
-  X1 = R @ X0 + t[:, None]
-  p1 = (K @ X1)[:2] / X1[2]
-  flow = (p1 - np.stack([xs.ravel(), ys.ravel()])).T.reshape(h, w, 2)
-  return flow, K, R, t
-
-
 def test_pose_from_exact_dense_flow():
-  flow, K, R, t = _two_view_scene()
+  flow, K, R, t = wide_trees.two_view_flow()
   covis = np.ones(flow.shape[:2])
   rng = np.random.default_rng(0)
   est = metrics.pose_from_flow(flow, covis, K, K, rng, num=500)

@@ -15,6 +15,8 @@ HW = (20, 30)
 class FakeSource:
   """Sample i of dataset `code`: uniform images encoding (code, i), constant flow (1, 2) and its
   exact reverse. Indices in `corrupt` raise like a broken file would; `nan` ones carry NaN flow."""
+  has_backward = False
+  static_scene = False
 
   def __init__(self, root, n=10, code=1, corrupt=(), nan=(), reversible=True, split=None):
     self.root, self.n, self.code = root, n, code
@@ -42,9 +44,13 @@ class FakeSource:
 
 
 class ReversibleFake(FakeSource):
+  has_backward = True
 
-  def reverse(self, i):
+  def backward(self, i):
     return self._pair(i, True)
+
+  def both(self, i):
+    return self[i], self.backward(i)
 
 
 def decode(batch, symmetrize):
@@ -249,10 +255,10 @@ def test_absent_dataset_dropped_with_one_warning(tmp_path, caplog):
 
 
 def test_symmetrize_without_backward_labels(tmp_path):
-  cfg = make_config(tmp_path, [(8, {"n": 10, "reversible": False})], reverse_fallback="error")
+  cfg = make_config(tmp_path, [(8, {"n": 10, "reversible": False})], backward_fallback="error")
   with pytest.raises(ValueError, match="'_tp_d0' cannot be symmetrized"):
     pipeline.create(cfg, seed=0, process_index=0, process_count=1)
-  cfg["reverse_fallback"] = "unsupervised"   # the default: (b, a) rows carry no supervision
+  cfg["backward_fallback"] = "unsupervised"   # the default: (b, a) rows carry no supervision
   b = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)))
   np.testing.assert_array_equal(b["image0"][1::2], b["image1"][::2])
   for k in ("flow_valid", "covis_valid", "covisibility"):
@@ -264,14 +270,12 @@ def test_symmetrize_without_backward_labels(tmp_path):
 
 
 class BothFake(FakeSource):
-  """Backward labels through `both(i)` / `has_backward(i)` (the synthetic and pairs_folder spelling);
-  odd indices have none."""
+  """Backward labels through `both(i)`, which gives None for odd indices (as pairs_folder does for
+  a pair without reverse/)."""
+  has_backward = True
 
   def both(self, i):
-    return self._pair(i, False), self._pair(i, True)
-
-  def has_backward(self, i):
-    return i % 2 == 0
+    return self._pair(i, False), self._pair(i, True) if i % 2 == 0 else None
 
 
 register("_tp_both")(BothFake)
@@ -328,6 +332,8 @@ def test_worker_processes_same_batches_and_resume(tmp_path):
 class PlaneFake(FakeSource):
   """Fronto-parallel plane at depth 4 seen by two cameras 0.2 apart along x (f = 20): the forward
   flow is u = -f * tx / Z = -1 px everywhere; no backward accessor, depth + poses in meta."""
+  static_scene = True
+  dataset = "habitat"
 
   def __getitem__(self, i):
     sample = self._pair(i, False)
@@ -336,20 +342,28 @@ class PlaneFake(FakeSource):
     c2w1 = np.eye(4)
     c2w1[0, 3] = 0.2
     sample["flow"] = np.tile(np.float32([-1, 0]), HW + (1,))
-    sample["meta"] = {"dataset": "habitat", "K0": k, "K1": k, "cam2world0": np.eye(4),
+    sample["meta"] = {"dataset": self.dataset, "K0": k, "K1": k, "cam2world0": np.eye(4),
                       "cam2world1": c2w1, "depth0": np.full(HW, 4.0, np.float32),
                       "depth1": np.full(HW, 4.0, np.float32)}
     return sample
 
 
+class OwnStaticFake(PlaneFake):
+  """A static scene under a name no table lists, with its own covisibility thresholds: the source's
+  declaration, not its dataset name, lets the pipeline compute backward labels from geometry."""
+  dataset = "_tp_own_static"
+  thresholds = (0.1, 0.005)
+
+
 register("_tp_plane")(PlaneFake)
+register("_tp_own_static")(OwnStaticFake)
 
 
-def test_symmetrize_backward_from_depth_and_poses(tmp_path):
-  pytest.importorskip("ufm_jax.geometry")
-  cfg = make_config(tmp_path, [])
+@pytest.mark.parametrize("name", ["_tp_plane", "_tp_own_static"])
+def test_symmetrize_backward_from_depth_and_poses(tmp_path, name):
+  cfg = make_config(tmp_path, [], backward_fallback="error")
   (tmp_path / "p").mkdir()
-  cfg["datasets"] = {"_tp_plane": {"quota": 4, "root": str(tmp_path / "p"), "options": {"n": 4}}}
+  cfg["datasets"] = {name: {"quota": 4, "root": str(tmp_path / "p"), "options": {"n": 4}}}
   cfg["augment"] = {"color_prob": 0.0, "zoom": (1.0, 1.0), "view_scale_jitter": 0.0}
   b = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)))
   for row in range(4):
@@ -362,23 +376,49 @@ def test_symmetrize_backward_from_depth_and_poses(tmp_path):
 
 
 class DynamicPlaneFake(PlaneFake):
-  """Same geometry, but labelled as a dynamic dataset: depth + poses alone do not give its reverse."""
-
-  def __getitem__(self, i):
-    sample = super().__getitem__(i)
-    sample["meta"]["dataset"] = "kubric4d"
-    return sample
+  """Same geometry and dataset name, but the source declares a dynamic scene: depth + poses alone
+  do not give its backward labels."""
+  static_scene = False
 
 
 register("_tp_dynamic")(DynamicPlaneFake)
 
 
-def test_no_static_geometry_reverse_for_dynamic_scenes(tmp_path):
+def test_no_static_geometry_backward_for_dynamic_scenes(tmp_path):
   cfg = make_config(tmp_path, [])
   (tmp_path / "k").mkdir()
   cfg["datasets"] = {"_tp_dynamic": {"quota": 4, "root": str(tmp_path / "k"), "options": {"n": 4}}}
   b = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)))
   assert b["flow_valid"][::2].all() and not b["flow_valid"][1::2].any()
-  cfg["reverse_fallback"] = "error"
+  cfg["backward_fallback"] = "error"
   with pytest.raises(ValueError, match="not static-scene pairs"):
     pipeline.create(cfg, seed=0, process_index=0, process_count=1)
+
+
+class UndeclaredFake:
+  """Readable pairs, but the class says nothing about backward labels or static scenes."""
+
+  def __init__(self, root, n=4, split=None):
+    self.inner = FakeSource(root, n=n)
+
+  def __len__(self):
+    return len(self.inner)
+
+  def __getitem__(self, i):
+    return self.inner[i]
+
+
+register("_tp_undeclared")(UndeclaredFake)
+
+
+def test_source_without_declarations_is_refused_when_symmetrizing(tmp_path):
+  cfg = make_config(tmp_path, [])
+  (tmp_path / "u").mkdir()
+  cfg["datasets"] = {"_tp_undeclared": {"quota": 8, "root": str(tmp_path / "u"),
+                                        "options": {"n": 8}}}
+  with pytest.raises(TypeError, match="UndeclaredFake does not declare has_backward and "
+                                      "static_scene.*registry.py"):
+    pipeline.create(cfg, seed=0, process_index=0, process_count=1)
+  cfg["symmetrize"] = False   # only symmetrized batches need backward labels
+  b = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)))
+  assert b["image0"].shape[0] == 8

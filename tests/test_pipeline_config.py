@@ -18,6 +18,9 @@ def _synthetic_config(arg):
 
 
 class _Tiny:
+  has_backward = True
+  static_scene = False
+
   def __init__(self, root, n=12, split=None):
     self.n, self.split = n, split
 
@@ -33,8 +36,11 @@ class _Tiny:
   def __getitem__(self, i):
     return self._pair(i, 1.0)
 
-  def reverse(self, i):
+  def backward(self, i):
     return self._pair(i, -1.0)
+
+  def both(self, i):
+    return self[i], self.backward(i)
 
 
 register("_tpc_a", "_tpc_b")(_Tiny)

@@ -71,7 +71,7 @@ def test_flyingchairs_split_and_labels(tmp_path):
   np.testing.assert_array_equal(s["covisibility"], expected)
   assert not s["covis_valid"].any()  # FlyingChairs never supervises covisibility
   assert s["meta"]["gt_relpath"] == "00001_flow.flo"
-  assert not train.has_reverse
+  assert not train.has_backward and not train.static_scene
 
 
 def test_flyingchairs_errors(tmp_path):
@@ -131,7 +131,7 @@ def _sceneflow_tree(root, scene, frames, passes=("clean",)):
 def test_flyingthings_sceneflow_covisibility(tmp_path):
   _sceneflow_tree(tmp_path, "TRAIN/A/0000", (6, 7, 8), passes=("clean", "final"))
   src = data.get_source("flyingthings", tmp_path, split="train")
-  assert len(src) == 2 and src.has_reverse
+  assert len(src) == 2 and src.has_backward and not src.static_scene
   s = src[0]
   _check_sample(s, H, W)
   np.testing.assert_array_equal(s["image0"], _img(H, W, 6))
@@ -147,7 +147,7 @@ def test_flyingthings_sceneflow_covisibility(tmp_path):
   np.testing.assert_allclose(m["depth0"][2, 3], 2.0, rtol=1e-6)
   np.testing.assert_allclose(m["K0"], [[F, 0, 5.5], [0, F, 2.5], [0, 0, 1]])
 
-  r = src.reverse(0)  # frame 7 -> 6 with the into_past flow of frame 7
+  r = src.backward(0)  # frame 7 -> 6 with the into_past flow of frame 7
   np.testing.assert_array_equal(r["image0"], _img(H, W, 7))
   np.testing.assert_array_equal(r["flow"][2, 6], [-3.0, 0.0])
   expected = np.ones((H, W), bool)
@@ -158,7 +158,7 @@ def test_flyingthings_sceneflow_covisibility(tmp_path):
   both = data.get_source("flyingthings", tmp_path, split="train", directions="both", dstype="both")
   assert len(both) == 8
   np.testing.assert_array_equal(both[1]["flow"], r["flow"])
-  assert both[1]["meta"]["direction"] == "backward" and both.reverse(1)["meta"]["frame0"] == "0006"
+  assert both[1]["meta"]["direction"] == "backward" and both.backward(1)["meta"]["frame0"] == "0006"
   assert both[4]["meta"]["dstype"] == "final"
   fwd, bwd = src.both(0)  # what the pipeline calls to symmetrise batches
   np.testing.assert_array_equal(fwd["covisibility"], s["covisibility"])
@@ -254,7 +254,7 @@ def test_spring_half_resolution_gt_and_matchmap(tmp_path):
   np.testing.assert_allclose(m["K0"], [[1000, 0, 959.5], [0, 1001, 539.5], [0, 0, 1]])
   np.testing.assert_allclose(m["K1"][0, 0], 1100)
   np.testing.assert_allclose(m["cam2world1"][:3, 3], [-1.0, -2.0, -3.0])  # inverse of w2c
-  r = src.reverse(0)
+  r = src.backward(0)
   assert r["meta"]["gt_relpath"] == "0001/flow_BW_left/flow_BW_left_0002.flo5"
   np.testing.assert_array_equal(r["flow"][0, 0], [-1.0, -0.5])
   np.testing.assert_array_equal(r["image0"], _img(4, 6, 2))
@@ -466,12 +466,12 @@ def test_pipeline_interface(tmp_path):
           "flyingthings": data.get_source("flyingthings", tmp_path / "things"),
           "spring": data.get_source("spring", tmp_path / "spring", cameras=("left",)),
           "sintel_clean": data.get_source("sintel_clean", tmp_path / "sintel")}
-  modes = {n: pipeline.reverse_mode(s, n) for n, s in srcs.items()}
-  assert modes == {"flyingchairs": "unsupervised", "flyingthings": "both", "spring": "both",
+  modes = {n: pipeline.backward_mode(s, n) for n, s in srcs.items()}
+  assert modes == {"flyingchairs": "unsupervised", "flyingthings": "source", "spring": "source",
                    "sintel_clean": "unsupervised"}
   for name, src in srcs.items():
     pipeline.check_sample(src[0], name)
-    if modes[name] == "both":
+    if modes[name] == "source":
       for s in src.both(0):
         pipeline.check_sample(s, name)
 

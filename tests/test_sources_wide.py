@@ -1,5 +1,5 @@
 """Static wide-baseline readers on tiny trees in each dataset's real layout (see
-test_sources_wide_trees.py for the plane scene whose flow is a closed-form homography)."""
+ufm_jax/testing/wide_trees.py for the plane scene whose flow is a closed-form homography)."""
 
 import os
 
@@ -95,7 +95,7 @@ def test_malformed_files_name_path(tmp_path):
 
 def test_every_reader_loads_at_the_training_shape():
   """Each reader on its tree at 560x420; prints per-sample load times (not asserted: timing is
-  a figure, reported by `python tests/test_sources_wide_trees.py`)."""
+  a figure, reported by `python -m ufm_jax.testing.wide_trees`)."""
   times = trees.report_load_times((28, 42), repeats=1)
   assert sorted(times) == sorted(["blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat",
                                   "staticthings", "kubric4d", "eth3d", "dtu", "tawb"])

@@ -42,29 +42,9 @@ def test_tawb_malformed_pose_names_file(tmp_path):
     data.get_source("tawb", str(tmp_path))[0]
 
 
-def _write_scannet1500(root, scene, image_hw):
-  """SuperGlue's list (K at 1296x968) + LoFTR-style color folders at `image_hw`."""
-  sy, sx = 968 / image_hw[0], 1296 / image_hw[1]
-  T = np.linalg.inv(scene.c2w[1]) @ scene.c2w[0]
-  fields = []
-  for i in (0, 1):
-    K = scene.K[i].copy()
-    K[0] *= sx
-    K[1] *= sy
-    fields.append(K)
-  d = os.path.join(root, "scannet_test_1500", "scene0707_00", "color")
-  os.makedirs(d)
-  for i, f in ((0, 15), (1, 585)):
-    trees.write_image(os.path.join(d, f"{f}.jpg"), np.zeros(image_hw + (3,), np.uint8) + 40 * i)
-  line = ["scene0707_00_frame-000015.jpg", "scene0707_00_frame-000585.jpg", "0", "0"]
-  line += [f"{x:.10f}" for x in np.concatenate([fields[0].ravel(), fields[1].ravel(), T.ravel()])]
-  with open(os.path.join(root, "scannet_test_pairs_with_gt.txt"), "w") as f:
-    f.write(" ".join(line) + "\n")
-
-
 def test_scannet1500_pose_only(tmp_path):
   scene = trees.PlaneScene(hw0=(48, 64))
-  _write_scannet1500(str(tmp_path), scene, (48, 64))
+  trees.write_scannet1500(str(tmp_path), scene, (48, 64))
   src = data.get_source("scannet1500", str(tmp_path))
   assert len(src) == 1
   s = src[0]
@@ -80,7 +60,7 @@ def test_scannet1500_pose_only(tmp_path):
 
 def test_scannet1500_missing_image_lists_candidates(tmp_path):
   scene = trees.PlaneScene(hw0=(48, 64))
-  _write_scannet1500(str(tmp_path), scene, (48, 64))
+  trees.write_scannet1500(str(tmp_path), scene, (48, 64))
   os.remove(tmp_path / "scannet_test_1500" / "scene0707_00" / "color" / "585.jpg")
   with pytest.raises(FileNotFoundError, match="scans_test/scene0707_00/color/585.jpg"):
     data.get_source("scannet1500", str(tmp_path))[0]

@@ -2,8 +2,10 @@
 
 A short run of train.py on the synthetic scene pairs with `tiny` (the README's run,
 `python train.py --config=configs/synthetic.py --workdir=DIR`, is 2000 steps of the shift task:
-minutes, too long here; its figures are in configs/synthetic.py): held-out EPE must drop by
->= 10%, the training loss must fall and everything a user looks at must be written.
+minutes, too long here; its figures are in docs/synthetic_training.md): held-out EPE must drop
+by >= 10%, the training loss must fall and everything a user looks at must be written; the
+console gets one line per log step; `evaluate.py --checkpoint` on the workdir scores the task it
+was trained on, with the zero-flow EPE beside the model's.
 """
 
 import json
@@ -12,6 +14,11 @@ import pathlib
 import subprocess
 import sys
 import tempfile
+
+import numpy as np
+import pytest
+
+from ufm_jax import data
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 XLA_CACHE = pathlib.Path(tempfile.gettempdir()) / "ufm_jax_test_xla_cache"
@@ -47,3 +54,29 @@ def test_synthetic_config_learns(tmp_path):
   assert "configs/synthetic.py" in (tmp_path / "command.txt").read_text()
   assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
   assert (tmp_path / "checkpoints" / str(steps)).is_dir()  # the final save
+
+  # The console: one line per log step and one per held-out eval, each once; no INFO chatter.
+  lines = (r.stdout + r.stderr).splitlines()
+  step_lines = [l for l in lines if l.startswith("step ")]
+  assert len(step_lines) == steps and len(set(step_lines)) == steps, step_lines[:4]
+  assert len([l for l in lines if l.startswith("[eval heldout]")]) == 2
+  assert not [l for l in lines if "INFO" in l], lines[:10]
+  assert len(lines) <= steps + 2 + 3, lines   # a few warnings at most
+
+  # evaluate.py on the workdir: its training task (flow pairs at 56 px), test split.
+  out = tmp_path / "eval"
+  r = subprocess.run([sys.executable, str(REPO / "evaluate.py"), "--checkpoint", str(tmp_path),
+                      "--max_pairs", "4", "--out", str(out), "--no_progress"],
+                     env=env, capture_output=True, text=True, timeout=600, cwd=REPO)
+  assert r.returncode == 0, r.stderr[-3000:]
+  assert "| epe | epe_zero |" in r.stdout
+  m = json.loads((out / "results.json").read_text())["metrics"]
+  src = data.get_source("synthetic", None, split="test", size=(56, 56), pair_type="flow")
+  norm, count = 0.0, 0
+  for i in range(4):
+    s = src[i]
+    covis = s["flow_valid"] & s["covisibility"] & s["covis_valid"]
+    norm += np.linalg.norm(s["flow"].astype(np.float64), axis=-1)[covis].sum()
+    count += int(covis.sum())
+  assert m["synthetic/epe_zero"] == pytest.approx(norm / count, rel=1e-6)
+  assert np.isfinite(m["synthetic/epe"])

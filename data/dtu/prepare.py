@@ -7,6 +7,9 @@ writes `<root>/pairs_test.txt`: for each of the 22 MVSNet evaluation scans prese
 its 49 views whose mutual covisibility (depth reprojection, fraction of all pixels, at --max_side
 resolution) exceeds --min_covis. Without this file the source falls back to MVSNet's pair.txt
 neighbours.
+
+A script, not a module: it imports the installed package (`pip install -e .` at the repository
+root) and runs from any directory.
 """
 
 from __future__ import annotations
@@ -15,10 +18,8 @@ import argparse
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-
-from ufm_jax import data  # pylint: disable=g-import-not-at-top
-from ufm_jax.data.sources import _posed  # pylint: disable=g-import-not-at-top
+from ufm_jax import data
+from ufm_jax.data.sources import _posed
 
 
 def main(argv=None):

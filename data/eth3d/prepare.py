@@ -16,6 +16,9 @@ distorted image and takes the nearest depth there (z is unchanged: same camera f
 Output (read by ufm_jax/data/sources/eth3d.py):
   <out>/<scene>/scene_meta.json, images/<DSC_x>.jpg, depth/<DSC_x>.exr
   <out>/pairs_test.txt   every view pair of a scene with mutual covisibility > --min_covis
+
+A script, not a module: it imports the installed package (`pip install -e .` at the repository
+root) and runs from any directory.
 """
 
 from __future__ import annotations
@@ -23,16 +26,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 
 import cv2
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-
-from ufm_jax import data  # pylint: disable=g-import-not-at-top
-from ufm_jax.data import io  # pylint: disable=g-import-not-at-top
-from ufm_jax.data.sources import _exr, _posed  # pylint: disable=g-import-not-at-top
+from ufm_jax import data
+from ufm_jax.data import io
+from ufm_jax.data.sources import _exr, _posed
 
 
 def thin_prism_fisheye_project(params, x, y):

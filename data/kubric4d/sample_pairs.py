@@ -8,6 +8,9 @@ frame differences 0..40 with probability rising linearly (40 twice as likely as 
 valid start frame, the two times assigned to the two cameras in random order; 3600 pairs per
 scene by default. Deterministic: scene k uses the random stream (seed, k). Writes
 `<root>/pairs_<split>.txt` with lines `scn%05d view0/time0 view1/time1`.
+
+A script, not a module: it imports the installed package (`pip install -e .` at the repository
+root) and runs from any directory.
 """
 
 from __future__ import annotations
@@ -18,10 +21,8 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-
-from ufm_jax import data  # pylint: disable=g-import-not-at-top
-from ufm_jax.data.sources import _posed, kubric4d  # pylint: disable=g-import-not-at-top
+from ufm_jax import data
+from ufm_jax.data.sources import _posed, kubric4d
 
 
 def main(argv=None):

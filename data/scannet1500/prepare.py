@@ -11,6 +11,9 @@ The list is SuperGlue's `assets/scannet_test_pairs_with_gt.txt` (copy it to <roo
 row-major 3x4 [R|t], camera A -> camera B) and `intrinsics.npz` K per scene at 640x480; the
 conversion scales K back to the 1296x968 colour images SuperGlue's list refers to. The check
 resolves every image the way the source does and reports the missing ones.
+
+A script, not a module: it imports the installed package (`pip install -e .` at the repository
+root) and runs from any directory.
 """
 
 from __future__ import annotations
@@ -21,10 +24,8 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-
-from ufm_jax import data  # pylint: disable=g-import-not-at-top
-from ufm_jax.data.sources import _posed, scannet1500  # pylint: disable=g-import-not-at-top
+from ufm_jax import data
+from ufm_jax.data.sources import _posed, scannet1500
 
 
 def loftr_to_superglue(npz_path, intr_path, out_path):

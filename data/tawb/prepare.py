@@ -17,6 +17,9 @@ Output: <out>/<split>/<Env>/{images,depth,camera_params,poses}/{pair:08d}_{0,1}.
 the geometry environment (condition suffixes such as Winter/Night stripped). Sky is masked as the
 map-anything extraction does: depth >= 80 m (Prison, OldTown), 120 m (ShoreCaves), 35 m
 (OldBrickHouse), 200 m elsewhere becomes 0.
+
+A script, not a module: it imports the installed package (`pip install -e .` at the repository
+root) and runs from any directory.
 """
 
 from __future__ import annotations
@@ -25,15 +28,12 @@ import argparse
 import glob
 import json
 import os
-import sys
 
 import cv2
 import h5py
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-
-from ufm_jax.data.sources import _exr, _posed  # pylint: disable=g-import-not-at-top
+from ufm_jax.data.sources import _exr, _posed
 
 CONDITIONS = ("SummerNight", "WinterNight", "Autumn", "Spring", "Winter", "Day", "Night", "Fall",
               "Summer")

@@ -10,6 +10,9 @@ needed), samples `--pairs_per_env / number of trajectories` pairs split over the
 (equal for 0-30, 30-60, 60-90 degrees, half for 90-120) and writes them in the extracted TA-WB
 layout under `<out>/<split>/<Env>/` (read by the `tawb` source), with `pairs_meta.jsonl` holding
 each pair's angle, covisibility, SIFT matching error and source poses.
+
+A script, not a module: it imports the installed package (`pip install -e .` at the repository
+root) and runs from any directory.
 """
 
 from __future__ import annotations
@@ -17,12 +20,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import sys
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-
-from ufm_jax import data  # pylint: disable=g-import-not-at-top
-from ufm_jax.data.sources import _tawb_sampler as ts  # pylint: disable=g-import-not-at-top
+from ufm_jax import data
+from ufm_jax.data.sources import _tawb_sampler as ts
 
 
 def main(argv=None):

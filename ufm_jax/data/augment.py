@@ -237,9 +237,9 @@ def color_jitter(image: np.ndarray, params) -> np.ndarray:
   return img
 
 
-def apply(sample: Mapping[str, Any], params: Params, out_hw, reverse: Mapping[str, Any] | None = None
-          ) -> list[dict]:
-  """Augments one pair; with `reverse` (the (image1 -> image0) labels) returns [fwd, bwd].
+def apply(sample: Mapping[str, Any], params: Params, out_hw,
+          backward: Mapping[str, Any] | None = None) -> list[dict]:
+  """Augments one pair; with `backward` (the (image1 -> image0) labels) returns [fwd, bwd].
 
   The backward pair reuses the forward's augmented images swapped, so (a, b) and (b, a) in a
   symmetrized batch show exactly the same pixels.
@@ -248,8 +248,8 @@ def apply(sample: Mapping[str, Any], params: Params, out_hw, reverse: Mapping[st
   im0 = color_jitter(warp_image(np.asarray(sample["image0"]), params.view0, out_hw), params.color0)
   im1 = color_jitter(warp_image(np.asarray(sample["image1"]), params.view1, out_hw), params.color1)
   pairs = [(im0, im1, warp_labels(sample, params.view0, params.view1, out_hw))]
-  if reverse is not None:
-    pairs.append((im1, im0, warp_labels(reverse, params.view1, params.view0, out_hw)))
+  if backward is not None:
+    pairs.append((im1, im0, warp_labels(backward, params.view1, params.view0, out_hw)))
   outs = []
   for a, b, labels in pairs:
     if params.hflip:
@@ -259,8 +259,8 @@ def apply(sample: Mapping[str, Any], params: Params, out_hw, reverse: Mapping[st
 
 
 def augment(sample: Mapping[str, Any], rng: np.random.Generator, out_hw, cfg: AugmentConfig,
-            reverse: Mapping[str, Any] | None = None) -> list[dict]:
+            backward: Mapping[str, Any] | None = None) -> list[dict]:
   """Random parameters + `apply`; returns [fwd] or [fwd, bwd] dicts of output-shaped arrays."""
   hw0 = np.shape(sample["image0"])[:2]
   hw1 = np.shape(sample["image1"])[:2]
-  return apply(sample, sample_params(rng, hw0, hw1, out_hw, cfg), out_hw, reverse)
+  return apply(sample, sample_params(rng, hw0, hw1, out_hw, cfg), out_hw, backward)

@@ -16,8 +16,9 @@ Batches are dicts of numpy arrays with a leading batch axis of the per-host batc
 image0, image1 [B,H,W,3] uint8; flow [B,H,W,2] float32; covisibility, flow_valid, covis_valid
 [B,H,W] bool; dataset_id [B] int32 (index into `Pipeline.names`); epoch [B] int32. With
 symmetrize, rows (2i, 2i+1) are (a, b) and (b, a): backward labels come from the source (its
-`both(i)`, `backward(i)` or `reverse(i)`), else for static scenes from depth + poses in meta, else
-(reverse_fallback='unsupervised', e.g. FlyingChairs, HD1K) the (b, a) row has all masks False, so
+`both(i)`, when it declares `has_backward`), else for a source that declares `static_scene` from
+depth + poses in meta, else (backward_fallback='unsupervised', e.g. FlyingChairs, HD1K) the (b, a)
+row has all masks False, so
 the loss must tolerate rows without supervised pixels (FlyingChairs' covis_valid is all False too).
 
 A sample that raises while loading or fails validation is skipped: a replacement is drawn from the
@@ -197,22 +198,30 @@ def check_sample(sample: Mapping[str, Any], where: str) -> dict:
   return out
 
 
-# Static scenes (paper Table 1, above the dashed line): their backward labels follow from depth and
-# poses alone. Dynamic sets (Kubric4D's moving objects, scene flow) must come from the source.
-STATIC_DATASETS = ("blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat", "staticthings")
+def _declared(source, name: str) -> tuple[bool, bool]:
+  """(has_backward, static_scene) as the source class declares them (ufm_jax.data.registry)."""
+  missing = [a for a in ("has_backward", "static_scene") if not isinstance(
+      getattr(source, a, None), bool)]
+  if missing:
+    raise TypeError(f"dataset {name!r}: source class {type(source).__name__} does not declare "
+                    f"{' and '.join(missing)} (bool class attributes; see ufm_jax/data/registry.py)")
+  if source.has_backward and not callable(getattr(source, "both", None)):
+    raise TypeError(f"dataset {name!r}: source class {type(source).__name__} declares has_backward "
+                    "but has no both(i) -> (forward, backward) method")
+  return source.has_backward, source.static_scene
 
 
-def _geometry_possible(meta) -> bool:
-  return (all(k in meta for k in _GEOMETRY_META)
-          and str(meta.get("dataset", "")).lower() in STATIC_DATASETS)
+def _geometry_possible(source, meta) -> bool:
+  return source.static_scene and all(k in meta for k in _GEOMETRY_META)
 
 
-def geometry_reverse(sample: Mapping[str, Any], thresholds=None) -> dict:
+def geometry_backward(sample: Mapping[str, Any], thresholds=None) -> dict:
   """Backward labels (image1 -> image0) of a static-scene pair from depth + poses in meta, with the
-  source's thresholds (else Table S1's) and the label rules the sources use."""
+  source's thresholds (else those of meta's dataset: Table S1, the benchmark values) and the label
+  rules the sources use."""
   from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
   meta = sample["meta"]
-  tau_d, tau_r = thresholds or geometry.COVIS_THRESHOLDS[str(meta["dataset"]).lower()]
+  tau_d, tau_r = thresholds or geometry.covis_thresholds(str(meta["dataset"]))
   corr = geometry.correspondence_from_depth(meta["depth1"], meta["K1"], meta["cam2world1"],
                                             meta["depth0"], meta["K0"], meta["cam2world0"],
                                             tau_d, tau_r)
@@ -220,7 +229,7 @@ def geometry_reverse(sample: Mapping[str, Any], thresholds=None) -> dict:
           **geometry.labels_from_correspondence(corr), "meta": meta}
 
 
-def unsupervised_reverse(sample: Mapping[str, Any]) -> dict:
+def unsupervised_backward(sample: Mapping[str, Any]) -> dict:
   """The swapped pair with every supervision mask False: keeps the (a,b),(b,a) batch layout for
   datasets without backward labels (FlyingChairs, HD1K) without training on made-up labels."""
   hw = np.shape(sample["image1"])[:2]
@@ -230,83 +239,70 @@ def unsupervised_reverse(sample: Mapping[str, Any]) -> dict:
           "covis_valid": off, "meta": sample.get("meta", {})}
 
 
-def _source_backward(source):
-  """The source's own backward accessor; sources spell it `both`, `backward` or `reverse`."""
-  if getattr(source, "has_reverse", True) is False:
-    return None, None
-  for attr in ("both", "backward", "reverse"):
-    fn = getattr(source, attr, None)
-    if callable(fn):
-      return attr, fn
-  return None, None
-
-
-def reverse_mode(source, name: str, fallback: str = "unsupervised") -> str:
-  """How backward labels of `source` are obtained: 'both' / 'backward' / 'reverse' (its method),
-  'geometry' (depth + poses in meta), else `fallback` ('unsupervised' or 'error')."""
-  attr, _ = _source_backward(source)
-  if attr:
-    return attr
-  try:
-    meta = source[0].get("meta", {})
-  except Exception as e:  # pylint: disable=broad-except  # a corrupt first sample is skipped later
-    log.warning("%s[0] unreadable while probing for backward labels: %s", name, e)
-    meta = {}
-  if _geometry_possible(meta):
+def backward_mode(source, name: str, fallback: str = "unsupervised") -> str:
+  """How backward labels of `source` are obtained: 'source' (it declares has_backward: `both(i)`),
+  'geometry' (it declares static_scene and its samples carry depth + poses in meta), else
+  `fallback` ('unsupervised' or 'error')."""
+  has_backward, static_scene = _declared(source, name)
+  if has_backward:
+    return "source"
+  meta = {}
+  if static_scene:
+    try:
+      meta = source[0].get("meta", {})
+    except Exception as e:  # pylint: disable=broad-except  # a corrupt first sample is skipped later
+      log.warning("%s[0] unreadable while probing for backward labels: %s", name, e)
+  if _geometry_possible(source, meta):
     return "geometry"
   if fallback == "unsupervised":
     return "unsupervised"
   raise ValueError(
-      f"dataset {name!r} cannot be symmetrized: its source has no `both`/`backward`/`reverse` "
-      f"method and its samples are not static-scene pairs ({', '.join(STATIC_DATASETS)}) with "
-      f"{', '.join(_GEOMETRY_META)} in meta to compute backward labels from; set input.symmetrize=False, input.reverse_fallback='unsupervised'"
-      " or drop it from the mixture")
+      f"dataset {name!r} cannot be symmetrized: its source ({type(source).__name__}) has no "
+      f"backward labels (has_backward=False) and its samples are not static-scene pairs "
+      f"(static_scene={static_scene}) with {', '.join(_GEOMETRY_META)} in meta to compute them "
+      "from; set input.symmetrize=False, input.backward_fallback='unsupervised' or drop it from "
+      "the mixture")
 
 
 class LoadPair:
   """grain map: index record -> dict of augmented arrays with a leading axis of 1 or 2 pairs."""
 
-  def __init__(self, sources, names, reverse_modes, layout: MixtureLayout, shapes,
+  def __init__(self, sources, names, backward_modes, layout: MixtureLayout, shapes,
                augment_cfg: augment_lib.AugmentConfig, symmetrize: bool, max_retries: int = 8):
-    self.sources, self.names, self.reverse_modes = sources, names, reverse_modes
+    self.sources, self.names, self.backward_modes = sources, names, backward_modes
     self.layout, self.shapes, self.cfg = layout, tuple(shapes), augment_cfg
     self.symmetrize, self.max_retries = symmetrize, max_retries
 
   def _load(self, d: int, i: int):
     where = f"{self.names[d]}[{i}]"
     src = self.sources[d]
-    mode = self.reverse_modes[d] if self.symmetrize else None
-    if mode in ("both", "backward", "reverse") and not getattr(src, "has_backward",
-                                                               lambda _: True)(i):
-      mode = "per_sample"   # e.g. a pairs_folder pair without reverse/ labels
-    if mode == "both":
-      sample, reverse = src.both(i)
+    mode = self.backward_modes[d] if self.symmetrize else None
+    backward = None
+    if mode == "source":
+      sample, backward = src.both(i)
     else:
-      sample, reverse = src[i], None
-      if mode in ("backward", "reverse"):
-        reverse = getattr(src, mode)(i)
+      sample = src[i]
     sample = check_sample(sample, where)
-    if mode == "per_sample":
-      meta = sample.get("meta", {})
-      mode = "geometry" if _geometry_possible(meta) else "unsupervised"
+    if mode == "source" and backward is None:   # e.g. a pairs_folder pair without reverse/ labels
+      mode = "geometry" if _geometry_possible(src, sample.get("meta", {})) else "unsupervised"
     if mode == "geometry":
-      reverse = geometry_reverse(sample, getattr(src, "thresholds", None))
+      backward = geometry_backward(sample, getattr(src, "thresholds", None))
     elif mode == "unsupervised":
-      reverse = unsupervised_reverse(sample)
-    if reverse is not None:
-      reverse = check_sample(reverse, where + ".reverse")
-      if (reverse["image0"].shape != sample["image1"].shape
-          or reverse["image1"].shape != sample["image0"].shape):
-        raise ValueError(f"{where}: reverse sample image shapes {reverse['image0'].shape}, "
-                         f"{reverse['image1'].shape} do not swap the forward's")
-    return sample, reverse
+      backward = unsupervised_backward(sample)
+    if backward is not None:
+      backward = check_sample(backward, where + ".backward")
+      if (backward["image0"].shape != sample["image1"].shape
+          or backward["image1"].shape != sample["image0"].shape):
+        raise ValueError(f"{where}: backward sample image shapes {backward['image0'].shape}, "
+                         f"{backward['image1'].shape} do not swap the forward's")
+    return sample, backward
 
   def __call__(self, rec):
     d, i, g = rec["dataset_id"], rec["index"], rec["position"]
     skipped = []
     for attempt in range(self.max_retries + 1):
       try:
-        sample, reverse = self._load(d, i)
+        sample, backward = self._load(d, i)
         break
       except Exception as e:  # pylint: disable=broad-except  # any unreadable sample is skipped
         # Logged (with running counts) when the batch reaches the main process.
@@ -318,7 +314,7 @@ class LoadPair:
                               f"{self.names[d]!r}; last: {skipped[-1]}")
     out_hw = augment_lib.shape_for_step(self.shapes, self.layout.seed, rec["step"])
     rng = np.random.default_rng([self.layout.seed, g, 4])
-    pairs = augment_lib.augment(sample, rng, out_hw, self.cfg, reverse=reverse)
+    pairs = augment_lib.augment(sample, rng, out_hw, self.cfg, backward=backward)
     out = {k: np.stack([p[k] for p in pairs]) for k in _ARRAY_KEYS}
     out["dataset_id"] = np.full(len(pairs), d, np.int32)
     out["epoch"] = np.full(len(pairs), rec["epoch"], np.int32)
@@ -477,7 +473,7 @@ INPUT_DEFAULTS = {
     "worker_buffer_size": 1,
     "max_skip_fraction": 0.01,
     "skip_check_min_samples": 100,
-    "reverse_fallback": "unsupervised",
+    "backward_fallback": "unsupervised",
     "max_retries": 8,
 }
 
@@ -495,7 +491,7 @@ def input_config(datasets, **overrides):
   batch_size is the global number of pairs per step, both directions counted when symmetrized
   (the paper's 96 = 48 unique pairs); each process gets batch_size / process_count.
   num_workers: grain worker processes per host (-1: `auto_num_workers()`, from the core count).
-  reverse_fallback: what symmetrize does for datasets without backward labels ('unsupervised':
+  backward_fallback: what symmetrize does for datasets without backward labels ('unsupervised':
   the (b, a) row has all masks False; 'error': refuse to build).
   """
   import ml_collections  # pylint: disable=g-import-not-at-top
@@ -519,7 +515,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   Keys: datasets {name: {quota, root, options}} (relative roots are under data_root), data_root,
   batch_size (global pairs per step, counting both directions when symmetrized), symmetrize,
   longest_side, aspect_ratios, augment {...}, num_workers, worker_buffer_size, read_threads,
-  prefetch_buffer_size, max_skip_fraction, skip_check_min_samples, reverse_fallback, split.
+  prefetch_buffer_size, max_skip_fraction, skip_check_min_samples, backward_fallback, split.
   process_index/count default to jax's (grain ShardByJaxProcess).
   """
   cfg = dict(config.to_dict() if hasattr(config, "to_dict") else config)
@@ -548,10 +544,10 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   sizes = tuple(len(s) for s in sources)
   modes = ()
   if symmetrize:
-    fallback = str(cfg["reverse_fallback"])
+    fallback = str(cfg["backward_fallback"])
     if fallback not in ("unsupervised", "error"):
-      raise ValueError(f"input.reverse_fallback must be 'unsupervised' or 'error', got {fallback!r}")
-    modes = tuple(reverse_mode(s, n, fallback) for s, n in zip(sources, names))
+      raise ValueError(f"input.backward_fallback must be 'unsupervised' or 'error', got {fallback!r}")
+    modes = tuple(backward_mode(s, n, fallback) for s, n in zip(sources, names))
     unsup = [n for n, m in zip(names, modes) if m == "unsupervised"]
     if unsup:
       log.warning("no backward labels for %s: their (b, a) rows in symmetrized batches carry no "
@@ -571,9 +567,9 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   if layout.num_steps == 0:
     raise ValueError(f"epoch of {layout.epoch_size} pairs is smaller than one global batch of "
                      f"{layout.unique_per_step} unique pairs")
-  load = LoadPair(sources, names, modes, layout, shapes,
-                  augment_lib.AugmentConfig.from_dict(cfg["augment"]), symmetrize,
-                  int(cfg["max_retries"]))
+  load = LoadPair(sources, names, backward_modes=modes, layout=layout, shapes=shapes,
+                  augment_cfg=augment_lib.AugmentConfig.from_dict(cfg["augment"]),
+                  symmetrize=symmetrize, max_retries=int(cfg["max_retries"]))
   ds = MixtureIndex(layout).map(load).batch(unique_per_host, drop_remainder=True, batch_fn=collate)
   ds = ds.to_iter_dataset(grain.ReadOptions(
       num_threads=int(cfg["read_threads"]),

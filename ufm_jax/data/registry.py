@@ -8,6 +8,15 @@ A source is a random-access sequence (`len()`, `__getitem__`) of sample dicts wi
   flow_valid      [H, W] bool, where flow is supervised
   covis_valid     [H, W] bool, the covisibility supervision mask V_covis
   meta            dict: dataset, scene, frame ids; intrinsics, poses, depths when known
+
+Every source class also declares two bool class attributes, read by the training pipeline when it
+symmetrizes batches (ufm_jax.data.pipeline.backward_mode):
+  has_backward    the source labels the backward pair (image1 -> image0) itself: `backward(i)`
+                  returns it and `both(i)` returns (forward, backward), reading the images once
+                  where it can; `both` may give (forward, None) for a pair without such labels
+  static_scene    its pairs see a static scene, so when it has no backward labels of its own they
+                  follow from depth + poses in meta (`thresholds` of the source, else those of
+                  meta's dataset)
 """
 
 from __future__ import annotations

@@ -237,8 +237,9 @@ class Block(nn.Module):
     ls = (lambda name: LayerScale(self.init_values, name=name)) if self.init_values else (
         lambda name: identity)
     y = layer_norm("norm1")(x)
-    y = Attention(self.num_heads, self.qkv_bias, self.qk_norm, self.dtype, self.attention_impl,
-                  self.tied_qk_init, name="attn")(y)
+    y = Attention(num_heads=self.num_heads, qkv_bias=self.qkv_bias, qk_norm=self.qk_norm,
+                  dtype=self.dtype, implementation=self.attention_impl,
+                  tied_qk_init=self.tied_qk_init, name="attn")(y)
     x = x + ls("ls1")(y)
     y = layer_norm("norm2")(x)
     if self.ffn == "mlp":

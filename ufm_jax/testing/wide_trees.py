@@ -8,7 +8,7 @@ OpenGL / NED axes, COLMAP pixel centres, range depth, millimetres, invalid marke
 that gets a convention wrong produces a flow that disagrees with H.
 
 Run as a script to print per-sample load times at each dataset's native training-size shape:
-  PYTHONPATH=. python tests/test_sources_wide_trees.py
+  python -m ufm_jax.testing.wide_trees [H W]
 """
 
 from __future__ import annotations
@@ -410,6 +410,42 @@ def write_tawb(root, scene, split="test", env="Sewerage", pair=7):
     np.save(os.path.join(d, "camera_params", n + ".npy"), scene.K[i])
     np.save(os.path.join(d, "poses", n + ".npy"), scene.c2w[i])
   return env, f"{pair:08d}_0", f"{pair:08d}_1"
+
+
+def write_scannet1500(root, scene: PlaneScene, image_hw):
+  """SuperGlue's pair list (K at 1296x968) + LoFTR-style color folders at `image_hw`."""
+  sy, sx = 968 / image_hw[0], 1296 / image_hw[1]
+  T = np.linalg.inv(scene.c2w[1]) @ scene.c2w[0]
+  fields = []
+  for i in (0, 1):
+    K = scene.K[i].copy()
+    K[0] *= sx
+    K[1] *= sy
+    fields.append(K)
+  d = os.path.join(root, "scannet_test_1500", "scene0707_00", "color")
+  os.makedirs(d)
+  for i, f in ((0, 15), (1, 585)):
+    write_image(os.path.join(d, f"{f}.jpg"), np.zeros(image_hw + (3,), np.uint8) + 40 * i)
+  line = ["scene0707_00_frame-000015.jpg", "scene0707_00_frame-000585.jpg", "0", "0"]
+  line += [f"{x:.10f}" for x in np.concatenate([fields[0].ravel(), fields[1].ravel(), T.ravel()])]
+  with open(os.path.join(root, "scannet_test_pairs_with_gt.txt"), "w") as f:
+    f.write(" ".join(line) + "\n")
+
+
+def two_view_flow(h=48, w=64):
+  """(flow, K, R, t): the dense flow of a smooth depth field seen by two pinhole cameras
+  (x1 = R x0 + t), for pose estimation from exact flow."""
+  K = np.array([[60.0, 0, w / 2 - 0.5], [0, 58.0, h / 2 - 0.5], [0, 0, 1]])
+  ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+  depth = 4 + np.sin(xs / 9) + 0.5 * np.cos(ys / 7)
+  rays = np.linalg.inv(K) @ np.stack([xs.ravel(), ys.ravel(), np.ones(h * w)])
+  X0 = rays * depth.ravel()
+  R = _axis_rot((0, 1, 0), np.radians(6)) @ _axis_rot((1, 0, 0), np.radians(-3))
+  t = np.array([0.4, 0.05, 0.1])
+  X1 = R @ X0 + t[:, None]
+  p1 = (K @ X1)[:2] / X1[2]
+  flow = (p1 - np.stack([xs.ravel(), ys.ravel()])).T.reshape(h, w, 2)
+  return flow, K, R, t
 
 
 def _quat_from_R(R):

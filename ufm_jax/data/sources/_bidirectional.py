@@ -4,10 +4,10 @@ from __future__ import annotations
 
 
 class BidirectionalPairs:
-  """Mixin over `self.pairs` and `self._load(k, reverse, images=None)`.
+  """Mixin over `self.pairs` and `self._load(k, backward, images=None)`.
 
-  `directions="forward"`: index k is pair k forward and `reverse(k)` its backward pair.
-  `directions="both"`: index 2k is pair k forward and 2k+1 its backward pair (`reverse` swaps them).
+  `directions="forward"`: index k is pair k forward and `backward(k)` its backward pair.
+  `directions="both"`: index 2k is pair k forward and 2k+1 its backward pair (`backward` swaps them).
   """
 
   directions: str = "forward"
@@ -22,16 +22,16 @@ class BidirectionalPairs:
 
   def __getitem__(self, index: int) -> dict:
     k, rev = self._pair_and_direction(index)
-    return self._load(k, reverse=rev)
+    return self._load(k, backward=rev)
 
-  def reverse(self, index: int) -> dict:
+  def backward(self, index: int) -> dict:
     """The pair of `index` with source and target swapped, labelled by the backward ground truth."""
     k, rev = self._pair_and_direction(index)
-    return self._load(k, reverse=not rev)
+    return self._load(k, backward=not rev)
 
   def both(self, index: int) -> tuple[dict, dict]:
-    """(`self[index]`, `self.reverse(index)`) reading each image once (for symmetrised batches)."""
+    """(`self[index]`, `self.backward(index)`) reading each image once (for symmetrised batches)."""
     k, rev = self._pair_and_direction(index)
-    first = self._load(k, reverse=rev)
-    second = self._load(k, reverse=not rev, images=(first["image1"].copy(), first["image0"].copy()))
+    first = self._load(k, backward=rev)
+    second = self._load(k, backward=not rev, images=(first["image1"].copy(), first["image0"].copy()))
     return first, second

@@ -36,6 +36,8 @@ def _in_split(scene: str, split: str) -> bool:
 @register("blendedmvs")
 class BlendedMVS(_posed.PosedPairSource):
   name = "blendedmvs"
+  has_backward = False
+  static_scene = True
 
   def scenes(self):
     return sorted(s for s in os.listdir(self.root)

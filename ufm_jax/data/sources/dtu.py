@@ -31,6 +31,8 @@ VAL_SCANS = (3, 5, 17, 21, 28, 35, 37, 38, 40, 43, 56, 59, 66, 67, 82, 86, 106, 
 @register("dtu")
 class DTU(_posed.PosedPairSource):
   name = "dtu"
+  has_backward = False
+  static_scene = True
 
   def __init__(self, root, split="test", pairs=None, thresholds=None, light=3, num_src=10):
     super().__init__(root, split, pairs, thresholds)

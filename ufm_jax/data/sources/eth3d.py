@@ -22,6 +22,8 @@ from ufm_jax.data.sources.scannetpp import WaiScenes, wai_view
 @register("eth3d")
 class ETH3D(WaiScenes, _posed.PosedPairSource):
   name = "eth3d"
+  has_backward = False
+  static_scene = True
 
   def __init__(self, root, split="test", pairs=None, thresholds=None):
     super().__init__(root, split, pairs, thresholds)

@@ -30,7 +30,8 @@ MAX_FLOW = 1000.0  # larger |u| or |v| is treated as undefined (RAFT convention)
 class FlyingChairs:
   """Random-access FlyingChairs source. split: 'train' (22232), 'val' (640) or 'all' (22872)."""
 
-  has_reverse = False
+  has_backward = False
+  static_scene = False
 
   def __init__(self, root, split: str = "train"):
     if root is None:
@@ -86,5 +87,5 @@ class FlyingChairs:
 
 
 @register("flyingchairs")
-def make_flyingchairs(root, split: str = "train"):
+def make_flyingchairs(root, split: str = "train") -> FlyingChairs:
   return FlyingChairs(root, split=split)

@@ -9,9 +9,9 @@ FlyingThings3D (`<S>` = `TRAIN|TEST/{A,B,C}/{%04d seq}`; frames 0006..0015):
 Monkaa: the same with `<S>` = `<scene name>` (no split level).
 
 Pairs: per sequence and camera, consecutive frames (I[i], I[i+1]) with the into_future flow of
-frame i; `reverse(k)` gives (I[i+1], I[i]) with the into_past flow of frame i+1 (both directions are
+frame i; `backward(k)` gives (I[i+1], I[i]) with the into_past flow of frame i+1 (both directions are
 real ground truth). With `directions="both"` the source enumerates them interleaved (2k forward,
-2k+1 its reverse) so batches can be symmetrised by adjacent indices.
+2k+1 its backward pair) so batches can be symmetrised by adjacent indices.
 
 Labels: flow_valid = |u|, |v| < 1000 (RAFT); NaN/Inf flow (no marker in this dense format) makes the
 sample corrupt (ValueError). Covisibility follows the supplementary scene-flow rule (`ufm_jax.geometry.sceneflow`): flow + disparity change, depth = 1050 / disparity,
@@ -52,10 +52,11 @@ class SceneFlowSource(BidirectionalPairs):
     split: FlyingThings3D 'train' | 'test'; Monkaa has no split ('train' or None).
     dstype: 'clean', 'final' or 'both' (both passes enumerated).
     cameras: tuple of 'left' / 'right'.
-    directions: 'forward' (default; `reverse(k)` gives the backward pair) or 'both'.
+    directions: 'forward' (default; `backward(k)` gives the backward pair) or 'both'.
   """
 
-  has_reverse = True
+  has_backward = True
+  static_scene = False
 
   def __init__(self, root, dataset: str, split: str | None = "train", dstype: str = "clean",
                cameras=("left",), directions: str = "forward"):
@@ -103,10 +104,10 @@ class SceneFlowSource(BidirectionalPairs):
     if not self.pairs:
       raise FileNotFoundError(f"{frames_root}: no consecutive frame pairs found; {layout}")
 
-  def _load(self, k: int, reverse: bool, images=None) -> dict:
+  def _load(self, k: int, backward: bool, images=None) -> dict:
     dpass, scene, cam, a, b = self.pairs[k]
-    src, dst = (b, a) if reverse else (a, b)
-    direction = "backward" if reverse else "forward"
+    src, dst = (b, a) if backward else (a, b)
+    direction = "backward" if backward else "forward"
     into, word = _DIRS[direction]
     lr = "L" if cam == "left" else "R"
     r = self.root
@@ -146,10 +147,10 @@ class SceneFlowSource(BidirectionalPairs):
 
 
 @register("flyingthings")
-def make_flyingthings(root, split: str = "train", **options):
+def make_flyingthings(root, split: str = "train", **options) -> SceneFlowSource:
   return SceneFlowSource(root, "flyingthings", split=split, **options)
 
 
 @register("monkaa")
-def make_monkaa(root, split: str | None = "train", **options):
+def make_monkaa(root, split: str | None = "train", **options) -> SceneFlowSource:
   return SceneFlowSource(root, "monkaa", split=split, **options)

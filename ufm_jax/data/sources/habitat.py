@@ -42,6 +42,8 @@ def read_camera_params(path):
 @register("habitat")
 class Habitat(_posed.PosedPairSource):
   name = "habitat"
+  has_backward = False
+  static_scene = True
 
   def scenes(self):
     listed = os.path.join(self.root, f"scenes_{self.split}.txt")

@@ -30,7 +30,8 @@ LAYOUT = ("hd1k_input/image_2/<seq %06d>_<frame %04d>.png and hd1k_flow_gt/flow_
 class HD1K:
   """Random-access HD1K source (training set; split='train')."""
 
-  has_reverse = False
+  has_backward = False
+  static_scene = False
 
   def __init__(self, root, split: str = "train"):
     if root is None:
@@ -69,5 +70,5 @@ class HD1K:
 
 
 @register("hd1k")
-def make_hd1k(root, split: str = "train"):
+def make_hd1k(root, split: str = "train") -> HD1K:
   return HD1K(root, split=split)

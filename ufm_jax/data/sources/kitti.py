@@ -32,7 +32,8 @@ LAYOUT = ("training/image_2/%06d_{10,11}.png, training/flow_occ/%06d_10.png, "
 class Kitti2015:
   """Random-access KITTI-2015 flow source. split: 'training' (alias 'train') or 'testing'."""
 
-  has_reverse = False
+  has_backward = False
+  static_scene = False
 
   def __init__(self, root, split: str = "training", gt: str = "occ"):
     if root is None:
@@ -95,5 +96,5 @@ class Kitti2015:
 
 
 @register("kitti2015")
-def make_kitti2015(root, split: str = "training", **options):
+def make_kitti2015(root, split: str = "training", **options) -> Kitti2015:
   return Kitti2015(root, split=split, **options)

@@ -216,6 +216,8 @@ def sample_scene_pairs(cam2world: np.ndarray, num_frames: int, num_pairs: int, r
 @register("kubric4d")
 class Kubric4D(_posed.PosedPairSource):
   name = "kubric4d"
+  has_backward = True
+  static_scene = False  # objects move: backward labels come from `backward`
 
   def scenes(self):
     lo, hi = SPLITS.get(self.split, (0, 10 ** 9))
@@ -270,6 +272,9 @@ class Kubric4D(_posed.PosedPairSource):
     the pipeline's static-scene reversal from meta would be wrong here (objects move)."""
     scene, f0, f1 = self.pairs[i]
     return self._pair(scene, f1, f0)
+
+  def both(self, i):
+    return self[i], self.backward(i)
 
   def _pair(self, scene, f0, f1):
     from ufm_jax import geometry

@@ -69,6 +69,8 @@ def undistorted_K(cam: dict, img_size_wh, where: str) -> np.ndarray:
 @register("megadepth")
 class MegaDepth(_posed.PosedPairSource):
   name = "megadepth"
+  has_backward = False
+  static_scene = True
 
   def scenes(self):
     out = []

@@ -89,6 +89,8 @@ def read_labels(folder: str, shape, target_shape) -> dict:
 
 @register("pairs_folder")
 class PairsFolder:
+  has_backward = True    # per pair: `both` gives None for a pair without reverse/
+  static_scene = False   # any pairs; depth + poses in meta.json do not say the scene is static
 
   def __init__(self, root, split: str | None = None):
     if root is None or not os.path.isdir(root):
@@ -109,15 +111,15 @@ class PairsFolder:
   def path(self, index) -> str:
     return os.path.join(self.root, self.pairs[index])
 
-  def _load(self, index, reverse: bool):
+  def _load(self, index, backward: bool):
     folder = self.path(index)
     im0 = _read_rgb(os.path.join(folder, "image0.png"))
     im1 = _read_rgb(os.path.join(folder, "image1.png"))
-    if reverse:
+    if backward:
       im0, im1 = im1, im0
-    labels_dir = os.path.join(folder, "reverse") if reverse else folder
-    if reverse and not os.path.isdir(labels_dir):
-      raise ValueError(f"{labels_dir}: missing (this pair has no reverse labels)")
+    labels_dir = os.path.join(folder, "reverse") if backward else folder
+    if backward and not os.path.isdir(labels_dir):
+      raise ValueError(f"{labels_dir}: missing (this pair has no backward labels in reverse/)")
     labels = read_labels(labels_dir, im0.shape[:2], im1.shape[:2])
     meta = {}
     meta_path = os.path.join(folder, "meta.json")
@@ -142,7 +144,7 @@ class PairsFolder:
           meta.update({k: z[k].astype(np.float32) for k in ("depth0", "depth1") if k in z})
       except (OSError, ValueError) as e:
         raise ValueError(f"{depth_path}: unreadable depth archive ({e})") from e
-    if reverse:
+    if backward:
       for a, b in (("K0", "K1"), ("cam2world0", "cam2world1"), ("depth0", "depth1"),
                    ("frame0", "frame1")):
         if a in meta or b in meta:
@@ -151,18 +153,17 @@ class PairsFolder:
     if "dataset" in meta:  # e.g. "synthetic" for generator dumps
       meta["origin"] = meta["dataset"]
     meta["dataset"] = "pairs_folder"
-    meta.update(scene=self.pairs[index], path=folder, reverse=reverse)
+    meta.update(scene=self.pairs[index], path=folder, backward=backward)
     return dict(image0=im0, image1=im1, **labels, meta=meta)
 
   def __getitem__(self, index):
-    return self._load(index, reverse=False)
-
-  def has_backward(self, index) -> bool:
-    return os.path.isdir(os.path.join(self.path(index), "reverse"))
+    return self._load(index, backward=False)
 
   def backward(self, index):
-    """The reversed pair (image1 -> image0), from <pair>/reverse/."""
-    return self._load(index, reverse=True)
+    """The backward pair (image1 -> image0), labelled from <pair>/reverse/."""
+    return self._load(index, backward=True)
 
   def both(self, index):
-    return self[index], self.backward(index)
+    """(forward, backward); backward is None for a pair without reverse/."""
+    has = os.path.isdir(os.path.join(self.path(index), "reverse"))
+    return self[index], self.backward(index) if has else None

@@ -63,6 +63,8 @@ def _scene_frame(name):
 @register("scannet1500")
 class ScanNet1500:
   name = "scannet1500"
+  has_backward = False
+  static_scene = True
 
   def __init__(self, root, split="test", pairs=None):
     if root is None:

@@ -75,6 +75,8 @@ class WaiScenes:
 @register("scannetpp")
 class ScanNetPP(WaiScenes, _posed.PosedPairSource):
   name = "scannetpp"
+  has_backward = False
+  static_scene = True
 
   def scenes(self):
     listed = os.path.join(self.root, f"scenes_{self.split}.txt")

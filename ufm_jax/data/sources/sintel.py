@@ -44,7 +44,8 @@ class Sintel:
     scenes: optional list of scene names to keep (e.g. a validation subset).
   """
 
-  has_reverse = False
+  has_backward = False
+  static_scene = False
 
   def __init__(self, root, dstype: str, split: str = "training", scenes=None):
     if root is None:
@@ -111,10 +112,10 @@ class Sintel:
 
 
 @register("sintel_clean")
-def make_sintel_clean(root, split: str = "training", **options):
+def make_sintel_clean(root, split: str = "training", **options) -> Sintel:
   return Sintel(root, "clean", split=split, **options)
 
 
 @register("sintel_final")
-def make_sintel_final(root, split: str = "training", **options):
+def make_sintel_final(root, split: str = "training", **options) -> Sintel:
   return Sintel(root, "final", split=split, **options)

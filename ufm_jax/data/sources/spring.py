@@ -13,7 +13,7 @@ sample's flow is `gt[::2, ::2]` (official spring_utils). `full_gt=True` adds the
 field as meta["flow_full"] for the official 2x2-minimum evaluation.
 
 Pairs: per sequence and camera, FW file k maps frame k -> k+1; BW file k+1 maps k+1 -> k, which
-`reverse()` (or directions="both": 2k forward, 2k+1 its reverse) returns.
+`backward()` (or directions="both": 2k forward, 2k+1 its backward pair) returns.
 
 Labels ("Dataset-provided" in supplementary Table S1): flow_valid = finite GT (NaN = no GT);
 covisibility = matched in the dataset's matchmap (red channel: occluded, green: leaves the view;
@@ -67,7 +67,8 @@ class Spring(BidirectionalPairs):
     with_depth: also return z-depth maps meta["depth0"], meta["depth1"] (two more HDF5 reads).
   """
 
-  has_reverse = True
+  has_backward = True
+  static_scene = False
 
   def __init__(self, root, split: str = "train", cameras=("left", "right"),
                directions: str = "forward", full_gt: bool = False, with_depth: bool = False):
@@ -120,10 +121,10 @@ class Spring(BidirectionalPairs):
         w2c[0, 3] -= BASELINE
       meta["cam2world" + suffix] = np.linalg.inv(w2c)
 
-  def _load(self, k: int, reverse: bool, images=None) -> dict:
+  def _load(self, k: int, backward: bool, images=None) -> dict:
     seq, cam, a, b = self.pairs[k]
-    src, dst = (b, a) if reverse else (a, b)
-    fb = "BW" if reverse else "FW"
+    src, dst = (b, a) if backward else (a, b)
+    fb = "BW" if backward else "FW"
     base = os.path.join(self.split_dir, seq)
     if images is None:
       images = [io.read_image(os.path.join(base, f"frame_{cam}", f"frame_{cam}_{f:04d}.png"))
@@ -132,7 +133,7 @@ class Spring(BidirectionalPairs):
     h, w = image0.shape[:2]
     gt_relpath = f"{seq}/flow_{fb}_{cam}/flow_{fb}_{cam}_{src:04d}.flo5"
     meta = dict(dataset="spring", scene=seq, camera=cam, frame0=f"{src:04d}", frame1=f"{dst:04d}",
-                direction="backward" if reverse else "forward", split=self.split,
+                direction="backward" if backward else "forward", split=self.split,
                 gt_relpath=gt_relpath, has_gt=self.has_gt)
     self._camera_meta(seq, cam, src, "0", meta)
     self._camera_meta(seq, cam, dst, "1", meta)
@@ -189,5 +190,5 @@ class Spring(BidirectionalPairs):
 
 
 @register("spring")
-def make_spring(root, split: str = "train", **options):
+def make_spring(root, split: str = "train", **options) -> Spring:
   return Spring(root, split=split, **options)

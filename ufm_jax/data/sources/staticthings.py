@@ -30,6 +30,8 @@ _CAMS = {"l": "left", "r": "right", b"l": "left", b"r": "right"}
 @register("staticthings")
 class StaticThings(_posed.PosedPairSource):
   name = "staticthings"
+  has_backward = False
+  static_scene = True
 
   def __init__(self, root, split="train", pairs=None, thresholds=None, frames_pass="final",
                max_depth=None):

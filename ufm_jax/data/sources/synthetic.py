@@ -20,6 +20,8 @@ from ufm_jax.data.registry import register
 
 @register("synthetic")
 class SyntheticSource:
+  has_backward = True
+  static_scene = False   # moving objects; its own backward labels cover every pair type
 
   def __init__(self, root=None, split: str = "train", num_pairs: int | None = None, seed: int = 0,
                size=(112, 112), pair_type: str = "mixed", moving_object_prob: float = 0.5,

@@ -76,6 +76,8 @@ def read_poses_ned(path: str) -> np.ndarray:
 @register("tartanair_v2")
 class TartanAirV2(_posed.PosedPairSource):
   name = "tartanair_v2"
+  has_backward = False
+  static_scene = True
 
   def __init__(self, root, split="train", pairs=None, thresholds=None,
                cameras=("lcam_front",), strides=(1, 2, 4, 8, 16), max_depth=None):

@@ -37,6 +37,8 @@ def _load_npy(path, shape, what):
 @register("tawb")
 class TAWB(_posed.PosedPairSource):
   name = "tawb"
+  has_backward = False
+  static_scene = True
 
   def __init__(self, root, split="test", pairs=None, thresholds=None, percentile_cut=None):
     super().__init__(root, split, pairs, thresholds)

@@ -1,0 +1,84 @@
+"""Scripts and tests reach the code through the installed package: no sys.path edits, no test that
+imports another test module, no benchmark that imports from tests/."""
+
+import pathlib
+import re
+import subprocess
+import sys
+
+import pytest
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+_SKIP = {".venv", "build", "dist", ".git"}
+
+
+def _python_files():
+  return sorted(p for p in REPO.rglob("*.py")
+                if not _SKIP & set(p.relative_to(REPO).parts))
+
+
+def test_no_sys_path_edits():
+  edits = [f"{p.relative_to(REPO)}:{i}" for p in _python_files()
+           for i, line in enumerate(p.read_text().splitlines(), 1)
+           if re.search(r"\bsys\.path\.(insert|append|extend)\(|\bsys\.path\s*[+]?=", line)]
+  assert not edits, f"sys.path edits (import the installed package instead): {edits}"
+
+
+def test_tests_and_benchmarks_import_no_test_module():
+  test_modules = {p.stem for p in (REPO / "tests").glob("test_*.py")}
+  bad = []
+  for p in _python_files():
+    rel = p.relative_to(REPO)
+    if rel.parts[0] not in ("tests", "benchmarks"):
+      continue
+    for i, line in enumerate(p.read_text().splitlines(), 1):
+      m = re.match(r"\s*(?:from\s+([\w.]+)\s+import|import\s+([\w.]+))", line)
+      name = m and (m.group(1) or m.group(2))
+      if name and (name.split(".")[0] == "tests" or name in test_modules or name == "conftest"):
+        bad.append(f"{rel}:{i}: {line.strip()}")
+  assert not bad, f"shared test helpers live in ufm_jax/testing/: {bad}"
+
+
+DATA_TOOLS = sorted(str(p.relative_to(REPO)) for p in (REPO / "data").rglob("*.py"))
+
+
+@pytest.mark.parametrize("tool", DATA_TOOLS)
+def test_data_tool_runs_from_any_directory(tool, tmp_path):
+  r = subprocess.run([sys.executable, str(REPO / tool), "--help"], cwd=tmp_path,
+                     capture_output=True, text=True, timeout=120)
+  assert r.returncode == 0, r.stderr[-2000:]
+  assert "usage:" in r.stdout
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (REPO / "configs").glob("*.py")))
+def test_config_docstring_is_a_command_not_a_lab_notebook(name):
+  """A config's docstring gives the command that runs it; measured figures live in docs/."""
+  import ast
+  doc = ast.get_docstring(ast.parse((REPO / "configs" / f"{name}.py").read_text())) or ""
+  assert f"python train.py --config=configs/{name}.py" in doc
+  assert not re.search(r"\bmeasured\b|\d+(\.\d+)? ?-> ?\d+(\.\d+)? ?px", doc, re.IGNORECASE), doc
+  for path in re.findall(r"\bdocs/[\w./-]+\.md", doc):
+    assert (REPO / path).is_file(), path
+
+
+def test_default_outputs_are_ignored_by_git():
+  """evaluate.py's default --out (results/) and the README's workdirs/ never show up as changes."""
+  ignored = {line.strip() for line in (REPO / ".gitignore").read_text().splitlines()}
+  assert {"/results/", "/workdirs/"} <= ignored
+
+
+def test_model_code_passes_no_bare_bool_positionally():
+  """`Block(..., True, False)` reads as nothing; flags go by keyword (dict.get/getattr defaults aside)."""
+  import ast
+  bad = []
+  for p in sorted((REPO / "ufm_jax" / "models").glob("*.py")):
+    for node in ast.walk(ast.parse(p.read_text())):
+      if not isinstance(node, ast.Call):
+        continue
+      fn = node.func
+      if (isinstance(fn, ast.Attribute) and fn.attr == "get") or \
+          (isinstance(fn, ast.Name) and fn.id == "getattr"):
+        continue
+      if any(isinstance(a, ast.Constant) and isinstance(a.value, bool) for a in node.args):
+        bad.append(f"{p.relative_to(REPO)}:{node.lineno}: {ast.unparse(node)[:80]}")
+  assert not bad, bad
