@@ -21,7 +21,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 from ufm_jax import data  # pylint: disable=g-import-not-at-top
-from ufm_jax.data.sources import _posed, kubric4d  # pylint: disable=g-import-not-at-top
+from ufm_jax.data.sources import posed, kubric4d  # pylint: disable=g-import-not-at-top
 
 
 def main(argv=None):
@@ -57,7 +57,7 @@ def main(argv=None):
                                                       args.max_frame_difference):
       lines.append((scene, f"{views[v0]}/{t0}", f"{views[v1]}/{t1}"))
   out = args.out or os.path.join(args.root, f"pairs_{args.split}.txt")
-  _posed.write_pair_list(out, lines, header=(
+  posed.write_pair_list(out, lines, header=(
       f"Kubric-4D {args.split}: {args.pairs_per_scene} pairs per scene, seed {args.seed}\n"
       "scene view0/time0 view1/time1"))
   for s in skipped:
