@@ -367,7 +367,7 @@ class InitReport:
 
 
 def _flat(tree) -> dict[str, Any]:
-  return {"/".join(k): v for k, v in traverse_util.flatten_dict(dict(tree)).items()}
+  return traverse_util.flatten_dict(dict(tree), sep="/")
 
 
 def merge_into(template, loaded: dict[str, np.ndarray], source: str,
@@ -396,7 +396,7 @@ def merge_into(template, loaded: dict[str, np.ndarray], source: str,
       mismatched.append(f"{k}: checkpoint {w.shape} vs model {tuple(v.shape)}")
   if mismatched:
     raise ValueError(f"model_init {source}: shape mismatch for\n  " + "\n  ".join(mismatched))
-  return traverse_util.unflatten_dict({tuple(k.split("/")): v for k, v in out.items()}), rep
+  return traverse_util.unflatten_dict(out, sep="/"), rep
 
 
 # --- UFM parameters --------------------------------------------------------------------------
@@ -483,7 +483,7 @@ def load_init_params(spec: str, template, config=None) -> tuple[Any, InitReport]
       loaded = {k: np.asarray(v) for k, v in _flat(params).items()}
   if config is not None:
     from ufm_jax.models import scan
-    tree = traverse_util.unflatten_dict({tuple(k.split("/")): v for k, v in loaded.items()})
+    tree = traverse_util.unflatten_dict(loaded, sep="/")
     loaded = _flat(scan.to_layout(tree, config))
   params, report = merge_into(template, loaded, f"{kind}:{path}")
   logging.info("%s", report.summary())
