@@ -21,6 +21,9 @@ values the config implies. Other official model classes register a builder with
 
 The export (save_official) runs the same rules backwards (path_to_torch_key, flax_to_torch_array,
 alias_keys, official_config_dict) and then reads its result back with the loader before writing.
+Released DINOv2 weights (transformers or original names) go through the same key map into the
+encoder (read_dinov2, dinov2_to_flax, resize_pos_embed): `model_init: dinov2:PATH` of
+ufm_jax.checkpoint.
 """
 
 import dataclasses
