@@ -3,6 +3,7 @@
   python benchmarks/source_load.py                   # all readers, 560x420 trees
   python benchmarks/source_load.py --shape 420,560 --repeats 10 --datasets blendedmvs,spring
   python benchmarks/source_load.py --native          # flow readers at their datasets' real sizes
+  python benchmarks/source_load.py --opencv_png      # every PNG through cv2.imread instead
 
 Each reader gets a one-pair tree written in its dataset's on-disk format (the wide-baseline trees
 of ufm_jax/testing/wide_trees.py: a textured plane with depth holes; the flow trees below:
@@ -173,7 +174,13 @@ def main(argv=None):
   p.add_argument("--datasets", default="", help="comma list (default: all readers)")
   p.add_argument("--native", action="store_true",
                  help="flow readers at their datasets' native sizes instead of --shape")
+  p.add_argument("--opencv_png", action="store_true",
+                 help="decode every PNG with cv2.imread instead of ufm_jax.data.decode's own PNG "
+                      "path, to measure what that path saves")
   args = p.parse_args(argv)
+  if args.opencv_png:
+    from ufm_jax.data import decode  # pylint: disable=g-import-not-at-top
+    decode.decode_png = lambda buf, rgb=True: None  # "not a layout handled here": OpenCV decodes
   hw = tuple(int(x) for x in args.shape.split(","))
   print(f"CPU ms per sample, single thread, min of {args.repeats} (budget < 50 ms at 560x420)")
   measure(hw, args.repeats, [d for d in args.datasets.split(",") if d], args.native)

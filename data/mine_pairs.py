@@ -22,7 +22,7 @@ import os
 import sys
 
 from ufm_jax import data
-from ufm_jax.data.sources import _posed
+from ufm_jax.data.sources import posed
 
 
 def main(argv=None):
@@ -47,10 +47,10 @@ def main(argv=None):
   src = data.get_source(args.dataset, args.root, split=args.split, **options)
   if not hasattr(src, "frames"):
     raise SystemExit(f"{args.dataset}: not a posed dataset (no frame listing); nothing to mine")
-  pairs, skipped = _posed.mine_pairs(src, args.scenes, args.min_covis, args.max_side,
+  pairs, skipped = posed.mine_pairs(src, args.scenes, args.min_covis, args.max_side,
                                      args.max_frames)
   out = args.out or os.path.join(args.root, f"pairs_{args.split}.txt")
-  _posed.write_pair_list(out, pairs, header=(
+  posed.write_pair_list(out, pairs, header=(
       f"{args.dataset} {args.split}: frame pairs with mutual covisibility > {args.min_covis}\n"
       f"(min over both directions, fraction of all pixels, depth at {args.max_side} px)\n"
       "scene frame0 frame1 score"))

@@ -1,6 +1,8 @@
 """model_init pieces: DINOv2 (HF safetensors / original .pth) key maps, merge report, pos-embed
 resize; the orbax manager with a grain iterator (save, keep-K, restore mid-stream)."""
 
+import logging
+
 import grain
 import jax
 import jax.numpy as jnp
@@ -8,14 +10,14 @@ import numpy as np
 import pytest
 from safetensors.numpy import save_file
 
-from ufm_jax import checkpoint, optim
+from ufm_jax import checkpoint, convert, optim
 from ufm_jax import testing
 
 
 def test_hf_dinov2_to_original_names(tmp_path):
   sd = testing.hf_dinov2()
   save_file(sd, str(tmp_path / "model.safetensors"))
-  orig = checkpoint.read_dinov2(tmp_path)  # the folder, as downloaded from the Hub
+  orig = convert.read_dinov2(tmp_path)  # the folder, as downloaded from the Hub
   expected = {"cls_token", "mask_token", "pos_embed", "patch_embed.proj.weight",
               "patch_embed.proj.bias", "norm.weight", "norm.bias"}
   for i in range(2):
@@ -40,10 +42,10 @@ def test_dinov2_errors_name_the_problem(tmp_path):
   del sd["encoder.layer.0.attention.attention.key.weight"]
   save_file(sd, str(tmp_path / "x.safetensors"))
   with pytest.raises(ValueError, match="incomplete q/k/v"):
-    checkpoint.read_dinov2(tmp_path / "x.safetensors")
+    convert.read_dinov2(tmp_path / "x.safetensors")
   (tmp_path / "empty").mkdir()
   with pytest.raises(FileNotFoundError, match="no \\*.safetensors"):
-    checkpoint.read_dinov2(tmp_path / "empty")
+    convert.read_dinov2(tmp_path / "empty")
 
 
 def test_original_pth_needs_torch_or_reads_it(tmp_path):
@@ -51,7 +53,7 @@ def test_original_pth_needs_torch_or_reads_it(tmp_path):
   sd = {"blocks.0.attn.qkv.weight": np.ones((6, 2), np.float32), "cls_token": np.zeros((1, 1, 2),
                                                                                      np.float32)}
   torch.save({k: torch.from_numpy(v) for k, v in sd.items()}, tmp_path / "d.pth")
-  got = checkpoint.read_dinov2(tmp_path / "d.pth")
+  got = convert.read_dinov2(tmp_path / "d.pth")
   np.testing.assert_array_equal(got["blocks.0.attn.qkv.weight"], 1.0)
 
 
@@ -60,7 +62,7 @@ def test_resize_pos_embed_keeps_cls_and_is_bicubic_on_smooth_grid():
   yy, xx = np.meshgrid(np.arange(g), np.arange(g), indexing="ij")
   grid = np.stack([np.ones((g, g)) * 5.0, 0 * xx, 0 * yy], -1).reshape(1, g * g, d)
   pe = np.concatenate([np.full((1, 1, d), 7.0), grid], 1).astype(np.float32)
-  out = checkpoint.resize_pos_embed(pe, (1, 1 + 8 * 8, d))
+  out = convert.resize_pos_embed(pe, (1, 1 + 8 * 8, d))
   assert out.shape == (1, 65, 3)
   np.testing.assert_array_equal(out[0, 0], 7.0)
   np.testing.assert_allclose(out[0, 1:, 0], 5.0, rtol=1e-6)  # constants stay constant
@@ -110,3 +112,24 @@ def test_manager_saves_state_and_iterator_keeps_last_k(tmp_path):
   mngr.close()
   raw, s = checkpoint.read_state_numpy(tmp_path)
   assert s == 6 and isinstance(raw["params"]["w"], np.ndarray)
+
+
+def test_reading_a_workdir_logs_no_missing_metadata_warning(tmp_path, caplog):
+  """infer/evaluate read train.py's checkpoints (state + data items, written by make_manager):
+  no "Metadata file does not exist: .../_CHECKPOINT_METADATA" warning, the state comes back."""
+  state = optim.TrainState.create({"w": jnp.arange(3.0)}, optim.optax.adam(1e-3))
+  mngr = checkpoint.make_manager(tmp_path, save_interval_steps=1, keep=1, async_save=False)
+  it = _iterator()
+  next(it)
+  checkpoint.save(mngr, 2, state.replace(step=jnp.int32(2)), it, force=True)
+  mngr.wait_until_finished()
+  mngr.close()
+  assert (tmp_path / "checkpoints" / "2" / "data").is_dir()
+  caplog.clear()
+  with caplog.at_level(logging.INFO):
+    raw, step = checkpoint.read_state_numpy(tmp_path)
+  assert step == 2 and int(raw["step"]) == 2
+  np.testing.assert_array_equal(raw["params"]["w"], np.arange(3.0))
+  noisy = [r.getMessage() for r in caplog.records
+           if r.levelno >= logging.WARNING or "_CHECKPOINT_METADATA" in r.getMessage()]
+  assert noisy == []

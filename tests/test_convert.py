@@ -217,3 +217,7 @@ def test_truncated_safetensors_says_so(fixture_dir, tmp_path):
   with pytest.raises(ValueError, match=rf"looks truncated: its header describes {len(data):,} "
                                        rf"bytes, the file has {len(data) // 3:,}"):
     convert.load_official(snap)
+  # DINOv2 weights for model_init are read by the same reader.
+  with pytest.raises(ValueError, match=rf"model.safetensors: cannot read safetensors .*looks "
+                                       rf"truncated: its header describes {len(data):,} bytes"):
+    convert.read_dinov2(snap / "model.safetensors")

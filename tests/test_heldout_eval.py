@@ -48,9 +48,9 @@ def test_eval_predictions_ignore_the_symmetrized_training_kwarg():
   # arbitrary, and predicting them with the training kwargs gives every odd row the reverse of
   # the pair before it (train.py once logged such EPEs).
   import jax
-  from ufm_jax.models import ufm, variants
+  from ufm_jax.models import variants
   model = variants.build_model("tiny")
-  params = ufm.init_params(model, seed=0)
+  params = trainer.random_params(model, seed=0)
   rng = np.random.default_rng(0)
   batch = {k: rng.integers(0, 256, (4, 28, 28, 3), dtype=np.uint8) for k in ("image0", "image1")}
   want = model.apply({"params": params}, batch["image0"], batch["image1"])["flow"]

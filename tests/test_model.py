@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ufm_jax import convert
+from ufm_jax import convert, trainer
 from ufm_jax.models import dinov2, info_sharing, ufm, variants
 
 
@@ -89,7 +89,7 @@ def test_remat_same_values_and_gradients():
 def test_covisibility_head_is_gradient_stopped():
   # official detach_uncertainty_head: the covisibility loss trains only its own head
   model = ufm.model_from_config(variants.tiny())
-  params = ufm.init_params(model)
+  params = trainer.random_params(model)
   rng = np.random.default_rng(0)
   feats = [rng.standard_normal((1, 2, 2, 64)).astype(np.float32) for _ in range(4)]
 

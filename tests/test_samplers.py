@@ -9,7 +9,7 @@ import pytest
 
 from ufm_jax import data
 from ufm_jax.data.sources import kubric4d
-from ufm_jax.data.sources._exr import write_exr
+from ufm_jax.data.sources.exr import write_exr
 from ufm_jax.testing import wide_trees as trees
 
 REPO = pathlib.Path(__file__).resolve().parents[1]

@@ -11,7 +11,7 @@ import pytest
 from flax import traverse_util
 from safetensors.numpy import save_file
 
-from ufm_jax import checkpoint, cli, convert
+from ufm_jax import checkpoint, cli, convert, trainer
 from ufm_jax.models import layers, scan, ufm
 
 
@@ -59,13 +59,6 @@ def test_stacked_layout_round_trip(official):
   with pytest.raises(ValueError, match="depth"):
     scan.unstack_blocks(stacked, cfg.replace(encoder=cfg.encoder.__class__(
         **{**cfg.encoder.__dict__, "depth": 3})))
-
-
-def test_init_params_of_a_scan_model_have_its_structure(official):
-  model, _, _ = official
-  m = _scan(model)
-  params = ufm.init_params(m)
-  assert {k: v.shape for k, v in _flat(params).items()} == convert.expected_param_shapes(m)
 
 
 def _hook(c):
@@ -116,7 +109,7 @@ def test_model_init_puts_any_layout_into_the_model(official, reference_dir, tmp_
   checkpoint into a per-layer template."""
   model, params, _ = official
   m = _scan(model)
-  template = ufm.init_params(m)
+  template = trainer.random_params(m)
   got, rep = checkpoint.load_init_params(f"snapshot:{reference_dir / 'base'}", template, m.config)
   assert rep.left_at_init == [] and rep.unused == [] and rep.resized == []
   _assert_trees_equal(got, scan.stack_blocks(params, m.config))
@@ -151,7 +144,7 @@ def test_workdir_of_a_scan_run_loads_as_a_usable_model(tmp_path):
   equal the per-layer model on the unstacked params."""
   from ufm_jax.models import variants
   model = variants.build_model("fixture_small", scan_blocks=True)
-  params = ufm.init_params(model, seed=3)
+  params = trainer.random_params(model, seed=3)
   manager = checkpoint.make_manager(tmp_path, save_interval_steps=1, keep=1, async_save=False)
   checkpoint.save(manager, 7, {"params": params, "step": 7}, force=True)
   manager.wait_until_finished()

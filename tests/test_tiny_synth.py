@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from ufm_jax.models import variants as models
+from ufm_jax import trainer
 from ufm_jax.models import dinov2, ufm
 
 
@@ -28,7 +29,7 @@ def test_tiny_synth_init_and_forward():
   cfg = models.get("tiny_synth")
   assert cfg.encoder.patch_size == 7 and cfg.encoder.pos_grid == 8
   model = ufm.model_from_config(cfg)
-  params = ufm.init_params(model, seed=0)
+  params = trainer.random_params(model, seed=0)
   np.testing.assert_allclose(params["encoder"]["pos_embed"],
                              dinov2.sincos_pos_embed(8, cfg.encoder.embed_dim))
   rng = np.random.default_rng(0)
@@ -36,18 +37,16 @@ def test_tiny_synth_init_and_forward():
   out = model.apply({"params": params}, img, img)
   assert out["flow"].shape == (1, 56, 56, 2) and out["covisibility"].shape == (1, 56, 56)
   assert np.isfinite(np.asarray(out["flow"])).all()
-  # The default `tiny` keeps DINOv2's random table; an unknown choice is an error.
-  tiny = ufm.init_params(ufm.model_from_config(models.get("tiny")), seed=0)
-  assert np.abs(np.asarray(tiny["encoder"]["pos_embed"])).max() <= 0.04
+  # An unknown table choice is an error of the initializer.
   bad = cfg.replace(encoder=cfg.encoder.__class__(**{**cfg.encoder.__dict__,
                                                      "pos_embed_init": "zeros"}))
   with pytest.raises(ValueError, match="pos_embed_init"):
-    ufm.init_params(ufm.model_from_config(bad))
+    ufm.param_shapes(ufm.model_from_config(bad))
 
 
 def test_flax_init_uses_the_configured_position_table():
-  # train.py initialises through `model.init`; it must give the same sin-cos table as the
-  # host-side `ufm.init_params` (it used to draw DINOv2's random table whatever the config said).
+  # `model.init` (train.py's init) used to draw DINOv2's random table whatever the config said;
+  # the default `tiny` keeps that random table.
   cfg = models.get("tiny_synth")
   model = ufm.model_from_config(cfg)
   img = np.zeros((1, 56, 56, 3), np.uint8)
@@ -77,18 +76,14 @@ def _synth(tied: bool):
 @functools.lru_cache(maxsize=None)
 def _flax_params(tied: bool):
   """train.py's init (`model.init`) of `synth`, with or without the tie; shared by the tests."""
-  model = ufm.model_from_config(_synth(tied))
-  img = np.zeros((1, 14, 14, 3), np.uint8)  # the parameter shapes do not depend on the size
-  return jax.jit(model.init)(jax.random.PRNGKey(0), img, img)["params"]
+  return trainer.random_params(ufm.model_from_config(_synth(tied)), seed=0)
 
 
-@pytest.mark.parametrize("init", ["flax", "host"])
-def test_tied_qk_init_only_in_the_fusion_blocks(init):
+def test_tied_qk_init_only_in_the_fusion_blocks():
   cfg = models.get("synth")
   assert cfg.info_sharing.tied_qk_init == 2.0
   assert models.get("tiny").info_sharing.tied_qk_init is None
-  params = (_flax_params(True) if init == "flax"
-            else ufm.init_params(ufm.model_from_config(cfg), seed=0))
+  params = _flax_params(True)
   kernels = _qkv_kernels(params)
   fusion = [k for k in kernels if k.startswith("info_sharing/")]
   assert len(fusion) == cfg.info_sharing.depth and len(kernels) > len(fusion)

@@ -14,7 +14,7 @@ import pytest
 from safetensors.numpy import load_file
 
 import ufm_jax
-from ufm_jax import checkpoint, cli, convert, losses, optim, testing
+from ufm_jax import checkpoint, cli, convert, losses, optim, testing, trainer
 from ufm_jax.data import synthetic
 from ufm_jax.models import dinov2, ufm
 
@@ -139,7 +139,7 @@ def test_trained_workdir_exports_and_loads_back(tmp_path, capsys):
   ocfg = ml_collections.ConfigDict({"lr": {"default": 1e-3}, "warmup_frac": 0.0,
                                     "grad_clip_norm": 1.0,
                                     "trainable": r"^(head1_0_1|uncertainty_head_0_1)/"})
-  init = ufm.init_params(model, 0)
+  init = trainer.random_params(model, 0)
   tx, labels, _ = optim.make_optimizer(ocfg, init, total_steps=3)
   state = optim.TrainState.create(init, tx)
 

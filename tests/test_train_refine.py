@@ -8,6 +8,7 @@ import subprocess
 import sys
 import tempfile
 
+import jax
 import numpy as np
 
 from ufm_jax import checkpoint
@@ -41,7 +42,7 @@ def test_refine_stage_trains_only_the_refiner(tmp_path):
   assert moved and any(moved)
   # No optimizer state for the frozen base: Adam moments only for refiner leaves.
   n_refiner = sum(v.size for k, v in f1.items() if k.split("/")[0] in REFINER)
-  n_state = sum(v.size for v in checkpoint._flat_any(s3["opt_state"]) if v.ndim > 0)
+  n_state = sum(v.size for v in jax.tree.leaves(s3["opt_state"]) if np.ndim(v) > 0)
   assert n_state == 2 * n_refiner
   rec = [json.loads(l) for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
   assert "loss_refine" in rec[-1] and "refine_inside_frac" in rec[-1]

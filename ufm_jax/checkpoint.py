@@ -32,6 +32,8 @@ import orbax.checkpoint as ocp
 from absl import logging
 from flax import traverse_util
 
+from ufm_jax import convert
+
 # ---------------------------------------------------------------------------------------------
 # Manager
 
@@ -364,27 +366,8 @@ class InitReport:
     return "\n".join(lines)
 
 
-def _flat_any(tree) -> list:
-  """All array leaves of a restored tree (dicts/lists as orbax returns them)."""
-  return [x for x in jax.tree.leaves(tree) if hasattr(x, "ndim")]
-
-
 def _flat(tree) -> dict[str, Any]:
-  return {"/".join(k): v for k, v in traverse_util.flatten_dict(dict(tree)).items()}
-
-
-def resize_pos_embed(pe: np.ndarray, new_shape) -> np.ndarray:
-  """[1, extra + g*g, D] -> [1, extra + g'*g', D]: bicubic on the square grid, extra tokens kept."""
-  pe = np.asarray(pe, np.float32)
-  n_old, n_new = pe.shape[1], new_shape[1]
-  for extra in (1, 0):
-    g_old, g_new = np.sqrt(n_old - extra), np.sqrt(n_new - extra)
-    if g_old == int(g_old) and g_new == int(g_new):
-      g_old, g_new = int(g_old), int(g_new)
-      grid = pe[0, extra:].reshape(g_old, g_old, -1)
-      grid = jax.image.resize(jnp.asarray(grid), (g_new, g_new, grid.shape[-1]), "cubic")
-      return np.concatenate([pe[0, :extra], np.asarray(grid).reshape(g_new * g_new, -1)])[None]
-  raise ValueError(f"cannot resize position embedding {pe.shape} -> {tuple(new_shape)}")
+  return traverse_util.flatten_dict(dict(tree), sep="/")
 
 
 def merge_into(template, loaded: dict[str, np.ndarray], source: str,
@@ -407,115 +390,13 @@ def merge_into(template, loaded: dict[str, np.ndarray], source: str,
       out[k] = jnp.asarray(w, v.dtype)
       rep.loaded.append(k)
     elif re.search(resizable, k):
-      out[k] = jnp.asarray(resize_pos_embed(w, v.shape), v.dtype)
+      out[k] = jnp.asarray(convert.resize_pos_embed(w, v.shape), v.dtype)
       rep.resized.append(f"{k} {w.shape}->{tuple(v.shape)}")
     else:
       mismatched.append(f"{k}: checkpoint {w.shape} vs model {tuple(v.shape)}")
   if mismatched:
     raise ValueError(f"model_init {source}: shape mismatch for\n  " + "\n  ".join(mismatched))
-  return traverse_util.unflatten_dict({tuple(k.split("/")): v for k, v in out.items()}), rep
-
-
-# --- DINOv2 weights -> official (UniCeption) torch names -------------------------------------
-
-
-def _dinov2_hf_to_original(sd: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-  """transformers Dinov2Model names -> the original facebookresearch/dinov2 names."""
-  out: dict[str, np.ndarray] = {}
-  qkv: dict[str, dict[str, np.ndarray]] = {}
-  simple = {
-      "embeddings.cls_token": "cls_token",
-      "embeddings.mask_token": "mask_token",
-      "embeddings.position_embeddings": "pos_embed",
-      "embeddings.register_tokens": "register_tokens",
-      "embeddings.patch_embeddings.projection.weight": "patch_embed.proj.weight",
-      "embeddings.patch_embeddings.projection.bias": "patch_embed.proj.bias",
-      "layernorm.weight": "norm.weight",
-      "layernorm.bias": "norm.bias",
-  }
-  layer = {
-      "norm1": "norm1", "norm2": "norm2",
-      "attention.output.dense": "attn.proj",
-      "layer_scale1.lambda1": "ls1.gamma", "layer_scale2.lambda1": "ls2.gamma",
-      "mlp.fc1": "mlp.fc1", "mlp.fc2": "mlp.fc2",
-      "mlp.weights_in": "mlp.w12", "mlp.weights_out": "mlp.w3",  # SwiGLU (ViT-g)
-  }
-  for key, val in sd.items():
-    k = key[len("dinov2."):] if key.startswith("dinov2.") else key
-    if k in simple:
-      out[simple[k]] = val
-      continue
-    m = re.fullmatch(r"encoder\.layer\.(\d+)\.(.+)", k)
-    if not m:
-      out[f"unmapped:{key}"] = val
-      continue
-    i, rest = m.groups()
-    a = re.fullmatch(r"attention\.attention\.(query|key|value)\.(weight|bias)", rest)
-    if a:
-      qkv.setdefault(f"blocks.{i}.attn.qkv.{a.group(2)}", {})[a.group(1)] = val
-      continue
-    for src, dst in layer.items():
-      if rest.startswith(src + ".") or rest == src:
-        out[f"blocks.{i}.{dst}{rest[len(src):]}"] = val
-        break
-    else:
-      out[f"unmapped:{key}"] = val
-  for name, parts in qkv.items():
-    if set(parts) != {"query", "key", "value"}:
-      raise ValueError(f"DINOv2 checkpoint: incomplete q/k/v for {name}: has {sorted(parts)}")
-    out[name] = np.concatenate([parts["query"], parts["key"], parts["value"]], axis=0)
-  return out
-
-
-def _dinov2_original_flatten_chunks(sd):
-  """Chunked checkpoints ("blocks.<chunk>.<i>.") -> flat block indices."""
-  if not any(re.match(r"blocks\.\d+\.\d+\.", k) for k in sd):
-    return sd
-  return {re.sub(r"^blocks\.\d+\.(\d+)\.", r"blocks.\1.", k): v for k, v in sd.items()}
-
-
-def read_dinov2(path) -> dict[str, np.ndarray]:
-  """DINOv2 weights in the original naming (numpy), from HF safetensors or an original .pth."""
-  path = pathlib.Path(path)
-  if path.is_dir():
-    cands = sorted(path.glob("*.safetensors")) + sorted(path.glob("*.pth"))
-    if not cands:
-      raise FileNotFoundError(f"no *.safetensors or *.pth DINOv2 weights in {path}")
-    path = cands[0]
-  if path.suffix == ".safetensors":
-    from safetensors.numpy import load_file
-    sd = load_file(str(path))
-    if any(k.startswith(("embeddings.", "dinov2.embeddings.")) for k in sd):
-      sd = _dinov2_hf_to_original(sd)
-  elif path.suffix in (".pth", ".pt"):
-    try:
-      import torch
-    except ImportError as e:
-      raise ImportError(f"reading {path} needs torch (pip install 'ufm_jax[torch]'); or use the "
-                        "Hugging Face facebook/dinov2-* model.safetensors instead") from e
-    obj = torch.load(str(path), map_location="cpu", weights_only=True)
-    obj = obj.get("model", obj) if isinstance(obj, dict) else obj
-    sd = {k: v.float().numpy() if v.is_floating_point() else v.numpy() for k, v in obj.items()}
-  else:
-    raise ValueError(f"unknown DINOv2 checkpoint format: {path} (want .safetensors or .pth)")
-  sd = _dinov2_original_flatten_chunks(sd)
-  unmapped = [k for k in sd if k.startswith("unmapped:")]
-  if unmapped:
-    raise ValueError(f"{path}: keys with no DINOv2 counterpart: {unmapped[:10]}")
-  return sd
-
-
-def _dinov2_to_flax(sd: dict[str, np.ndarray], template) -> dict[str, np.ndarray]:
-  """Original DINOv2 names -> flat flax paths of the UFM encoder, via the model's key map."""
-  del template
-  from ufm_jax import convert
-  out = {}
-  for k, v in sd.items():
-    if k == "mask_token":  # deleted by UniCeption: UFM has no masked-token path
-      continue
-    key = f"encoder.model.{k}"
-    out["/".join(convert.torch_key_to_path(key, v.ndim))] = convert.torch_to_flax_array(key, v)
-  return out
+  return traverse_util.unflatten_dict(out, sep="/"), rep
 
 
 # --- UFM parameters --------------------------------------------------------------------------
@@ -539,15 +420,20 @@ def read_state_numpy(path, step: int | None = None) -> tuple[dict, int]:
   step = steps[-1] if step is None else step
   if step not in steps:
     raise FileNotFoundError(f"no checkpoint step {step} under {d} (steps: {steps})")
-  ckptr = ocp.PyTreeCheckpointer()
+  # The item's own handler: a Checkpointer opened on checkpoints/<step>/state looks there for the
+  # step's _CHECKPOINT_METADATA (make_manager writes it one level up) and warns that it is
+  # missing; a manager warns that the data item has no handler here.
+  handler = ocp.PyTreeCheckpointHandler()
   item = d / str(step) / "state"
-  tree = ckptr.metadata(item).item_metadata.tree
-  restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree)
-  return ckptr.restore(item, args=ocp.args.PyTreeRestore(item=None, restore_args=restore_args)), step
+  try:
+    tree = handler.metadata(item).tree
+    restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree)
+    return handler.restore(item, args=ocp.args.PyTreeRestore(restore_args=restore_args)), step
+  finally:
+    handler.close()
 
 
-def _latest_params_from_workdir(path: pathlib.Path, template):
-  del template
+def _latest_params_from_workdir(path: pathlib.Path):
   state, step = read_state_numpy(path)
   return _flat(state["params"]), f"{path}@{step}"
 
@@ -584,22 +470,20 @@ def load_init_params(spec: str, template, config=None) -> tuple[Any, InitReport]
   """
   kind, path = guess_kind(spec)
   if kind == "dinov2":
-    loaded = _dinov2_to_flax(read_dinov2(path), template)
+    loaded = convert.dinov2_to_flax(convert.read_dinov2(path))
   elif kind == "snapshot":
-    import ufm_jax
-    _, params = ufm_jax.load_official(path)
+    _, params = convert.load_official(path)
     loaded = {k: np.asarray(v) for k, v in _flat(params).items()}
   else:
     p = pathlib.Path(path)
     if (p / "checkpoints").is_dir() or any(x.name.isdigit() for x in p.glob("*")):
-      loaded, path = _latest_params_from_workdir(p, template)
+      loaded, path = _latest_params_from_workdir(p)
     else:
-      import ufm_jax
-      _, params = ufm_jax.load(path)
+      _, params = convert.load(path)
       loaded = {k: np.asarray(v) for k, v in _flat(params).items()}
   if config is not None:
     from ufm_jax.models import scan
-    tree = traverse_util.unflatten_dict({tuple(k.split("/")): v for k, v in loaded.items()})
+    tree = traverse_util.unflatten_dict(loaded, sep="/")
     loaded = _flat(scan.to_layout(tree, config))
   params, report = merge_into(template, loaded, f"{kind}:{path}")
   logging.info("%s", report.summary())

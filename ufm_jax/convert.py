@@ -21,6 +21,9 @@ values the config implies. Other official model classes register a builder with
 
 The export (save_official) runs the same rules backwards (path_to_torch_key, flax_to_torch_array,
 alias_keys, official_config_dict) and then reads its result back with the loader before writing.
+Released DINOv2 weights (transformers or original names) go through the same key map into the
+encoder (read_dinov2, dinov2_to_flax, resize_pos_embed): `model_init: dinov2:PATH` of
+ufm_jax.checkpoint.
 """
 
 import dataclasses
@@ -39,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from ufm_jax.models import dinov2, dpt, info_sharing, ufm
+from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
 
 # ----------------------------------------------------------------------------- key map
 
@@ -51,8 +54,10 @@ ALIASES = [
     ("scratch.layer_rn.{i}.", "input_process.{i}.1."),
 ]
 PREFIXES = [("encoder.model.", "encoder.")]
-# Weights stored [in, out, kh, kw] by torch ConvTranspose2d.
-CONV_TRANSPOSE = [re.compile(r"input_process\.[01]\.0\.1\.weight$")]
+# Weights stored [in, out, kh, kw] by torch ConvTranspose2d: the DPT's first two levels and the
+# refiner's U-Net up-convolutions (the even `ups` entries; the odd ones are DoubleConvs).
+CONV_TRANSPOSE = [re.compile(r"input_process\.[01]\.0\.1\.weight$"),
+                  re.compile(r"^unet_feature\.ups\.\d*[02468]\.weight$")]
 # Tensors that are not Flax params: name regex -> fn(config, match) -> expected value.
 BufferFn = Callable[[Any, "re.Match"], np.ndarray]
 
@@ -144,14 +149,6 @@ class OfficialSpec:
   class_name: str
 
 
-# (detect(config_json) -> bool, build(config_json, shapes: {torch name: shape}) -> OfficialSpec)
-OFFICIAL_CLASSES: List[Tuple[Callable[[dict], bool], Callable[[dict, dict], OfficialSpec]]] = []
-# class name -> (config_from_dict, model_from_config) for checkpoints written by `save`.
-SAVED_CLASSES: Dict[str, Tuple[Callable, Callable]] = {
-    "UniFlowMatchConfidence": (ufm.config_from_dict, ufm.model_from_config),
-}
-
-
 def register_official_class(detect, build, front: bool = True):
   """Add a builder; front=True lets a more specific detector win over the base one."""
   if front:
@@ -174,7 +171,7 @@ def encoder_config_from_official(enc: dict, shapes: dict, prefix: str = "encoder
   if size not in dinov2.SIZES:
     raise ValueError(f"config.json: encoder_kwargs.size={size!r}; expected one of "
                      f"{sorted(dinov2.SIZES)}")
-  dim, full_depth, heads, _ = dinov2.SIZES[size]
+  dim, _, heads, _ = dinov2.SIZES[size]
   blocks = {int(m.group(1)) for k in shapes for m in [re.match(re.escape(prefix) + r"blocks\.(\d+)\.", k)] if m}
   if not blocks:
     raise ValueError(f"model.safetensors has no {prefix}blocks.* tensors")
@@ -290,6 +287,44 @@ def ufm_config_from_official(cj: dict, shapes: dict) -> ufm.UFMConfig:
       inference_resolution=(int(h), int(w)))
 
 
+def refine_config_from_official(cj: dict, shapes: dict, base: ufm.UFMConfig
+                                ) -> refine.UFMRefineConfig:
+  """The refiner's part of an official config.json; U-Net widths from the weight shapes."""
+  if cj.get("classification_head_type", "patch_mlp") != "patch_mlp":
+    raise ValueError(f"config.json: classification_head_type={cj['classification_head_type']!r} "
+                     "is not supported (expected 'patch_mlp')")
+  head = cj.get("classification_head_kwargs")
+  if not head or "output_dim" not in head:
+    raise ValueError("config.json: classification_head_kwargs.output_dim is missing")
+  for key in ("refinement_range", "temperature"):
+    if key not in cj:
+      raise ValueError(f"config.json: {key} is missing (a UniFlowMatchClassificationRefinement "
+                       "config names it)")
+  patch = head.get("patch_size", base.encoder.patch_size)
+  if patch != base.encoder.patch_size:
+    raise ValueError(f"config.json: classification_head_kwargs.patch_size={patch} but the encoder "
+                     f"patch size is {base.encoder.patch_size}")
+  in_dim = head.get("input_feature_dim")
+  want = base.encoder.embed_dim + base.info_sharing.dim
+  if isinstance(in_dim, str):   # the official configs write e.g. "1024 + 768"
+    in_dim = sum(int(t) for t in in_dim.split("+"))
+  if in_dim is not None and in_dim != want:
+    raise ValueError(f"config.json: classification_head_kwargs.input_feature_dim={in_dim} but "
+                     f"encoder ({base.encoder.embed_dim}) + info sharing ({base.info_sharing.dim}) "
+                     f"= {want}")
+  use_unet = bool(cj.get("use_unet_feature", True))
+  widths = refine.unet_widths(shapes) if use_unet else ()
+  if use_unet and not widths:
+    raise ValueError("config.json: use_unet_feature=True but model.safetensors has no "
+                     "unet_feature.downs.0.conv.0.weight")
+  fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(ufm.UFMConfig)}
+  return refine.UFMRefineConfig(
+      **fields, unet_features=widths, refine_feature_dim=int(head["output_dim"]),
+      refine_mlp_ratio=float(head.get("mlp_ratio", 4.0)), use_unet_feature=use_unet,
+      feature_combine_method=cj.get("feature_combine_method", "conv"),
+      refinement_range=int(cj["refinement_range"]), temperature=float(cj["temperature"]))
+
+
 def ufm_buffers(cfg: ufm.UFMConfig) -> Dict[str, np.ndarray]:
   fa = cfg.flow_adaptor
   return {
@@ -319,11 +354,6 @@ OFFICIAL_DEFAULTS = {
     "pretrained_backbone_checkpoint_path": None,
     "pretrained_checkpoint_path": None,
 }
-# For model classes beyond the base one: (config class, fn(cfg) -> extra config.json keys,
-# fn(cfg) -> what the official code builds differently, see official_limits).
-OFFICIAL_CONFIG_EXTRAS: List[Tuple[type, Callable[[Any], dict], Callable[[Any], List[str]]]] = []
-
-
 def official_config_dict(cfg: ufm.UFMConfig) -> dict:
   """The official constructor kwargs (config.json) describing cfg; inverse of
   ufm_config_from_official (used to export and to test the loader on unseen structures)."""
@@ -407,6 +437,36 @@ def official_limits(cfg: ufm.UFMConfig) -> List[str]:
   return out
 
 
+# The official ufm.py builds UNet(features=[64, 128, 256, 512]) whatever config.json says.
+OFFICIAL_UNET_FEATURES = (64, 128, 256, 512)
+
+
+def refine_config_to_official(cfg: refine.UFMRefineConfig) -> dict:
+  """The refiner's config.json keys (inverse of refine_config_from_official)."""
+  ratio = float(cfg.refine_mlp_ratio)
+  return {
+      # Written as the official configs write them: "1024 + 768" and an integral ratio as int.
+      "classification_head_kwargs": {
+          "input_feature_dim": f"{cfg.encoder.embed_dim} + {cfg.info_sharing.dim}",
+          "mlp_ratio": int(ratio) if ratio.is_integer() else ratio,
+          "output_dim": cfg.refine_feature_dim, "patch_size": cfg.encoder.patch_size},
+      "classification_head_type": "patch_mlp",
+      "feature_combine_method": cfg.feature_combine_method,
+      "refinement_range": cfg.refinement_range,
+      "temperature": float(cfg.temperature),
+      "use_unet_feature": cfg.use_unet_feature,
+  }
+
+
+def refine_official_limits(cfg: refine.UFMRefineConfig) -> List[str]:
+  """The refiner's part of official_limits."""
+  if cfg.use_unet_feature and tuple(cfg.unet_features) != OFFICIAL_UNET_FEATURES:
+    return [f"U-Net widths {list(cfg.unet_features)}: the official ufm.py hard-codes "
+            f"{list(OFFICIAL_UNET_FEATURES)} (the refine fixture's README shows the substitution "
+            "from_pretrained then needs)"]
+  return []
+
+
 def _is_base(cj: dict) -> bool:
   return "uncertainty_head_kwargs" in cj and "refinement_range" not in cj
 
@@ -416,26 +476,43 @@ def _build_base(cj: dict, shapes: dict) -> OfficialSpec:
   return OfficialSpec(ufm.UFM(cfg), ufm_buffers(cfg), "UniFlowMatchConfidence")
 
 
-register_official_class(_is_base, _build_base, front=False)
+def _is_refine(cj: dict) -> bool:
+  return "refinement_range" in cj
+
+
+def _build_refine(cj: dict, shapes: dict) -> OfficialSpec:
+  cfg = refine_config_from_official(cj, shapes, ufm_config_from_official(cj, shapes))
+  return OfficialSpec(refine.UFMRefine(cfg), ufm_buffers(cfg),
+                      "UniFlowMatchClassificationRefinement")
+
+
+# (detect(config_json) -> bool, build(config_json, shapes: {torch name: shape}) -> OfficialSpec);
+# the first match wins, so the more specific detectors come first.
+OFFICIAL_CLASSES: List[Tuple[Callable[[dict], bool], Callable[[dict, dict], OfficialSpec]]] = [
+    (_is_refine, _build_refine),
+    (_is_base, _build_base),
+]
+# For model classes beyond the base one: (config class, fn(cfg) -> extra config.json keys,
+# fn(cfg) -> what the official code builds differently, see official_limits).
+OFFICIAL_CONFIG_EXTRAS: List[Tuple[type, Callable[[Any], dict], Callable[[Any], List[str]]]] = [
+    (refine.UFMRefineConfig, refine_config_to_official, refine_official_limits),
+]
+# class name -> (config_from_dict, model_from_config) for checkpoints written by `save`.
+SAVED_CLASSES: Dict[str, Tuple[Callable, Callable]] = {
+    "UniFlowMatchConfidence": (ufm.config_from_dict, ufm.model_from_config),
+    "UniFlowMatchClassificationRefinement": (refine.refine_config_from_dict,
+                                             refine.refine_model_from_config),
+}
+# Flax module class -> the official class name stored in model_config.json.
+CLASS_NAMES: Dict[type, str] = {ufm.UFM: "UniFlowMatchConfidence",
+                                refine.UFMRefine: "UniFlowMatchClassificationRefinement"}
 
 # ----------------------------------------------------------------------------- loading
 
 
-def _flatten(tree, prefix=()):
-  out = {}
-  for k, v in tree.items():
-    if isinstance(v, dict):
-      out.update(_flatten(v, prefix + (k,)))
-    else:
-      out[prefix + (k,)] = v
-  return out
-
-
 def expected_param_shapes(model) -> Dict[Tuple[str, ...], Tuple[int, ...]]:
-  p = model.config.encoder.patch_size
-  x = jax.ShapeDtypeStruct((1, 2 * p, 2 * p, 3), jnp.uint8)
-  tree = jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b), x, x)["params"]
-  return {k: tuple(v.shape) for k, v in _flatten(_unfreeze(tree)).items()}
+  """{Flax path: shape} of the model's parameters (ufm.param_shapes, flattened)."""
+  return {k: tuple(v.shape) for k, v in traverse_util.flatten_dict(ufm.param_shapes(model)).items()}
 
 
 def _unfreeze(tree):
@@ -490,15 +567,25 @@ def params_from_state_dict(state: Dict[str, np.ndarray], model, buffers: Dict[st
 def state_dict_from_params(params, buffers: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
   """Flax params -> torch-named state dict (canonical, de-duplicated names) plus buffers."""
   out = {}
-  for path, v in _flatten(_unfreeze(params)).items():
+  for path, v in traverse_util.flatten_dict(_unfreeze(params)).items():
     key = path_to_torch_key(path)
     out[key] = np.ascontiguousarray(flax_to_torch_array(key, np.asarray(v)))
   out.update({k: np.asarray(v) for k, v in buffers.items()})
   return out
 
 
-def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
+def read_safetensors(path) -> Dict[str, np.ndarray]:
+  """All tensors of a .safetensors file (numpy); a damaged file's error names it and, when its
+  header promises more bytes than it has, the expected and actual sizes."""
   from safetensors.numpy import load_file
+  path = pathlib.Path(path)
+  try:
+    return load_file(str(path))
+  except Exception as e:  # safetensors raises its own error types
+    raise ValueError(f"{path}: cannot read safetensors ({e}){_truncation_hint(path)}") from e
+
+
+def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
   d = pathlib.Path(snapshot_dir)
   cfg_path, w_path = d / "config.json", d / "model.safetensors"
   for p in (cfg_path, w_path):
@@ -509,11 +596,7 @@ def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
     cj = json.loads(cfg_path.read_text())
   except json.JSONDecodeError as e:
     raise ValueError(f"{cfg_path}: invalid JSON ({e})") from e
-  try:
-    state = load_file(str(w_path))
-  except Exception as e:  # safetensors raises its own error types
-    raise ValueError(f"{w_path}: cannot read safetensors ({e}){_truncation_hint(w_path)}") from e
-  return cj, state
+  return cj, read_safetensors(w_path)
 
 
 def _truncation_hint(path: pathlib.Path) -> str:
@@ -555,39 +638,126 @@ def load_official(snapshot_dir):
   return spec.model, params
 
 
+# ----------------------------------------------------------------------------- DINOv2 weights
+# Released DINOv2 checkpoints -> the official (UniCeption) names, then the key map above: the
+# encoder part of `model_init: dinov2:PATH` (ufm_jax.checkpoint).
+
+
+def _dinov2_hf_to_original(sd: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
+  """transformers Dinov2Model names -> the original facebookresearch/dinov2 names."""
+  out: Dict[str, np.ndarray] = {}
+  qkv: dict[str, Dict[str, np.ndarray]] = {}
+  simple = {
+      "embeddings.cls_token": "cls_token",
+      "embeddings.mask_token": "mask_token",
+      "embeddings.position_embeddings": "pos_embed",
+      "embeddings.register_tokens": "register_tokens",
+      "embeddings.patch_embeddings.projection.weight": "patch_embed.proj.weight",
+      "embeddings.patch_embeddings.projection.bias": "patch_embed.proj.bias",
+      "layernorm.weight": "norm.weight",
+      "layernorm.bias": "norm.bias",
+  }
+  layer = {
+      "norm1": "norm1", "norm2": "norm2",
+      "attention.output.dense": "attn.proj",
+      "layer_scale1.lambda1": "ls1.gamma", "layer_scale2.lambda1": "ls2.gamma",
+      "mlp.fc1": "mlp.fc1", "mlp.fc2": "mlp.fc2",
+      "mlp.weights_in": "mlp.w12", "mlp.weights_out": "mlp.w3",  # SwiGLU (ViT-g)
+  }
+  for key, val in sd.items():
+    k = key[len("dinov2."):] if key.startswith("dinov2.") else key
+    if k in simple:
+      out[simple[k]] = val
+      continue
+    m = re.fullmatch(r"encoder\.layer\.(\d+)\.(.+)", k)
+    if not m:
+      out[f"unmapped:{key}"] = val
+      continue
+    i, rest = m.groups()
+    a = re.fullmatch(r"attention\.attention\.(query|key|value)\.(weight|bias)", rest)
+    if a:
+      qkv.setdefault(f"blocks.{i}.attn.qkv.{a.group(2)}", {})[a.group(1)] = val
+      continue
+    for src, dst in layer.items():
+      if rest.startswith(src + ".") or rest == src:
+        out[f"blocks.{i}.{dst}{rest[len(src):]}"] = val
+        break
+    else:
+      out[f"unmapped:{key}"] = val
+  for name, parts in qkv.items():
+    if set(parts) != {"query", "key", "value"}:
+      raise ValueError(f"DINOv2 checkpoint: incomplete q/k/v for {name}: has {sorted(parts)}")
+    out[name] = np.concatenate([parts["query"], parts["key"], parts["value"]], axis=0)
+  return out
+
+
+def _dinov2_original_flatten_chunks(sd):
+  """Chunked checkpoints ("blocks.<chunk>.<i>.") -> flat block indices."""
+  if not any(re.match(r"blocks\.\d+\.\d+\.", k) for k in sd):
+    return sd
+  return {re.sub(r"^blocks\.\d+\.(\d+)\.", r"blocks.\1.", k): v for k, v in sd.items()}
+
+
+def read_dinov2(path) -> Dict[str, np.ndarray]:
+  """DINOv2 weights in the original naming (numpy), from HF safetensors or an original .pth."""
+  path = pathlib.Path(path)
+  if path.is_dir():
+    cands = sorted(path.glob("*.safetensors")) + sorted(path.glob("*.pth"))
+    if not cands:
+      raise FileNotFoundError(f"no *.safetensors or *.pth DINOv2 weights in {path}")
+    path = cands[0]
+  if path.suffix == ".safetensors":
+    sd = read_safetensors(path)
+    if any(k.startswith(("embeddings.", "dinov2.embeddings.")) for k in sd):
+      sd = _dinov2_hf_to_original(sd)
+  elif path.suffix in (".pth", ".pt"):
+    try:
+      import torch
+    except ImportError as e:
+      raise ImportError(f"reading {path} needs torch (pip install 'ufm_jax[torch]'); or use the "
+                        "Hugging Face facebook/dinov2-* model.safetensors instead") from e
+    obj = torch.load(str(path), map_location="cpu", weights_only=True)
+    obj = obj.get("model", obj) if isinstance(obj, dict) else obj
+    sd = {k: v.float().numpy() if v.is_floating_point() else v.numpy() for k, v in obj.items()}
+  else:
+    raise ValueError(f"unknown DINOv2 checkpoint format: {path} (want .safetensors or .pth)")
+  sd = _dinov2_original_flatten_chunks(sd)
+  unmapped = [k for k in sd if k.startswith("unmapped:")]
+  if unmapped:
+    raise ValueError(f"{path}: keys with no DINOv2 counterpart: {unmapped[:10]}")
+  return sd
+
+
+def dinov2_to_flax(sd: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
+  """Original DINOv2 names -> flat "a/b/c" paths of the UFM encoder, via the model's key map."""
+  out = {}
+  for k, v in sd.items():
+    if k == "mask_token":  # deleted by UniCeption: UFM has no masked-token path
+      continue
+    key = f"encoder.model.{k}"
+    out["/".join(torch_key_to_path(key, v.ndim))] = torch_to_flax_array(key, v)
+  return out
+
+
+def resize_pos_embed(pe: np.ndarray, new_shape) -> np.ndarray:
+  """[1, extra + g*g, D] -> [1, extra + g'*g', D]: bicubic on the square grid, extra tokens kept."""
+  pe = np.asarray(pe, np.float32)
+  n_old, n_new = pe.shape[1], new_shape[1]
+  for extra in (1, 0):
+    g_old, g_new = np.sqrt(n_old - extra), np.sqrt(n_new - extra)
+    if g_old == int(g_old) and g_new == int(g_new):
+      g_old, g_new = int(g_old), int(g_new)
+      grid = pe[0, extra:].reshape(g_old, g_old, -1)
+      grid = jax.image.resize(jnp.asarray(grid), (g_new, g_new, grid.shape[-1]), "cubic")
+      return np.concatenate([pe[0, :extra], np.asarray(grid).reshape(g_new * g_new, -1)])[None]
+  raise ValueError(f"cannot resize position embedding {pe.shape} -> {tuple(new_shape)}")
+
+
 # ----------------------------------------------------------------------------- orbax format
 
 CONFIG_FILE = "model_config.json"
 PARAMS_DIR = "params"
 
-
-# Flax module class -> the official class name stored in model_config.json.
-CLASS_NAMES: Dict[type, str] = {ufm.UFM: "UniFlowMatchConfidence"}
-
-# ----------------------------------------------------------------------------- UFM-Refine
-# UniFlowMatchClassificationRefinement = the base model + refiner (ufm_jax/models/refine.py).
-# The refiner's keys follow the same rules; its U-Net up-convolutions are ConvTranspose2d.
-from ufm_jax.models import refine  # noqa: E402  (refine imports ufm; registered after the base)
-
-CONV_TRANSPOSE.append(re.compile(r"^unet_feature\.ups\.\d*[02468]\.weight$"))
-
-
-def _is_refine(cj: dict) -> bool:
-  return "refinement_range" in cj
-
-
-def _build_refine(cj: dict, shapes: dict) -> OfficialSpec:
-  base = ufm_config_from_official(cj, shapes)
-  cfg = refine.refine_config_from_official(cj, shapes, base)
-  return OfficialSpec(refine.UFMRefine(cfg), ufm_buffers(cfg), "UniFlowMatchClassificationRefinement")
-
-
-register_official_class(_is_refine, _build_refine)
-OFFICIAL_CONFIG_EXTRAS.append((refine.UFMRefineConfig, refine.refine_config_to_official,
-                               refine.official_limits))
-SAVED_CLASSES["UniFlowMatchClassificationRefinement"] = (refine.refine_config_from_dict,
-                                                         refine.refine_model_from_config)
-CLASS_NAMES[refine.UFMRefine] = "UniFlowMatchClassificationRefinement"
 
 
 def _class_name(model) -> str:
@@ -641,7 +811,7 @@ def load(ckpt_dir):
   model = build(from_dict(meta["config"]))
   # Saved as numpy arrays: orbax restores them as numpy without a target tree.
   params = _unfreeze(ocp.PyTreeCheckpointer().restore(d / PARAMS_DIR))
-  got = {k: tuple(np.shape(v)) for k, v in _flatten(params).items()}
+  got = {k: tuple(np.shape(v)) for k, v in traverse_util.flatten_dict(params).items()}
   want = expected_param_shapes(model)
   if got != want:
     bad = sorted(set(got) ^ set(want)) + sorted(k for k in set(got) & set(want)
@@ -667,8 +837,8 @@ def _check_export(model, params, cj: dict, state: Dict[str, np.ndarray], class_n
   spec = official_spec(cj, state, "exported config.json")
   if spec.class_name != class_name:
     raise ValueError(f"exported config.json reads back as {spec.class_name}, not {class_name}")
-  ours = _flatten(dataclasses.asdict(model.config))
-  back = _flatten(dataclasses.asdict(spec.model.config))
+  ours = traverse_util.flatten_dict(dataclasses.asdict(model.config))
+  back = traverse_util.flatten_dict(dataclasses.asdict(spec.model.config))
   dropped, lost = [], []
   for k in sorted(set(ours) | set(back)):
     a, b = ours.get(k), back.get(k)
@@ -681,9 +851,9 @@ def _check_export(model, params, cj: dict, state: Dict[str, np.ndarray], class_n
   if lost:
     raise ValueError(f"{class_name}: config.json cannot describe this model config: "
                      + "; ".join(lost))
-  back_params = _flatten(params_from_state_dict(state, spec.model, spec.buffers,
+  back_params = traverse_util.flatten_dict(params_from_state_dict(state, spec.model, spec.buffers,
                                                 "exported model.safetensors", as_jax=False))
-  for path, v in _flatten(_unfreeze(params)).items():
+  for path, v in traverse_util.flatten_dict(_unfreeze(params)).items():
     if not np.array_equal(np.asarray(v, np.float32), back_params[path], equal_nan=True):
       raise ValueError(f"exported {path_to_torch_key(path)} does not read back to "
                        f"{'/'.join(path)}")

@@ -277,7 +277,8 @@ def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32
     shapes[k], shapes[k + ":dtype"] = tuple(avals[k].shape), str(avals[k].dtype)
   meta = _sidecar(fmt, model, size, batch, dtype, outputs, shapes, checkpoint, platforms)
   side = sidecar_path(out)
-  _write_atomic(side, (json.dumps(meta, indent=2) + "\n").encode())
+  from ufm_jax.data import io
+  io.write_json_atomic(side, meta)
   return written + [side]
 
 

@@ -135,28 +135,26 @@ class TrainState:
                skipped=jnp.zeros((), jnp.int32))
 
 
-def all_finite(tree) -> jnp.ndarray:
-  leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]
-  return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
-
-
 def apply_gradients(state: TrainState, grads, loss, tx) -> tuple[TrainState, jnp.ndarray]:
-  """One optimizer update; when loss or any gradient is non-finite the state is kept as it was
-  (step still advances, so the schedule and data stay aligned) and `skipped` is incremented.
+  """One optimizer update through `optax.apply_if_finite`: when loss or any gradient is
+  non-finite the params and optimizer state are kept as they were (step still advances, so the
+  schedule and data stay aligned) and `skipped` (its total_notfinite) is incremented.
 
-  Returns (new_state, ok).
+  The wrapper's state is rebuilt around `state.opt_state` on each call, so the TrainState and its
+  checkpoints keep the plain optimizer's layout. It never gives up and applies a non-finite
+  update: stopping after too many skips in a row is the train loop's job (checkpoint.Keeper,
+  config.max_nonfinite_steps). Returns (new_state, ok).
   """
-  ok = jnp.logical_and(jnp.isfinite(loss), all_finite(grads))
-  # Zeros instead of NaNs so the (discarded) update path itself stays finite.
-  safe_grads = jax.tree.map(lambda g: jnp.where(ok, g, jnp.zeros_like(g)), grads)
-  updates, new_opt = tx.update(safe_grads, state.opt_state, state.params)
-  new_params = optax.apply_updates(state.params, updates)
-  keep = lambda new, old: jax.tree.map(lambda n, o: jnp.where(ok, n, o), new, old)  # noqa: E731
-  return state.replace(
-      step=state.step + 1,
-      params=keep(new_params, state.params),
-      opt_state=keep(new_opt, state.opt_state),
-      skipped=state.skipped + jnp.where(ok, 0, 1).astype(jnp.int32)), ok
+  # apply_if_finite looks at the gradients only: a non-finite loss counts as non-finite gradients.
+  grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(loss), g, jnp.nan), grads)
+  guarded = optax.apply_if_finite(tx, max_consecutive_errors=jnp.iinfo(jnp.int32).max)
+  wrapped = optax.ApplyIfFiniteState(
+      notfinite_count=jnp.zeros([], jnp.int32), last_finite=jnp.array(True),
+      total_notfinite=state.skipped, inner_state=state.opt_state)
+  updates, wrapped = guarded.update(grads, wrapped, state.params)
+  return state.replace(step=state.step + 1, params=optax.apply_updates(state.params, updates),
+                       opt_state=wrapped.inner_state,
+                       skipped=wrapped.total_notfinite), wrapped.last_finite
 
 
 def current_lrs(schedules, step) -> dict[str, float]:

@@ -29,6 +29,8 @@ import numpy as np
 from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from ufm_jax import optim
+
 BATCH_AXES = ("data", "fsdp")
 
 
@@ -90,10 +92,6 @@ def make_mesh(mesh_config, devices=None) -> Mesh:
   return Mesh(arr, names)
 
 
-def _path_str(path) -> str:
-  return "/".join(str(getattr(k, "key", getattr(k, "name", getattr(k, "idx", k)))) for k in path)
-
-
 def _fsdp_spec(shape, axis_size: int, axis: str = "fsdp", min_size: int = 0) -> P:
   """Shard the largest dimension divisible by axis_size; replicate if none (or tiny arrays)."""
   if axis_size == 1 or int(np.prod(shape, dtype=np.int64)) < min_size:
@@ -134,7 +132,7 @@ def tree_shardings(tree, mesh: Mesh, rules, min_size: int = 0) -> Any:
     shape = getattr(x, "shape", ())
     if len(shape) == 0:
       return NamedSharding(mesh, P())
-    return NamedSharding(mesh, spec_for(_path_str(path), shape, rules, mesh, min_size))
+    return NamedSharding(mesh, spec_for(optim.path_str(path), shape, rules, mesh, min_size))
 
   return jax.tree_util.tree_map_with_path(one, tree)
 

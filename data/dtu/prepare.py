@@ -19,7 +19,7 @@ import os
 import sys
 
 from ufm_jax import data
-from ufm_jax.data.sources import _posed
+from ufm_jax.data.sources import posed
 
 
 def main(argv=None):
@@ -32,15 +32,15 @@ def main(argv=None):
   p.add_argument("--no_progress", action="store_true")
   args = p.parse_args(argv)
   for sub in ("Rectified", "Cameras", "Depths_raw"):
-    _posed.require_dir(os.path.join(args.root, sub), f"DTU {sub}/ (see data/dtu/README.md)")
+    posed.require_dir(os.path.join(args.root, sub), f"DTU {sub}/ (see data/dtu/README.md)")
   src = data.get_source("dtu", args.root, split=args.split, light=args.light)
   scenes = src.scenes()
   if not scenes:
     raise SystemExit(f"{args.root}/Rectified: none of the DTU {args.split} scans")
-  pairs, skipped = _posed.mine_pairs(src, scenes, args.min_covis, args.max_side,
+  pairs, skipped = posed.mine_pairs(src, scenes, args.min_covis, args.max_side,
                                      progress=not args.no_progress)
   out = os.path.join(args.root, f"pairs_{args.split}.txt")
-  _posed.write_pair_list(out, pairs, header=(
+  posed.write_pair_list(out, pairs, header=(
       f"DTU {args.split}: view pairs with mutual covisibility > {args.min_covis} (light "
       f"{args.light})\nscene view0 view1 score"))
   for s in skipped:

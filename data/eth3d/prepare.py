@@ -32,7 +32,7 @@ import numpy as np
 
 from ufm_jax import data
 from ufm_jax.data import io
-from ufm_jax.data.sources import _exr, _posed
+from ufm_jax.data.sources import exr, posed
 
 
 def thin_prism_fisheye_project(params, x, y):
@@ -53,11 +53,11 @@ def thin_prism_fisheye_project(params, x, y):
 
 
 def read_raw_depth(path, width, height):
-  _posed.require_file(path, f"raw float32 ETH3D depth of {width}x{height}")
+  posed.require_file(path, f"raw float32 ETH3D depth of {width}x{height}")
   d = np.fromfile(path, "<f4")
   if d.size != width * height:
     raise ValueError(f"{path}: {d.size} floats, expected {width}x{height} (the distorted image)")
-  return _posed.sanitize_depth(d.reshape(height, width))
+  return posed.sanitize_depth(d.reshape(height, width))
 
 
 def undistorted_depth(depth_d, cam_d, K_out, hw_out):
@@ -79,12 +79,12 @@ def prepare_scene(raw, out, scene, scale, progress=True):
   import tqdm
   base = os.path.join(raw, scene)
   und = os.path.join(base, "dslr_calibration_undistorted")
-  cams_u = _posed.read_colmap_cameras(os.path.join(und, "cameras.txt"))
-  imgs_u = _posed.read_colmap_images(os.path.join(und, "images.txt"))
+  cams_u = posed.read_colmap_cameras(os.path.join(und, "cameras.txt"))
+  imgs_u = posed.read_colmap_images(os.path.join(und, "images.txt"))
   cams_d_path = os.path.join(base, "dslr_calibration_jpg", "cameras.txt")
-  cams_d = _posed.read_colmap_cameras(cams_d_path)
+  cams_d = posed.read_colmap_cameras(cams_d_path)
   imgs_d_path = os.path.join(base, "dslr_calibration_jpg", "images.txt")
-  imgs_d = _posed.read_colmap_images(imgs_d_path) if os.path.isfile(imgs_d_path) else {}
+  imgs_d = posed.read_colmap_images(imgs_d_path) if os.path.isfile(imgs_d_path) else {}
   cam_of_d = {os.path.basename(k): v["camera_id"] for k, v in imgs_d.items()}
   os.makedirs(os.path.join(out, scene, "images"), exist_ok=True)
   os.makedirs(os.path.join(out, scene, "depth"), exist_ok=True)
@@ -100,7 +100,7 @@ def prepare_scene(raw, out, scene, scale, progress=True):
       raise ValueError(f"{cams_d_path}: no THIN_PRISM_FISHEYE camera for {name}")
     img = io.read_image(os.path.join(base, "images", name))
     h, w = round(cu["height"] * scale), round(cu["width"] * scale)
-    K = _posed.colmap_to_opencv_K(_posed.colmap_K(cu, und))
+    K = posed.colmap_to_opencv_K(posed.colmap_K(cu, und))
     K_out = K.copy()
     K_out[:2, :2] *= scale
     K_out[0, 2] = (K[0, 2] + 0.5) * scale - 0.5
@@ -116,7 +116,7 @@ def prepare_scene(raw, out, scene, scale, progress=True):
     if not cv2.imwrite(jpg + ".tmp.jpg", img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95]):
       raise OSError(f"{jpg}: cannot write")
     os.replace(jpg + ".tmp.jpg", jpg)
-    _exr.write_exr(os.path.join(out, scene, "depth", stem + ".exr"), depth)
+    exr.write_exr(os.path.join(out, scene, "depth", stem + ".exr"), depth)
     frames.append(dict(frame_name=stem, file_path=f"images/{stem}.jpg", depth=f"depth/{stem}.exr",
                        transform_matrix=np.linalg.inv(entry["w2c"]).tolist(), h=h, w=w,
                        fl_x=K_out[0, 0], fl_y=K_out[1, 1], cx=K_out[0, 2], cy=K_out[1, 2]))
@@ -139,7 +139,7 @@ def main(argv=None):
   p.add_argument("--max_side", type=int, default=128)
   p.add_argument("--no_progress", action="store_true")
   args = p.parse_args(argv)
-  _posed.require_dir(args.raw, "the unpacked ETH3D multi-view training archives")
+  posed.require_dir(args.raw, "the unpacked ETH3D multi-view training archives")
   scenes = args.scenes or sorted(
       s for s in os.listdir(args.raw)
       if os.path.isdir(os.path.join(args.raw, s, "dslr_calibration_undistorted")))
@@ -148,10 +148,10 @@ def main(argv=None):
   for scene in scenes:
     prepare_scene(args.raw, args.out, scene, args.scale, not args.no_progress)
   src = data.get_source("eth3d", args.out)
-  pairs, skipped = _posed.mine_pairs(src, scenes, args.min_covis, args.max_side,
+  pairs, skipped = posed.mine_pairs(src, scenes, args.min_covis, args.max_side,
                                      progress=not args.no_progress)
   out = os.path.join(args.out, "pairs_test.txt")
-  _posed.write_pair_list(out, pairs, header=(
+  posed.write_pair_list(out, pairs, header=(
       f"ETH3D test pairs: all view pairs with mutual covisibility > {args.min_covis}\n"
       "scene frame0 frame1 score"))
   print(f"prepared {len(scenes)} scenes, {len(pairs)} pairs -> {out}; {len(skipped)} skipped")

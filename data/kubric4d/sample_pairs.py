@@ -22,7 +22,7 @@ import sys
 import numpy as np
 
 from ufm_jax import data
-from ufm_jax.data.sources import _posed, kubric4d
+from ufm_jax.data.sources import posed, kubric4d
 
 
 def main(argv=None):
@@ -58,7 +58,7 @@ def main(argv=None):
                                                       args.max_frame_difference):
       lines.append((scene, f"{views[v0]}/{t0}", f"{views[v1]}/{t1}"))
   out = args.out or os.path.join(args.root, f"pairs_{args.split}.txt")
-  _posed.write_pair_list(out, lines, header=(
+  posed.write_pair_list(out, lines, header=(
       f"Kubric-4D {args.split}: {args.pairs_per_scene} pairs per scene, seed {args.seed}\n"
       "scene view0/time0 view1/time1"))
   for s in skipped:

@@ -25,12 +25,12 @@ import sys
 import numpy as np
 
 from ufm_jax import data
-from ufm_jax.data.sources import _posed, scannet1500
+from ufm_jax.data.sources import posed, scannet1500
 
 
 def loftr_to_superglue(npz_path, intr_path, out_path):
-  _posed.require_file(npz_path, "LoFTR's scannet_test_1500/test.npz")
-  _posed.require_file(intr_path, "LoFTR's scannet_test_1500/intrinsics.npz")
+  posed.require_file(npz_path, "LoFTR's scannet_test_1500/test.npz")
+  posed.require_file(intr_path, "LoFTR's scannet_test_1500/intrinsics.npz")
   z, intr = np.load(npz_path), np.load(intr_path)
   if "name" not in z or "rel_pose" not in z:
     raise ValueError(f"{npz_path}: expected arrays 'name' and 'rel_pose'")
@@ -61,7 +61,7 @@ def main(argv=None):
   p.add_argument("--loftr_npz", default=None)
   p.add_argument("--loftr_intrinsics", default=None)
   args = p.parse_args(argv)
-  _posed.require_dir(args.root, "the ScanNet-1500 root")
+  posed.require_dir(args.root, "the ScanNet-1500 root")
   if args.loftr_npz:
     n = loftr_to_superglue(args.loftr_npz, args.loftr_intrinsics or "",
                            os.path.join(args.root, scannet1500.PAIRS_FILE))

@@ -33,7 +33,7 @@ import cv2
 import h5py
 import numpy as np
 
-from ufm_jax.data.sources import _exr, _posed
+from ufm_jax.data.sources import exr, posed
 
 CONDITIONS = ("SummerNight", "WinterNight", "Autumn", "Spring", "Winter", "Day", "Night", "Fall",
               "Summer")
@@ -79,21 +79,21 @@ def _read_pair(h5, index, path):
 
 
 def _load_npz(path, what):
-  _posed.require_file(path, what)
+  posed.require_file(path, what)
   with np.load(path) as z:
     return z["arr_0"]
 
 
 def prepare(download, out, split, progress=True):
   import tqdm
-  split_dir = _posed.require_dir(os.path.join(download, split), f"the TA-WB {split}/ shards")
-  cam_dir = _posed.require_dir(os.path.join(download, f"{split}_camera_data"),
+  split_dir = posed.require_dir(os.path.join(download, split), f"the TA-WB {split}/ shards")
+  cam_dir = posed.require_dir(os.path.join(download, f"{split}_camera_data"),
                                f"{split}_camera_data/")
   ext = [_load_npz(os.path.join(cam_dir, f"cam{i}_extrinsics.npz"), "4x4 c2w per pair")
          for i in (1, 2)]
   intr = [_load_npz(os.path.join(cam_dir, f"cam{i}_intrinsics.npz"), "3x3 K per pair")
           for i in (1, 2)]
-  meta_path = _posed.require_file(os.path.join(cam_dir, "metadata.json"),
+  meta_path = posed.require_file(os.path.join(cam_dir, "metadata.json"),
                                   "pandas orient='split' metadata with img1_env")
   with open(meta_path) as f:
     table = json.load(f)
@@ -109,7 +109,7 @@ def prepare(download, out, split, progress=True):
     for pair, (fname, idx) in tqdm.tqdm(sorted(entries.items()), desc=split, disable=not progress):
       path = os.path.join(split_dir, fname)
       if path not in open_files:
-        _posed.require_file(path, "a TA-WB HDF5 shard")
+        posed.require_file(path, "a TA-WB HDF5 shard")
         open_files[path] = h5py.File(path, "r")
       img0, img1, d0, d1 = _read_pair(open_files[path], idx, path)
       env = geometry_env(envs[pair])
@@ -124,9 +124,9 @@ def prepare(download, out, split, progress=True):
         if not cv2.imwrite(p + ".tmp.png", img[..., ::-1]):
           raise OSError(f"{p}: cannot write")
         os.replace(p + ".tmp.png", p)
-        depth = _posed.sanitize_depth(depth)
+        depth = posed.sanitize_depth(depth)
         depth[depth >= cut] = 0
-        _exr.write_exr(os.path.join(d, "depth", name + ".exr"), depth)
+        exr.write_exr(os.path.join(d, "depth", name + ".exr"), depth)
         for sub, arr in (("camera_params", intr[k][pair]), ("poses", ext[k][pair])):
           q = os.path.join(d, sub, name + ".npy")
           with open(q + ".tmp", "wb") as f:

@@ -142,7 +142,7 @@ def sincos_pos_embed(grid: int, dim: int) -> np.ndarray:
 
 
 def _pos_embed_init(cfg: DinoV2Config):
-  """The flax initializer of `pos_embed`, so `model.init` and `ufm.init_params` agree."""
+  """The flax initializer of `pos_embed`: DINOv2's random table or the config's sin-cos one."""
   if cfg.pos_embed_init == "sincos":
     return lambda _key, shape, dtype=jnp.float32: jnp.asarray(
         sincos_pos_embed(cfg.pos_grid, shape[-1]), dtype)

@@ -16,9 +16,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import traverse_util
 
-from ufm_jax.models import dinov2, dpt, layers, scan
+from ufm_jax.models import dinov2, dpt, layers
 from ufm_jax.models import info_sharing as info_sharing_lib
 
 # UniCeption data_norm_type "dinov2" (ImageNet), float32 like the official tensors.
@@ -249,68 +248,6 @@ def model_from_config(cfg: UFMConfig, **kw) -> UFM:
   if hasattr(cfg, "build_model"):
     return cfg.build_model(**kw)
   return UFM(cfg, **kw)
-
-
-def init_params(model: UFM, seed: int = 0):
-  """Random float32 parameters, drawn on the host with numpy (no XLA compile: compiling
-  `model.init` for a many-module tree takes minutes on CPU).
-
-  The PyTorch defaults: Linear xavier-uniform / zero bias (UniCeption), Conv kaiming-uniform
-  with a=sqrt(5) and uniform bias (torch), LayerNorm ones/zeros, LayerScale `init_values`,
-  pos_embed trunc-normal(0.02) (or the encoder config's sin-cos table), cls/register tokens
-  normal(1e-6); with `info_sharing.tied_qk_init` (a scale) each fusion block's query kernel is
-  scaled by it and its key kernel starts as a copy of the query kernel. Released models start
-  from pretrained weights instead (`ufm_jax.load_official`).
-  """
-  if model.config.scan_blocks:  # the same draws as the per-layer model, stacked
-    per_layer = model.clone(config=model.config.replace(scan_blocks=False))
-    return scan.stack_blocks(init_params(per_layer, seed), model.config)
-  # param_shapes traces model.init, whose pos_embed initializer rejects an unknown choice.
-  rng = np.random.default_rng(seed)
-  tie = model.config.info_sharing.tied_qk_init
-  flat = {}
-  for path, leaf in _flat_items(param_shapes(model)):
-    shape, name = tuple(leaf.shape), path[-1]
-    if name == "kernel" and len(shape) == 2:
-      bound = np.sqrt(6.0 / (shape[0] + shape[1]))
-      v = rng.uniform(-bound, bound, shape)
-    elif name == "kernel":
-      fan_in = int(np.prod(shape[:-1]))
-      v = rng.uniform(-1, 1, shape) / np.sqrt(fan_in)
-    elif name == "bias" and any(p.startswith(("head1", "uncertainty_head")) for p in path):
-      v = rng.uniform(-0.1, 0.1, shape)
-    elif name == "bias":
-      v = np.zeros(shape)
-    elif name == "scale":
-      v = np.ones(shape)
-    elif name == "gamma":
-      v = np.full(shape, _layerscale_init(model, path))
-    elif name == "pos_embed" and model.config.encoder.pos_embed_init == "sincos":
-      v = dinov2.sincos_pos_embed(model.config.encoder.pos_grid, shape[-1])
-    elif name == "pos_embed":
-      v = np.clip(rng.normal(0, 0.02, shape), -0.04, 0.04)
-    else:  # cls_token, register_tokens
-      v = rng.normal(0, 1e-6, shape)
-    if name == "kernel" and path[0] == "info_sharing" and path[-2] == "qkv" and tie is not None:
-      c = shape[0]
-      v[:, :c] *= tie
-      v[:, c:2 * c] = v[:, :c]  # key block = query block (layers.tied_qkv_init)
-    flat[path] = jnp.asarray(v, jnp.float32)
-  return traverse_util.unflatten_dict(flat)
-
-
-def _layerscale_init(model: UFM, path) -> float:
-  cfg = model.config
-  v = cfg.encoder.init_values if path[0] == "encoder" else cfg.info_sharing.init_values
-  return float(v or 1.0)
-
-
-def _flat_items(tree, prefix=()):
-  for k, v in tree.items():
-    if hasattr(v, "items"):
-      yield from _flat_items(v, prefix + (k,))
-    else:
-      yield prefix + (k,), v
 
 
 def param_shapes(model: UFM):

@@ -312,7 +312,7 @@ def write_tartanair_v2(root, scene, env="AbandonedFactory", traj="P000", cam="lc
 
 
 def write_scannetpp(root, scene, name="0a5c013435"):
-  from ufm_jax.data.sources._exr import write_exr
+  from ufm_jax.data.sources.exr import write_exr
   d = os.path.join(root, name)
   _mkdir(d, "images"), _mkdir(d, "rendered_depth")
   frames = []
@@ -333,7 +333,7 @@ def write_scannetpp(root, scene, name="0a5c013435"):
 
 
 def write_habitat(root, scene, path="hm3d/00042-abcd", key="000123", half=True):
-  from ufm_jax.data.sources._exr import write_exr
+  from ufm_jax.data.sources.exr import write_exr
   d = _mkdir(root, path)
   for i, view in ((1, 0), (2, 1)):
     write_image(os.path.join(d, f"{key}_{i}.jpeg"), scene.image(view))
@@ -381,7 +381,7 @@ def write_dtu(root, scene, scan="scan1", views=(0, 1), light=3):
 
 
 def write_eth3d_prepared(root, scene, name="courtyard"):
-  from ufm_jax.data.sources._exr import write_exr
+  from ufm_jax.data.sources.exr import write_exr
   d = os.path.join(root, name)
   _mkdir(d, "images"), _mkdir(d, "depth")
   frames = []
@@ -399,7 +399,7 @@ def write_eth3d_prepared(root, scene, name="courtyard"):
 
 
 def write_tawb(root, scene, split="test", env="Sewerage", pair=7):
-  from ufm_jax.data.sources._exr import write_exr
+  from ufm_jax.data.sources.exr import write_exr
   d = os.path.join(root, split, env)
   for sub in ("images", "depth", "camera_params", "poses"):
     _mkdir(d, sub)

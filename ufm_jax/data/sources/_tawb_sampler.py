@@ -35,7 +35,7 @@ import os
 import cv2
 import numpy as np
 
-from ufm_jax.data.sources import _exr, _posed
+from ufm_jax.data.sources import exr, posed
 
 FACES = ("front", "back", "left", "right", "top", "bottom")
 ANGLE_BINS = ((0.0, 30.0), (30.0, 60.0), (60.0, 90.0), (90.0, 120.0))
@@ -78,7 +78,7 @@ def bin_counts(total: int, weights=BIN_WEIGHTS) -> list[int]:
 @dataclasses.dataclass
 class CubePose:
   centre: np.ndarray                    # [3]
-  faces: dict                           # face name -> _posed.View (OpenCV c2w)
+  faces: dict                           # face name -> posed.View (OpenCV c2w)
 
 
 def load_cube_pose(source, scene: str, index: int, prefix: str = "lcam") -> CubePose:
@@ -89,7 +89,7 @@ def load_cube_pose(source, scene: str, index: int, prefix: str = "lcam") -> Cube
   return CubePose(centres[0], faces)
 
 
-def face_points(view: _posed.View, stride: int, max_depth: float) -> np.ndarray:
+def face_points(view: posed.View, stride: int, max_depth: float) -> np.ndarray:
   d = view.depth[::stride, ::stride]
   v, u = np.mgrid[0:view.depth.shape[0]:stride, 0:view.depth.shape[1]:stride].astype(np.float64)
   ok = (d > 0) & (d < max_depth)
@@ -268,7 +268,7 @@ def try_pair(poses, voxels, visible, angle_bin, rng, cfg: SamplerConfig):
     img, depth = render_view(p, R, K, (cfg.height, cfg.width))
     c2w = np.eye(4)
     c2w[:3, :3], c2w[:3, 3] = R, p.centre
-    views.append(_posed.View(img, depth, K, c2w))
+    views.append(posed.View(img, depth, K, c2w))
   if not all(exposure_ok(v.image, cfg) for v in views):
     return None, "exposure"
   fwd = geometry.correspondence_from_depth(views[0].depth, K, views[0].cam2world, views[1].depth,
@@ -295,7 +295,7 @@ def write_pair(out_dir: str, index: int, views) -> None:
     if not cv2.imwrite(tmp, v.image[..., ::-1]):
       raise OSError(f"{path}: cannot write image")
     os.replace(tmp, path)
-    _exr.write_exr(os.path.join(out_dir, "depth", name + ".exr"), v.depth)
+    exr.write_exr(os.path.join(out_dir, "depth", name + ".exr"), v.depth)
     for sub, arr in (("camera_params", v.K), ("poses", v.cam2world)):
       p = os.path.join(out_dir, sub, name + ".npy")
       with open(p + ".tmp", "wb") as f:

@@ -19,7 +19,7 @@ import numpy as np
 
 from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import _posed
+from ufm_jax.data.sources import posed
 
 
 def _is_scene(name: str) -> bool:
@@ -34,7 +34,7 @@ def _in_split(scene: str, split: str) -> bool:
 
 
 @register("blendedmvs")
-class BlendedMVS(_posed.PosedPairSource):
+class BlendedMVS(posed.PosedPairSource):
   name = "blendedmvs"
   has_backward = False
   static_scene = True
@@ -45,7 +45,7 @@ class BlendedMVS(_posed.PosedPairSource):
                   and _in_split(s, self.split))
 
   def frames(self, scene):
-    d = _posed.require_dir(os.path.join(self.root, scene, "blended_images"), "blended_images/")
+    d = posed.require_dir(os.path.join(self.root, scene, "blended_images"), "blended_images/")
     return sorted(f[:-4] for f in os.listdir(d) if f.endswith(".jpg") and "_masked" not in f)
 
   def default_pairs(self):
@@ -62,15 +62,15 @@ class BlendedMVS(_posed.PosedPairSource):
       raise FileNotFoundError(f"{self.root}: no BlendedMVS scene folders (24 hex characters) for "
                               f"split {self.split!r}")
     for scene in scenes:
-      table = _posed.read_mvsnet_pairs(os.path.join(self.root, scene, "cams", "pair.txt"))
+      table = posed.read_mvsnet_pairs(os.path.join(self.root, scene, "cams", "pair.txt"))
       for ref, srcs in table.items():
         for src in srcs:
           yield scene, f"{ref:08d}", f"{src:08d}"
 
   def load_view(self, scene, frame):
     d = os.path.join(self.root, scene)
-    w2c, K = _posed.read_mvsnet_cam(os.path.join(d, "cams", f"{frame}_cam.txt"))
-    depth = _posed.sanitize_depth(io.read_pfm(
+    w2c, K = posed.read_mvsnet_cam(os.path.join(d, "cams", f"{frame}_cam.txt"))
+    depth = posed.sanitize_depth(io.read_pfm(
         os.path.join(d, "rendered_depth_maps", f"{frame}.pfm")))
     image = io.read_image(os.path.join(d, "blended_images", f"{frame}.jpg"))
-    return _posed.View(image, depth, K, np.linalg.inv(w2c))
+    return posed.View(image, depth, K, np.linalg.inv(w2c))

@@ -21,7 +21,7 @@ import numpy as np
 
 from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import _posed
+from ufm_jax.data.sources import posed
 
 EVAL_SCANS = (1, 4, 9, 10, 11, 12, 13, 15, 23, 24, 29, 32, 33, 34, 48, 49, 62, 75, 77, 110, 114,
               118)
@@ -29,7 +29,7 @@ VAL_SCANS = (3, 5, 17, 21, 28, 35, 37, 38, 40, 43, 56, 59, 66, 67, 82, 86, 106, 
 
 
 @register("dtu")
-class DTU(_posed.PosedPairSource):
+class DTU(posed.PosedPairSource):
   name = "dtu"
   has_backward = False
   static_scene = True
@@ -40,7 +40,7 @@ class DTU(_posed.PosedPairSource):
     self.num_src = int(num_src)
 
   def scenes(self):
-    base = _posed.require_dir(os.path.join(self.root, "Rectified"), "Rectified/scan<N>/")
+    base = posed.require_dir(os.path.join(self.root, "Rectified"), "Rectified/scan<N>/")
     present = {s for s in os.listdir(base) if s.startswith("scan")}
     wanted = {"test": EVAL_SCANS, "val": VAL_SCANS}.get(self.split)
     if wanted is None:
@@ -56,7 +56,7 @@ class DTU(_posed.PosedPairSource):
     if not scenes:
       raise FileNotFoundError(f"{os.path.join(self.root, 'Rectified')}: none of the DTU "
                               f"{self.split} scans present")
-    table = _posed.read_mvsnet_pairs(os.path.join(self.root, "Cameras", "pair.txt"))
+    table = posed.read_mvsnet_pairs(os.path.join(self.root, "Cameras", "pair.txt"))
     for scene in scenes:
       for ref, srcs in sorted(table.items()):
         for src in srcs[:self.num_src]:
@@ -64,11 +64,11 @@ class DTU(_posed.PosedPairSource):
 
   def load_view(self, scene, frame):
     v = int(frame)
-    w2c, K = _posed.read_mvsnet_cam(os.path.join(self.root, "Cameras", f"{v:08d}_cam.txt"))
+    w2c, K = posed.read_mvsnet_cam(os.path.join(self.root, "Cameras", f"{v:08d}_cam.txt"))
     c2w = np.linalg.inv(w2c)
     c2w[:3, 3] /= 1000.0
     image = io.read_image(os.path.join(self.root, "Rectified", scene,
                                            f"rect_{v + 1:03d}_{self.light}_r5000.png"))
-    depth = _posed.sanitize_depth(io.read_pfm(
+    depth = posed.sanitize_depth(io.read_pfm(
         os.path.join(self.root, "Depths_raw", scene, f"depth_map_{v:04d}.pfm")), scale=1e-3)
-    return _posed.View(image, depth, K, c2w)
+    return posed.View(image, depth, K, c2w)

@@ -15,12 +15,12 @@ from __future__ import annotations
 import os
 
 from ufm_jax.data.registry import register
-from ufm_jax.data.sources import _posed
+from ufm_jax.data.sources import posed
 from ufm_jax.data.sources.scannetpp import WaiScenes, wai_view
 
 
 @register("eth3d")
-class ETH3D(WaiScenes, _posed.PosedPairSource):
+class ETH3D(WaiScenes, posed.PosedPairSource):
   name = "eth3d"
   has_backward = False
   static_scene = True

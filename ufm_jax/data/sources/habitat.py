@@ -21,11 +21,11 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
-from ufm_jax.data.sources import _exr, _posed
+from ufm_jax.data.sources import exr, posed
 
 
 def read_camera_params(path):
-  _posed.require_file(path, "a Habitat camera_params.json")
+  posed.require_file(path, "a Habitat camera_params.json")
   try:
     with open(path) as f:
       p = json.load(f)
@@ -40,7 +40,7 @@ def read_camera_params(path):
 
 
 @register("habitat")
-class Habitat(_posed.PosedPairSource):
+class Habitat(posed.PosedPairSource):
   name = "habitat"
   has_backward = False
   static_scene = True
@@ -65,7 +65,7 @@ class Habitat(_posed.PosedPairSource):
     if not scenes:
       raise FileNotFoundError(f"{self.root}: no Habitat renderings (<key>_1.jpeg files)")
     for scene in scenes:
-      d = _posed.require_dir(os.path.join(self.root, scene), "a Habitat scene folder")
+      d = posed.require_dir(os.path.join(self.root, scene), "a Habitat scene folder")
       files = set(os.listdir(d))
       for f in sorted(files):
         if not f.endswith("_1.jpeg"):
@@ -81,5 +81,5 @@ class Habitat(_posed.PosedPairSource):
     if not np.isfinite(c2w).all():
       raise ValueError(f"{os.path.join(d, frame)}_camera_params.json: non-finite pose")
     image = io.read_image(os.path.join(d, f"{frame}.jpeg"))
-    depth = _posed.sanitize_depth(_exr.read_exr(os.path.join(d, f"{frame}_depth.exr")))
-    return _posed.View(image, depth, K, c2w)
+    depth = posed.sanitize_depth(exr.read_exr(os.path.join(d, f"{frame}_depth.exr")))
+    return posed.View(image, depth, K, c2w)

@@ -37,7 +37,7 @@ import numpy as np
 
 from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import _posed
+from ufm_jax.data.sources import posed
 
 SPLITS = {"train": (0, 2800), "val": (2800, 2900), "test": (2900, 10 ** 9)}
 
@@ -47,7 +47,7 @@ SPLITS = {"train": (0, 2800), "val": (2800, 2900), "test": (2900, 10 ** 9)}
 def read_index_png(path: str) -> np.ndarray:
   """Segmentation PNG -> [H, W] int32 ids: palette indices for palette PNGs (recovered through the
   PLTE chunk), the grey value otherwise."""
-  _posed.require_file(path, "a Kubric segmentation PNG")
+  posed.require_file(path, "a Kubric segmentation PNG")
   raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
   if raw is None:
     raise ValueError(f"{path}: not a decodable PNG")
@@ -133,7 +133,7 @@ def write_index_png(path: str, ids: np.ndarray, palette: np.ndarray) -> None:
 
 
 def read_metadata(path: str) -> dict:
-  _posed.require_file(path, "a Kubric metadata json (scn*_p0_v*.json)")
+  posed.require_file(path, "a Kubric metadata json (scn*_p0_v*.json)")
   try:
     with open(path) as f:
       m = json.load(f)
@@ -153,7 +153,7 @@ def read_metadata(path: str) -> dict:
   K[1, 2] -= 0.5
   c2w = np.tile(np.eye(4), (len(pos), 1, 1))
   for t in range(len(pos)):
-    c2w[t, :3, :3] = _posed.qvec_to_rotmat(quat[t]) @ np.diag([1.0, -1.0, -1.0])
+    c2w[t, :3, :3] = posed.qvec_to_rotmat(quat[t]) @ np.diag([1.0, -1.0, -1.0])
     c2w[t, :3, 3] = pos[t]
   return dict(K=K, cam2world=c2w, instances=inst, num_frames=len(pos), size=(H, W))
 
@@ -163,7 +163,7 @@ def object_poses(meta: dict, t: int) -> dict:
   out = {0: np.eye(4)}
   for k, (pos, quat) in enumerate(meta["instances"], 1):
     T = np.eye(4)
-    T[:3, :3] = _posed.qvec_to_rotmat(quat[t])
+    T[:3, :3] = posed.qvec_to_rotmat(quat[t])
     T[:3, 3] = pos[t]
     out[k] = T
   return out
@@ -214,7 +214,7 @@ def sample_scene_pairs(cam2world: np.ndarray, num_frames: int, num_pairs: int, r
 # ----------------------------------------------------------------------------------------- source
 
 @register("kubric4d")
-class Kubric4D(_posed.PosedPairSource):
+class Kubric4D(posed.PosedPairSource):
   name = "kubric4d"
   has_backward = True
   static_scene = False  # objects move: backward labels come from `backward`
@@ -246,7 +246,7 @@ class Kubric4D(_posed.PosedPairSource):
     d = os.path.join(self.root, scene, f"frames_p0_v{v}")
     image = io.read_image(os.path.join(d, f"rgba_{t:05d}.png"))
     path = os.path.join(d, f"depth_{t:05d}.tiff")
-    _posed.require_file(path, "a Kubric float32 range TIFF")
+    posed.require_file(path, "a Kubric float32 range TIFF")
     rng = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     if rng is None or rng.ndim != 2:
       raise ValueError(f"{path}: expected a single-channel float32 TIFF")
@@ -254,10 +254,10 @@ class Kubric4D(_posed.PosedPairSource):
       raise ValueError(f"{scene}_p0_v{v}.json: {meta['num_frames']} frames, asked for {t}")
     # Sanitised ranges are 0 or positive and finite, and so are their z-depths (range / ray norm,
     # norm >= 1): one sanitize_depth suffices.
-    depth = _posed.range_to_z(_posed.sanitize_depth(rng), meta["K"])
+    depth = posed.range_to_z(posed.sanitize_depth(rng), meta["K"])
     seg = read_index_png(os.path.join(d, f"segmentation_{t:05d}.png")) \
         if with_segmentation else None
-    view = _posed.View(image, depth, meta["K"], meta["cam2world"][t])
+    view = posed.View(image, depth, meta["K"], meta["cam2world"][t])
     return view, seg, meta, t
 
   def load_view(self, scene, frame):
@@ -281,7 +281,7 @@ class Kubric4D(_posed.PosedPairSource):
     v0, seg0, m0, t0 = self._view(scene, f0)
     v1, _, m1, t1 = self._view(scene, f1, with_segmentation=False)  # only the source's is used
     for v, f in ((v0, f0), (v1, f1)):
-      _posed.check_view(v, f"kubric4d:{scene}/{f}")
+      posed.check_view(v, f"kubric4d:{scene}/{f}")
     if seg0.shape != v0.depth.shape:
       raise ValueError(f"kubric4d:{scene}/{f0}: segmentation {seg0.shape} vs depth "
                        f"{v0.depth.shape}")
@@ -290,5 +290,5 @@ class Kubric4D(_posed.PosedPairSource):
     corr = geometry.correspondence_from_rigid_objects(
         v0.depth, v0.K, v0.cam2world, seg0, object_poses(m0, t0), v1.depth, v1.K, v1.cam2world,
         object_poses(m0, t1), tau_d, tau_r)
-    return _posed.labelled_sample(self.name, scene, (f0, f1), v0, v1, corr,
+    return posed.labelled_sample(self.name, scene, (f0, f1), v0, v1, corr,
                                   dict(time0=t0, time1=t1))

@@ -25,7 +25,7 @@ import numpy as np
 
 from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import _posed
+from ufm_jax.data.sources import posed
 
 _VAL_SCENES = ("0015", "0022")
 _DIST = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4}
@@ -39,7 +39,7 @@ def _in_split(scene, split):
 
 
 def read_depth_h5(path):
-  _posed.require_file(path, "a MegaDepth depth .h5 with dataset 'depth'")
+  posed.require_file(path, "a MegaDepth depth .h5 with dataset 'depth'")
   try:
     with h5py.File(path, "r") as f:
       if "depth" not in f:
@@ -51,7 +51,7 @@ def read_depth_h5(path):
 
 def undistorted_K(cam: dict, img_size_wh, where: str) -> np.ndarray:
   """DUSt3R's intrinsics for MegaDepth's undistorted images (see module docstring)."""
-  K = _posed.colmap_K(cam, where)
+  K = posed.colmap_K(cam, where)
   if cam["model"] not in _DIST:
     raise ValueError(f"{where}: unsupported camera model {cam['model']} for MegaDepth")
   dist = np.zeros(4)
@@ -67,7 +67,7 @@ def undistorted_K(cam: dict, img_size_wh, where: str) -> np.ndarray:
 
 
 @register("megadepth")
-class MegaDepth(_posed.PosedPairSource):
+class MegaDepth(posed.PosedPairSource):
   name = "megadepth"
   has_backward = False
   static_scene = True
@@ -85,7 +85,7 @@ class MegaDepth(_posed.PosedPairSource):
 
   def frames(self, scene):
     s, n = scene.split("/")
-    d = _posed.require_dir(os.path.join(self.root, s, f"dense{n}", "imgs"), "dense<N>/imgs/")
+    d = posed.require_dir(os.path.join(self.root, s, f"dense{n}", "imgs"), "dense<N>/imgs/")
     return sorted(os.listdir(d))
 
   def default_pairs(self):
@@ -105,14 +105,14 @@ class MegaDepth(_posed.PosedPairSource):
     s, n = scene.split("/")
     d = os.path.join(self.root, s, "sparse", "manhattan", n)
     cams_path = os.path.join(d, "cameras.txt")
-    return cams_path, _posed.read_colmap_cameras(cams_path), _posed.read_colmap_images(
+    return cams_path, posed.read_colmap_cameras(cams_path), posed.read_colmap_images(
         os.path.join(d, "images.txt"))
 
   def load_view(self, scene, frame):
     s, n = scene.split("/")
     dense = os.path.join(self.root, s, f"dense{n}")
     image = io.read_image(os.path.join(dense, "imgs", frame))
-    depth = _posed.sanitize_depth(read_depth_h5(
+    depth = posed.sanitize_depth(read_depth_h5(
         os.path.join(dense, "depths", os.path.splitext(frame)[0] + ".h5")))
     cams_path, cams, images = self._sfm(scene)
     if frame not in images:
@@ -121,4 +121,4 @@ class MegaDepth(_posed.PosedPairSource):
     if entry["camera_id"] not in cams:
       raise KeyError(f"{cams_path}: no camera {entry['camera_id']} (used by {frame})")
     K = undistorted_K(cams[entry["camera_id"]], image.shape[1::-1], cams_path)
-    return _posed.View(image, depth, K, np.linalg.inv(entry["w2c"]))
+    return posed.View(image, depth, K, np.linalg.inv(entry["w2c"]))

@@ -25,14 +25,14 @@ import numpy as np
 
 from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import _posed
+from ufm_jax.data.sources import posed
 
 PAIRS_FILE = "scannet_test_pairs_with_gt.txt"
 ORIGINAL_WH = (1296, 968)
 
 
 def read_superglue_pairs(path):
-  _posed.require_file(path, "SuperGlue's scannet_test_pairs_with_gt.txt")
+  posed.require_file(path, "SuperGlue's scannet_test_pairs_with_gt.txt")
   out = []
   with open(path) as f:
     for n, line in enumerate(f, 1):
@@ -69,7 +69,7 @@ class ScanNet1500:
   def __init__(self, root, split="test", pairs=None):
     if root is None:
       raise ValueError("scannet1500: a dataset root is required (see data/scannet1500/README.md)")
-    self.root = _posed.require_dir(os.fspath(root), "the ScanNet-1500 root "
+    self.root = posed.require_dir(os.fspath(root), "the ScanNet-1500 root "
                                    "(data/scannet1500/README.md)")
     self.pairs = read_superglue_pairs(pairs or os.path.join(self.root, PAIRS_FILE))
 

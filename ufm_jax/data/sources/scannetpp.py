@@ -24,11 +24,11 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
-from ufm_jax.data.sources import _exr, _posed
+from ufm_jax.data.sources import exr, posed
 
 
 def read_scene_meta(path: str) -> dict:
-  _posed.require_file(path, "a WAI scene_meta.json")
+  posed.require_file(path, "a WAI scene_meta.json")
   try:
     with open(path) as f:
       meta = json.load(f)
@@ -53,8 +53,8 @@ def wai_view(scene_dir: str, meta: dict, frame: dict, depth_keys=("rendered_dept
   image = io.read_image(os.path.join(scene_dir, frame.get("file_path", frame.get("image", ""))))
   rel = next((frame[k] for k in depth_keys if isinstance(frame.get(k), str)), None)
   rel = rel or os.path.join(depth_keys[0], f"{frame['frame_name']}.exr")
-  depth = _posed.sanitize_depth(_exr.read_exr(os.path.join(scene_dir, rel)))
-  return _posed.View(image, depth, K, c2w)
+  depth = posed.sanitize_depth(exr.read_exr(os.path.join(scene_dir, rel)))
+  return posed.View(image, depth, K, c2w)
 
 
 class WaiScenes:
@@ -73,7 +73,7 @@ class WaiScenes:
 
 
 @register("scannetpp")
-class ScanNetPP(WaiScenes, _posed.PosedPairSource):
+class ScanNetPP(WaiScenes, posed.PosedPairSource):
   name = "scannetpp"
   has_backward = False
   static_scene = True

@@ -22,13 +22,13 @@ import numpy as np
 
 from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import _posed
+from ufm_jax.data.sources import posed
 
 _CAMS = {"l": "left", "r": "right", b"l": "left", b"r": "right"}
 
 
 @register("staticthings")
-class StaticThings(_posed.PosedPairSource):
+class StaticThings(posed.PosedPairSource):
   name = "staticthings"
   has_backward = False
   static_scene = True
@@ -43,7 +43,7 @@ class StaticThings(_posed.PosedPairSource):
     self.part = "TEST" if split == "test" else "TRAIN"
 
   def scenes(self):
-    base = _posed.require_dir(os.path.join(self.root, f"frames_{self.frames_pass}pass", self.part),
+    base = posed.require_dir(os.path.join(self.root, f"frames_{self.frames_pass}pass", self.part),
                               f"frames_{self.frames_pass}pass/{self.part}/<A|B|C>/<seq>/")
     return [f"{self.part}/{l}/{s}" for l in sorted(os.listdir(base))
             for s in sorted(os.listdir(os.path.join(base, l)))]
@@ -72,7 +72,7 @@ class StaticThings(_posed.PosedPairSource):
     cam, idx = frame.split("/")
     image = io.read_image(os.path.join(self.root, f"frames_{self.frames_pass}pass", scene,
                                            cam, f"{idx}.png"))
-    depth = _posed.sanitize_depth(io.read_float3(
+    depth = posed.sanitize_depth(io.read_float3(
         os.path.join(self.root, "depths", scene, cam, f"{idx}.float3")))
     if self.max_depth is not None:
       depth[depth > self.max_depth] = 0
@@ -81,4 +81,4 @@ class StaticThings(_posed.PosedPairSource):
     if w2c.shape != (4, 4) or K.shape != (3, 3):
       raise ValueError(f"{os.path.join(self.root, 'poses', scene, cam, idx)}: expected a 4x4 pose "
                        f"and 3x3 intrinsics, got {w2c.shape} and {K.shape}")
-    return _posed.View(image, depth, K.astype(np.float64), np.linalg.inv(w2c.astype(np.float64)))
+    return posed.View(image, depth, K.astype(np.float64), np.linalg.inv(w2c.astype(np.float64)))

@@ -29,7 +29,7 @@ import numpy as np
 from ufm_jax.data import decode
 from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import _posed
+from ufm_jax.data.sources import posed
 
 CUBE_CAMERAS = ("front", "back", "left", "right", "top", "bottom")
 # Columns: OpenCV camera axes written in NED camera axes (x forward, y right, z down).
@@ -42,7 +42,7 @@ def tartanair_K(height: int, width: int) -> np.ndarray:
 
 
 def read_depth_png(path: str) -> np.ndarray:
-  _posed.require_file(path, "a TartanAir V2 depth PNG (float32 bytes in 4 uint8 channels)")
+  posed.require_file(path, "a TartanAir V2 depth PNG (float32 bytes in 4 uint8 channels)")
   raw = decode.imread_unchanged(path)  # OpenCV's BGRA byte order, as TartanAir's tools read it
   if raw is None or raw.dtype != np.uint8 or raw.ndim != 3 or raw.shape[2] != 4:
     raise ValueError(f"{path}: expected a 4-channel uint8 PNG holding float32 depth, got "
@@ -58,7 +58,7 @@ def write_depth_png(path: str, depth: np.ndarray) -> None:
 
 def read_poses_ned(path: str) -> np.ndarray:
   """pose_<cam>.txt -> [N, 4, 4] camera-to-world, OpenCV camera axes."""
-  _posed.require_file(path, "a TartanAir pose file (tx ty tz qx qy qz qw per line)")
+  posed.require_file(path, "a TartanAir pose file (tx ty tz qx qy qz qw per line)")
   try:
     rows = np.loadtxt(path, ndmin=2)
   except ValueError as e:
@@ -68,13 +68,13 @@ def read_poses_ned(path: str) -> np.ndarray:
                      f"{rows.shape[1]}")
   out = np.tile(np.eye(4), (len(rows), 1, 1))
   for k, (tx, ty, tz, qx, qy, qz, qw) in enumerate(rows):
-    out[k, :3, :3] = _posed.qvec_to_rotmat((qw, qx, qy, qz))
+    out[k, :3, :3] = posed.qvec_to_rotmat((qw, qx, qy, qz))
     out[k, :3, 3] = (tx, ty, tz)
   return out @ NED_FROM_OPENCV
 
 
 @register("tartanair_v2")
-class TartanAirV2(_posed.PosedPairSource):
+class TartanAirV2(posed.PosedPairSource):
   name = "tartanair_v2"
   has_backward = False
   static_scene = True
@@ -134,7 +134,7 @@ class TartanAirV2(_posed.PosedPairSource):
     cam, idx = frame.split("/")
     d = os.path.join(self.root, scene)
     image = io.read_image(os.path.join(d, f"image_{cam}", f"{idx}_{cam}.png"))
-    depth = _posed.sanitize_depth(read_depth_png(
+    depth = posed.sanitize_depth(read_depth_png(
         os.path.join(d, f"depth_{cam}", f"{idx}_{cam}_depth.png")))
     if self.max_depth is not None:
       depth[depth > self.max_depth] = 0
@@ -142,4 +142,4 @@ class TartanAirV2(_posed.PosedPairSource):
     if int(idx) >= len(poses):
       raise ValueError(f"{os.path.join(d, f'pose_{cam}.txt')}: {len(poses)} poses, frame {idx} "
                        "has none")
-    return _posed.View(image, depth, tartanair_K(*depth.shape), poses[int(idx)])
+    return posed.View(image, depth, tartanair_K(*depth.shape), poses[int(idx)])

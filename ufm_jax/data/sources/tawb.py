@@ -20,11 +20,11 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
-from ufm_jax.data.sources import _exr, _posed
+from ufm_jax.data.sources import exr, posed
 
 
 def _load_npy(path, shape, what):
-  _posed.require_file(path, what)
+  posed.require_file(path, what)
   try:
     arr = np.load(path)
   except ValueError as e:
@@ -35,7 +35,7 @@ def _load_npy(path, shape, what):
 
 
 @register("tawb")
-class TAWB(_posed.PosedPairSource):
+class TAWB(posed.PosedPairSource):
   name = "tawb"
   has_backward = False
   static_scene = True
@@ -46,7 +46,7 @@ class TAWB(_posed.PosedPairSource):
     self.percentile_cut = percentile_cut
 
   def scenes(self):
-    _posed.require_dir(self.base, f"the TA-WB {self.split}/<Env>/ folders")
+    posed.require_dir(self.base, f"the TA-WB {self.split}/<Env>/ folders")
     return sorted(e for e in os.listdir(self.base)
                   if os.path.isdir(os.path.join(self.base, e, "images")))
 
@@ -67,9 +67,9 @@ class TAWB(_posed.PosedPairSource):
   def load_view(self, scene, frame):
     d = os.path.join(self.base, scene)
     image = io.read_image(os.path.join(d, "images", f"{frame}.png"))
-    depth = _posed.sanitize_depth(_exr.read_exr(os.path.join(d, "depth", f"{frame}.exr")))
+    depth = posed.sanitize_depth(exr.read_exr(os.path.join(d, "depth", f"{frame}.exr")))
     if self.percentile_cut is not None and (depth > 0).any():
       depth[depth > np.percentile(depth[depth > 0], self.percentile_cut)] = 0
     K = _load_npy(os.path.join(d, "camera_params", f"{frame}.npy"), (3, 3), "3x3 intrinsics")
     c2w = _load_npy(os.path.join(d, "poses", f"{frame}.npy"), (4, 4), "4x4 camera-to-world")
-    return _posed.View(image, depth, K, c2w)
+    return posed.View(image, depth, K, c2w)
