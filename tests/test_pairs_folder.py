@@ -102,6 +102,30 @@ def test_synthetic_cli_round_trip(tmp_path):
     np.testing.assert_allclose(back["meta"]["K0"], ref_back["meta"]["K0"])
 
 
+def test_both_equals_forward_and_backward_and_decodes_each_file_once(tmp_path, monkeypatch):
+  out = tmp_path / "syn"
+  assert S.main(["--out", str(out), "--pairs", "1", "--seed", "2", "--size", "28x42"]) == 0
+  src = data.get_source("pairs_folder", str(out))
+  fwd, bwd = src.both(0)
+  for got, want in ((fwd, src[0]), (bwd, src.backward(0))):
+    for k in ("image0", "image1", "flow", "covisibility", "flow_valid", "covis_valid"):
+      np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+    assert sorted(got["meta"]) == sorted(want["meta"])
+    for k, v in want["meta"].items():
+      np.testing.assert_array_equal(got["meta"][k], v, err_msg=k)
+  # Symmetrized training calls `both`: each PNG and the depth archive are decoded once per pair.
+  from ufm_jax.data import decode
+  reads = []
+  real_imread, real_load = decode.imread_unchanged, np.load
+  monkeypatch.setattr(decode, "imread_unchanged", lambda p, **kw: reads.append(os.path.basename(
+      p)) or real_imread(p, **kw))
+  monkeypatch.setattr(np, "load", lambda p, *a, **kw: reads.append(os.path.basename(p)) or
+                      real_load(p, *a, **kw))
+  src.both(0)
+  assert sorted(reads) == sorted(["image0.png", "image1.png", "depth.npz"] +
+                                 ["covisibility.png", "flow_valid.png", "covis_valid.png"] * 2)
+
+
 def test_no_flow_where_flow_valid_says_valid_is_a_corrupt_sample(tmp_path):
   make_pair(tmp_path / "a")
   make_pair(tmp_path / "b", masks=False)

@@ -111,16 +111,7 @@ class PairsFolder:
   def path(self, index) -> str:
     return os.path.join(self.root, self.pairs[index])
 
-  def _load(self, index, backward: bool):
-    folder = self.path(index)
-    im0 = _read_rgb(os.path.join(folder, "image0.png"))
-    im1 = _read_rgb(os.path.join(folder, "image1.png"))
-    if backward:
-      im0, im1 = im1, im0
-    labels_dir = os.path.join(folder, "reverse") if backward else folder
-    if backward and not os.path.isdir(labels_dir):
-      raise ValueError(f"{labels_dir}: missing (this pair has no backward labels in reverse/)")
-    labels = read_labels(labels_dir, im0.shape[:2], im1.shape[:2])
+  def _meta(self, folder):
     meta = {}
     meta_path = os.path.join(folder, "meta.json")
     if os.path.isfile(meta_path):
@@ -144,6 +135,24 @@ class PairsFolder:
           meta.update({k: z[k].astype(np.float32) for k in ("depth0", "depth1") if k in z})
       except (OSError, ValueError) as e:
         raise ValueError(f"{depth_path}: unreadable depth archive ({e})") from e
+    return meta
+
+  def _load(self, index, backward: bool, images=None, meta=None):
+    """One direction; `images` (source, target) and `meta` (forward's, as read) skip re-reading
+    what the other direction of the same pair already decoded."""
+    folder = self.path(index)
+    if images is None:
+      im0 = _read_rgb(os.path.join(folder, "image0.png"))
+      im1 = _read_rgb(os.path.join(folder, "image1.png"))
+      if backward:
+        im0, im1 = im1, im0
+    else:
+      im0, im1 = images
+    labels_dir = os.path.join(folder, "reverse") if backward else folder
+    if backward and not os.path.isdir(labels_dir):
+      raise ValueError(f"{labels_dir}: missing (this pair has no backward labels in reverse/)")
+    labels = read_labels(labels_dir, im0.shape[:2], im1.shape[:2])
+    meta = dict(self._meta(folder) if meta is None else meta)
     if backward:
       for a, b in (("K0", "K1"), ("cam2world0", "cam2world1"), ("depth0", "depth1"),
                    ("frame0", "frame1")):
@@ -164,6 +173,12 @@ class PairsFolder:
     return self._load(index, backward=True)
 
   def both(self, index):
-    """(forward, backward); backward is None for a pair without reverse/."""
-    has = os.path.isdir(os.path.join(self.path(index), "reverse"))
-    return self[index], self.backward(index) if has else None
+    """(forward, backward), decoding the images, meta.json and depth.npz once; backward is None
+    for a pair without reverse/."""
+    folder = self.path(index)
+    meta = self._meta(folder)
+    forward = self._load(index, backward=False, meta=meta)
+    if not os.path.isdir(os.path.join(folder, "reverse")):
+      return forward, None
+    images = (forward["image1"].copy(), forward["image0"].copy())
+    return forward, self._load(index, backward=True, images=images, meta=meta)
