@@ -1,0 +1,30 @@
+"""benchmarks/inference.py counts the FLOPs the forward really does.
+
+The CPU attention path is a loop over heads and query chunks, and XLA's cost analysis counts a
+loop body once; a share of peak built on that count would understate the work. Checked against
+the matmul FLOPs of attention written out from its shapes.
+"""
+
+import json
+import pathlib
+import subprocess
+import sys
+
+from ufm_jax.models import variants
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
+
+def test_breakdown_counts_every_head_of_cpu_attention(tmp_path):
+  out = tmp_path / "bench.json"
+  cmd = [sys.executable, str(REPO / "benchmarks" / "inference.py"), "--config", "fixture_small",
+         "--size", "56x56", "--runs", "1", "--warmup", "0", "--breakdown", "--json", str(out)]
+  r = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=REPO)
+  assert r.returncode == 0, r.stderr[-3000:]
+  res = json.loads(out.read_text())
+  enc = variants.get("fixture_small").encoder
+  b, n, c = 2, (56 // enc.patch_size) ** 2 + 1, enc.embed_dim  # two images; patches + cls token
+  # qkv and output projections, then q.k and p.v over all heads.
+  matmuls = 2 * b * n * c * 4 * c + 2 * 2 * b * n * n * c
+  stage = next(s for s in res["stages"] if s["stage"] == "encoder attention")
+  assert matmuls <= stage["gflop"] * 1e9 <= 1.25 * matmuls, (stage, matmuls / 1e9)
