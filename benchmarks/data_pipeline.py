@@ -3,6 +3,7 @@
   python benchmarks/data_pipeline.py                       # synthetic mixture, tiny + 560 shapes
   python benchmarks/data_pipeline.py --longest_side 560 --workers 0,2,4 --batch_size 16
   python benchmarks/data_pipeline.py --config configs/ufm560.py --data_root /data/ufm  # real mixture
+  python benchmarks/data_pipeline.py --table1 --longest_side 560 [--native]  # Table 1 formats
 
 Source per shape: up to --render_max_side the synthetic source renders pairs on the fly at 3:4 of
 the training side; above it (rendering a 420x560 pair takes seconds, far more than reading one), the
@@ -11,7 +12,7 @@ written once in the pairs_folder format under --cache_dir, so the figure covers 
 plus augmentation at that size, as for a real dataset read from disk.
 
 ""samples" are pairs as the train step sees them (both directions when symmetrized). "host CPU
-ms/row" (workers=0 only) is the process CPU time per such row: what sizing the grain workers of a
+ms/row" (workers=0 only, read synchronously) is the process CPU time per such row: what sizing the grain workers of a
 host needs. Prints figures, asserts nothing about timings; the last line is one JSON object.
 """
 
@@ -69,8 +70,28 @@ def _upsampled_pairs(cache_dir, side, n):
   return root
 
 
+def _table1_trees(root, side, native):
+  """One-pair trees of the 12 Table 1 datasets in their on-disk formats under root/<name>
+  (benchmarks/source_load.py's writers); returns {name: get_source options}."""
+  import source_load  # beside this file  # pylint: disable=g-import-not-at-top
+  hw = (3 * side // 4, side)
+  options = {}
+  for name, writer, kwargs, _ in source_load.all_trees(hw, native):
+    if name in mixture.QUOTAS:
+      writer(os.path.join(root, name))
+      options[name] = kwargs
+  missing = sorted(set(mixture.QUOTAS) - set(options))
+  if missing:
+    raise SystemExit(f"--table1: no test-tree writer for {missing}")
+  return options
+
+
 def _input_block(args, longest_side, workers):
-  if args.config:
+  if args.table1:
+    block = pipeline.input_config(
+        mixture.mixture([args.table1_dataset], options={args.table1_dataset: args.table1_options}),
+        symmetrize=args.symmetrize, data_root=args.table1_root)
+  elif args.config:
     import importlib.util  # pylint: disable=g-import-not-at-top
     spec = importlib.util.spec_from_file_location("bench_config", args.config)
     mod = importlib.util.module_from_spec(spec)
@@ -90,6 +111,10 @@ def _input_block(args, longest_side, workers):
   block.longest_side = longest_side
   block.num_workers = workers
   block.read_threads = args.read_threads
+  if not workers:
+    # Synchronous: each timed batch is made inside the timed window. With read threads a
+    # prefetch buffer fills during the warm-up and the CPU time of those rows goes uncounted.
+    block.read_threads = block.prefetch_buffer_size = 0
   return block
 
 
@@ -135,7 +160,14 @@ def main(argv=None):
   p.add_argument("--per_dataset", action="store_true",
                  help="also print every reader's CPU ms per sample on 560-shape test trees "
                       "(benchmarks/source_load.py)")
+  p.add_argument("--table1", action="store_true",
+                 help="host CPU ms/row of each Table 1 dataset read from a one-pair tree in its "
+                      "real on-disk format (workers=0), and their mean weighted by the epoch quotas")
+  p.add_argument("--native", action="store_true",
+                 help="with --table1: the flow datasets' trees at their native frame sizes")
   args = p.parse_args(argv)
+  if args.table1:
+    return table1(args)
   if args.per_dataset:
     import source_load  # beside this file
     print("CPU ms per sample, single thread, 420x560 test trees (budget < 50 ms)")
@@ -155,6 +187,34 @@ def main(argv=None):
   print("host CPU ms/row: process CPU time per training row with workers=0 (all decoding, labels "
         "and augmentation in this process); a host feeding R rows/s needs about R x ms / 1000 cores")
   print(json.dumps({"load_avg_1m": round(os.getloadavg()[0], 2), "settings": rows}))
+
+
+def table1(args):
+  """Per-dataset host CPU ms/row through the whole pipeline (reader, backward labels, checks,
+  augmentation, batching) and the quota-weighted mean over the Table 1 mixture."""
+  import tempfile  # pylint: disable=g-import-not-at-top
+  import cv2  # pylint: disable=g-import-not-at-top
+  cv2.setNumThreads(1)  # a grain worker's share of the host: one core
+  side = int(args.longest_side.split(",")[-1])
+  rows = {}
+  print(f"host CPU ms per training row, workers=0, longest side {side}, batch {args.batch_size}, "
+        f"{'symmetrized' if args.symmetrize else 'one direction'}; one-pair trees at "
+        f"{3 * side // 4}x{side}{' (flow sets at native sizes)' if args.native else ''}")
+  with tempfile.TemporaryDirectory() as root:
+    options = _table1_trees(root, side, args.native)
+    args.table1_root = root
+    for name in mixture.QUOTAS:
+      args.table1_dataset, args.table1_options = name, options[name]
+      block = _input_block(args, side, 0)
+      _, _, _, cpu_ms = measure(block, args.batches, args.warmup)
+      rows[name] = cpu_ms
+      print(f"  {name:14s} {mixture.QUOTAS[name]:>8d} pairs/epoch {cpu_ms:8.1f} ms/row", flush=True)
+  total = sum(mixture.QUOTAS.values())
+  mean = sum(mixture.QUOTAS[n] * ms for n, ms in rows.items()) / total
+  print(f"  {'Table 1 mean':14s} {total:>8d} pairs/epoch {mean:8.1f} ms/row (weighted by quota)")
+  print(json.dumps({"load_avg_1m": round(os.getloadavg()[0], 2), "longest_side": side,
+                    "native": args.native, "ms_per_row": rows, "table1_mean_ms_per_row": mean}))
+  return mean
 
 
 if __name__ == "__main__":

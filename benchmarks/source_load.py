@@ -96,12 +96,14 @@ def write_spring(root, hw):
   h, w = hw
   for k in (1, 2):
     io.write_image(_mk(f"{seq}/frame_left/frame_left_{k:04d}.png"), _image(hw, k))
-  full = _flow((2 * h, 2 * w), 3, scale=1.0)
-  full[: h // 4, : w // 4] = np.nan  # no GT there
-  io.write_flo5(_mk(f"{seq}/flow_FW_left/flow_FW_left_0001.flo5"), full)
   mm = np.zeros((2 * h, 2 * w, 3), np.uint8)
   mm[h:, :w // 3, 0] = 255
-  io.write_image(_mk(f"{seq}/maps/matchmap_flow_FW_left/matchmap_flow_FW_left_0001.png"), mm)
+  # FW 0001 (1 -> 2) and BW 0002 (2 -> 1): what a symmetrized training batch reads.
+  for fb, frame, scale in (("FW", 1, 1.0), ("BW", 2, -1.0)):
+    full = _flow((2 * h, 2 * w), 3, scale=scale)
+    full[: h // 4, : w // 4] = np.nan  # no GT there
+    io.write_flo5(_mk(f"{seq}/flow_{fb}_left/flow_{fb}_left_{frame:04d}.flo5"), full)
+    io.write_image(_mk(f"{seq}/maps/matchmap_flow_{fb}_left/matchmap_flow_{fb}_left_{frame:04d}.png"), mm)
   os.makedirs(f"{seq}/cam_data")
   with open(f"{seq}/cam_data/intrinsics.txt", "w") as f:
     f.write(f"{w} {w} {w / 2} {h / 2}\n" * 2)
