@@ -12,8 +12,8 @@ written once in the pairs_folder format under --cache_dir, so the figure covers 
 plus augmentation at that size, as for a real dataset read from disk.
 
 ""samples" are pairs as the train step sees them (both directions when symmetrized). "host CPU
-ms/row" (workers=0 only, read synchronously) is the process CPU time per such row: what sizing the grain workers of a
-host needs. Prints figures, asserts nothing about timings; the last line is one JSON object.
+ms/row" (workers=0 only, read synchronously) is the process CPU time per such row: what sizing
+the grain workers of a host needs. Prints figures, asserts nothing about timings; the last line is one JSON object.
 """
 
 from __future__ import annotations
@@ -87,11 +87,8 @@ def _table1_trees(root, side, native):
 
 
 def _input_block(args, longest_side, workers):
-  if args.table1:
-    block = pipeline.input_config(
-        mixture.mixture([args.table1_dataset], options={args.table1_dataset: args.table1_options}),
-        symmetrize=args.symmetrize, data_root=args.table1_root)
-  elif args.config:
+  """The input block to measure: --config's, else the synthetic data's."""
+  if args.config:
     import importlib.util  # pylint: disable=g-import-not-at-top
     spec = importlib.util.spec_from_file_location("bench_config", args.config)
     mod = importlib.util.module_from_spec(spec)
@@ -107,6 +104,11 @@ def _input_block(args, longest_side, workers):
     root = _upsampled_pairs(args.cache_dir, longest_side, args.disk_pairs)
     datasets = {"pairs_folder": {"quota": args.quota, "root": root, "options": {}}}
     block = pipeline.input_config(datasets, symmetrize=args.symmetrize)
+  return _measured(block, args, longest_side, workers)
+
+
+def _measured(block, args, longest_side, workers):
+  """`block` with the benchmark's batch, shape, worker and read settings."""
   block.batch_size = args.batch_size
   block.longest_side = longest_side
   block.num_workers = workers
@@ -202,10 +204,10 @@ def table1(args):
         f"{3 * side // 4}x{side}{' (flow sets at native sizes)' if args.native else ''}")
   with tempfile.TemporaryDirectory() as root:
     options = _table1_trees(root, side, args.native)
-    args.table1_root = root
     for name in mixture.QUOTAS:
-      args.table1_dataset, args.table1_options = name, options[name]
-      block = _input_block(args, side, 0)
+      block = _measured(pipeline.input_config(
+          mixture.mixture([name], options={name: options[name]}), symmetrize=args.symmetrize,
+          data_root=root), args, side, 0)
       _, _, _, cpu_ms = measure(block, args.batches, args.warmup)
       rows[name] = cpu_ms
       print(f"  {name:14s} {mixture.QUOTAS[name]:>8d} pairs/epoch {cpu_ms:8.1f} ms/row", flush=True)
