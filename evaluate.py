@@ -96,16 +96,13 @@ def load_model(args):
 
 def random_model(name: str = None):
   """A randomly initialised small model (no checkpoint on a fresh machine)."""
-  import jax
-  import jax.numpy as jnp
-
+  from ufm_jax import trainer
   from ufm_jax.models import variants
   name = name or RANDOM_MODEL
   print(f"warning: no checkpoint given and no {DEFAULT_WORKDIR}/: evaluating a randomly "
         f"initialised {name!r} model (numbers are meaningless)", file=sys.stderr)
   model = variants.build_model(name)
-  x = jnp.zeros((1, 28, 28, 3), jnp.uint8)
-  return model, jax.jit(model.init)(jax.random.PRNGKey(0), x, x)["params"]
+  return model, trainer.random_params(model)
 
 
 def main(argv=None) -> int:

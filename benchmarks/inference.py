@@ -18,7 +18,7 @@ against best(peak), printed with the load average and thread count, so a loaded 
 as a low peak sample rather than a flattering share. --breakdown times each stage on its own.
 --frames adds end-to-end pairs/s (reading, resizing, forward, unmapping, writing) next to the
 model-only figure, the model run at --size as its inference resolution.
-Params are random (`jax.jit(model.init)`) unless --snapshot gives an official snapshot. Figures
+Params are random (`trainer.random_params`) unless --snapshot gives an official snapshot. Figures
 are printed, never asserted; the last line is one JSON object.
 """
 
@@ -196,10 +196,8 @@ def main(argv=None) -> dict:
 
   t0 = time.perf_counter()
   if params is None:
-    # parameter shapes do not depend on the image size: initialise on a small input
-    tiny = jnp.zeros((1, 28, 28, 3), jnp.uint8)
-    params = jax.jit(model.init)(jax.random.PRNGKey(0), tiny, tiny)["params"]
-    jax.block_until_ready(params)
+    from ufm_jax import trainer  # pylint: disable=g-import-not-at-top
+    params = jax.block_until_ready(trainer.random_params(model))
   t_init = time.perf_counter() - t0
   n_params = sum(int(np.prod(x.shape)) for x in jax.tree_util.tree_leaves(params))
 
