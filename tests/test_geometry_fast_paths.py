@@ -185,3 +185,20 @@ def test_sceneflow_row_blocks_give_the_unblocked_result(monkeypatch):
   assert whole["covisibility"].any() and not whole["covisibility"].all()
   for key, value in whole.items():
     np.testing.assert_array_equal(blocked[key], value, err_msg=key)
+
+
+@pytest.mark.parametrize("channels", [None, 1, 2, 3, 4, 8])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_finite_pixels_equals_isfinite_all(channels, dtype):
+  rng = np.random.default_rng(channels or 0)
+  shape = (7, 9) if channels is None else (7, 9, channels)
+  a = rng.normal(size=shape).astype(dtype)
+  a.reshape(-1)[rng.choice(a.size, a.size // 3, replace=False)] = rng.choice(
+      [np.nan, np.inf, -np.inf], a.size // 3)
+  want = np.isfinite(a) if channels is None else np.isfinite(a).all(-1)
+  for view in (a, a[:, ::-1], np.asfortranarray(a)):  # the non-contiguous fallback too
+    got = camera.finite_pixels(view)
+    assert got.dtype == bool and got.shape == view.shape[:2]
+    np.testing.assert_array_equal(got, np.isfinite(view) if channels is None
+                                  else np.isfinite(view).all(-1))
+  assert want.any() and not want.all()

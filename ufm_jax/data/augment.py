@@ -188,25 +188,45 @@ def warp_labels(sample: Mapping[str, np.ndarray], view0: View, view1: View, out_
   # u and v as two planes [2, h, w]: every broadcast below runs over a contiguous last axis
   # (numpy is several times slower broadcasting over a trailing axis of 2).
   planes = np.moveaxis(flow, -1, 0)
+  # Flow is nearly always finite everywhere (one fast whole-array test); then the validity mask
+  # alone decides which taps are zeroed.
+  all_finite = bool(np.isfinite(flow).all())
 
   def tap_rows(rows):  # only the rows the output reads are cleaned
     f = planes.take(rows, 1)
-    return np.where(valid.take(rows, 0) & np.isfinite(f), f, np.float32(0))
+    m = valid.take(rows, 0)
+    if all_finite:  # a product is ~2.5x faster than np.where (-0.0 at some invalid taps)
+      f *= m
+      return f, m
+    return np.where(m & np.isfinite(f), f, np.float32(0)), m
 
   # Separable: blend the two source rows, then the two columns (np.take, not fancy indexing).
+  # In place, in the same operation order as a * (1 - w) + b * w.
   wy = wy[:, None]
-  rows = tap_rows(y0) * (1 - wy) + tap_rows(y1) * wy
-  flow_r = rows.take(x0, 2) * (1 - wx) + rows.take(x1, 2) * wx
+  rows, v0 = tap_rows(y0)
+  lower, v1 = tap_rows(y1)
+  rows *= 1 - wy
+  lower *= wy
+  rows += lower
+  flow_r = rows.take(x0, 2)
+  right = rows.take(x1, 2)
+  flow_r *= 1 - wx
+  right *= wx
+  flow_r += right
   # A label is valid only if every bilinear tap with weight was valid (no blending with garbage).
-  vrows = valid.take(y0, 0) & valid.take(y1, 0)
-  flow_valid = vrows.take(x0, 1) & vrows.take(x1, 1) & valid.take(yn, 0).take(xn, 1)
+  vrows = v0 & v1
+  flow_valid = vrows.take(x0, 1)
+  flow_valid &= vrows.take(x1, 1)
+  flow_valid &= valid.take(yn, 0).take(xn, 1)
   # flow' = A1(x + flow) - x' = s1 * flow + (s1 * x + b1 - x'); the bracket is 1-D, in float64.
   a1 = view1.matrix()
   off_x = (a1[0, 0] * x + a1[0, 2] - xp).astype(np.float32)
   off_y = (a1[1, 1] * y + a1[1, 2] - yp).astype(np.float32)
-  u = np.float32(a1[0, 0]) * flow_r[0] + off_x[None, :]
-  v = np.float32(a1[1, 1]) * flow_r[1] + off_y[:, None]
-  out = {"flow": np.stack([u, v], -1), "flow_valid": flow_valid}
+  flow_r[0] *= np.float32(a1[0, 0])
+  flow_r[0] += off_x[None, :]
+  flow_r[1] *= np.float32(a1[1, 1])
+  flow_r[1] += off_y[:, None]
+  out = {"flow": np.stack([flow_r[0], flow_r[1]], -1), "flow_valid": flow_valid}
   for key in ("covisibility", "covis_valid"):
     out[key] = np.asarray(sample[key], bool).take(yn, 0).take(xn, 1)
   return out

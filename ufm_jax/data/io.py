@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from ufm_jax.data import decode
+from ufm_jax.geometry import camera
 
 FLO_MAGIC = 202021.25  # Middlebury .flo tag ("PIEH" as little-endian float32)
 KITTI_FLOW_SCALE = 64.0  # KITTI / HD1K PNG: flow = (value - 2**15) / 64
@@ -55,9 +56,7 @@ def require_finite(values, path, valid=None, what: str = "flow") -> None:
   depth), a non-finite value where the labels count is a damaged or mis-exported file: the
   training pipeline skips and counts such a sample instead of silently training on less.
   """
-  bad = ~np.isfinite(np.asarray(values))
-  if bad.ndim == 3:
-    bad = bad.any(-1)
+  bad = ~camera.finite_pixels(np.asarray(values))
   if valid is not None:
     bad &= np.asarray(valid, bool)
   n = int(bad.sum())

@@ -41,6 +41,7 @@ import numpy as np
 from ufm_jax.data import augment as augment_lib
 from ufm_jax.data import mixture
 from ufm_jax.data.registry import get_source
+from ufm_jax.geometry import camera
 
 log = logging.getLogger(__name__)
 
@@ -189,7 +190,7 @@ def check_sample(sample: Mapping[str, Any], where: str) -> dict:
     if m.shape != hw:
       raise ValueError(f"{where}: {k} must be {hw}, got {m.shape}")
     out[k] = m.astype(bool, copy=False)
-  bad = int((~np.isfinite(out["flow"]).all(-1) & out["flow_valid"]).sum())
+  bad = np.count_nonzero(out["flow_valid"] & ~camera.finite_pixels(out["flow"]))
   if bad:
     meta = sample.get("meta") or {}
     path = meta.get("path") or meta.get("gt_relpath")

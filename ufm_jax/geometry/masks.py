@@ -14,7 +14,7 @@ def fov_mask_from_flow(flow: np.ndarray, target_shape: tuple[int, int] | None = 
   h, w = flow.shape[:2]
   th, tw = target_shape if target_shape is not None else (h, w)
   target = camera.pixel_grid(h, w) + flow
-  return inside_image(target, th, tw) & np.isfinite(flow).all(-1)
+  return inside_image(target, th, tw) & camera.finite_pixels(flow)
 
 
 def other_view_validity(valid1: np.ndarray, flow: np.ndarray) -> np.ndarray:
@@ -57,7 +57,7 @@ def flyingchairs_labels(flow: np.ndarray) -> dict:
   """FlyingChairs: no occlusion GT. Covisibility := FoV mask (a proxy used for flow supervision
   only); covis_valid all False so the proxy never trains the covisibility head."""
   flow = np.asarray(flow, np.float32)
-  finite = np.isfinite(flow).all(-1)
+  finite = camera.finite_pixels(flow)
   return dict(flow=np.where(finite[..., None], flow, 0.0).astype(np.float32),
               covisibility=fov_mask_from_flow(flow),
               flow_valid=finite,
