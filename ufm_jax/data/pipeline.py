@@ -316,7 +316,8 @@ class LoadPair:
     out_hw = augment_lib.shape_for_step(self.shapes, self.layout.seed, rec["step"])
     rng = np.random.default_rng([self.layout.seed, g, 4])
     pairs = augment_lib.augment(sample, rng, out_hw, self.cfg, backward=backward)
-    out = {k: np.stack([p[k] for p in pairs]) for k in _ARRAY_KEYS}
+    # Rows stay separate arrays until `collate` stacks the batch: one copy of every row, not two.
+    out = {k: [p[k] for p in pairs] for k in _ARRAY_KEYS}
     out["dataset_id"] = np.full(len(pairs), d, np.int32)
     out["epoch"] = np.full(len(pairs), rec["epoch"], np.int32)
     out["_attempts"] = len(skipped) + 1
@@ -325,7 +326,9 @@ class LoadPair:
 
 
 def collate(elements):
-  batch = {k: np.concatenate([e[k] for e in elements]) for k in elements[0] if not k.startswith("_")}
+  """Elements (lists of rows per key; dataset_id/epoch as arrays) -> one batch of stacked rows."""
+  batch = {k: np.stack([row for e in elements for row in e[k]])
+           for k in elements[0] if not k.startswith("_")}
   batch["_attempts"] = sum(e["_attempts"] for e in elements)
   batch["_skipped"] = [m for e in elements for m in e["_skipped"]]
   return batch
