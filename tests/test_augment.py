@@ -199,3 +199,26 @@ def test_color_jitter_matches_sequential_definition():
     want = np.clip(np.round(x), 0, 255)
     got = augment.color_jitter(img, (b, c, s, 0.0)).astype(np.float64)
     assert np.abs(got - want).max() <= 2.0, (b, c, s)
+
+
+@pytest.mark.parametrize("out_hw", [(28, 84), (42, 56), (84, 112)])
+def test_labels_on_the_label_grid_give_the_full_labels_output(out_hw):
+  """warp_labels reads only label_grid's pixels: labels given on that grid alone (the pipeline's
+  lazy posed pairs) produce the same output, bit for bit, also around NaN and invalid taps."""
+  rng = np.random.default_rng(1)
+  sample = _affine_pair()
+  sample["flow"][10:14, 20:25] = np.nan
+  sample["flow_valid"] = rng.uniform(size=sample["flow_valid"].shape) > 0.1
+  sample["covis_valid"] = rng.uniform(size=sample["flow_valid"].shape) > 0.2
+  cfg = augment.AugmentConfig(zoom=(0.6, 1.4), view_scale_jitter=0.2, crop_shift=0.1)
+  hw = sample["flow"].shape[:2]
+  for _ in range(10):
+    params = augment.sample_params(rng, hw, sample["image1"].shape[:2], out_hw, cfg)
+    grid = augment.label_grid(params.view0, hw, out_hw)
+    assert len(grid.rows) * len(grid.cols) < hw[0] * hw[1]
+    on_grid = {k: sample[k][np.ix_(grid.rows, grid.cols)] for k in augment.LABEL_KEYS}
+    full = augment.warp_labels(sample, params.view0, params.view1, out_hw)
+    lazy = augment.warp_labels(on_grid, params.view0, params.view1, out_hw, grid)
+    for k in augment.LABEL_KEYS:
+      assert np.array_equal(np.ascontiguousarray(full[k]).view(np.uint8),
+                            np.ascontiguousarray(lazy[k]).view(np.uint8)), k

@@ -202,3 +202,29 @@ def test_finite_pixels_equals_isfinite_all(channels, dtype):
     np.testing.assert_array_equal(got, np.isfinite(view) if channels is None
                                   else np.isfinite(view).all(-1))
   assert want.any() and not want.all()
+
+
+@pytest.mark.parametrize("search", [0.0, 0.3])
+def test_depth_on_a_pixel_grid_equals_the_full_result_there(search):
+  """correspondence_from_depth(rows=, cols=) is the full result at those pixels, bit for bit."""
+  rng = np.random.default_rng(5)
+  h, w = 50, 70
+  K = np.array([[60.0, 0.0, 34.5], [0.0, 55.0, 24.0], [0.0, 0.0, 1.0]])
+  d0 = rng.uniform(2, 3, (h, w)).astype(np.float32)
+  d0[5:9, 7:20] = 0
+  d0[30, 40] = np.nan
+  d1 = rng.uniform(2, 3, (h, w)).astype(np.float32)
+  d1[10:30, 50:60] = 0
+  c2w1 = np.eye(4)
+  a = 0.1
+  c2w1[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+  c2w1[:3, 3] = [0.3, -0.1, 0.2]
+  full = g.correspondence_from_depth(d0, K, np.eye(4), d1, K, c2w1, 0.05, 0.02, search)
+  rows, cols = np.unique(rng.integers(0, h, 30)), np.unique(rng.integers(0, w, 40))
+  sub = g.correspondence_from_depth(d0, K, np.eye(4), d1, K, c2w1, 0.05, 0.02, search,
+                                    rows=rows, cols=cols)
+  assert full["covisibility"].any() and not full["covisibility"].all()
+  for k, v in full.items():
+    expected = np.ascontiguousarray(v[np.ix_(rows, cols)])
+    assert sub[k].shape == expected.shape, k
+    assert np.array_equal(np.ascontiguousarray(sub[k]).view(np.uint8), expected.view(np.uint8)), k

@@ -168,22 +168,53 @@ def _taps(coord: np.ndarray, size: int):
   return lo, hi, w, nearest
 
 
-def warp_labels(sample: Mapping[str, np.ndarray], view0: View, view1: View, out_hw) -> dict:
+@dataclasses.dataclass(frozen=True)
+class LabelGrid:
+  """The pixels of an original image (size hw) that `warp_labels` reads for one view: rows x cols
+  (sorted, unique). Labels computed on this grid alone give the same output as full ones."""
+  rows: np.ndarray
+  cols: np.ndarray
+  hw: tuple[int, int]
+
+
+def _output_in_original(view: View, out_hw):
+  """Original coordinates of the output pixel centres along x and y (float64)."""
+  x = (np.arange(out_hw[1], dtype=np.float64) + view.cx + 0.5) / view.sx - 0.5
+  y = (np.arange(out_hw[0], dtype=np.float64) + view.cy + 0.5) / view.sy - 0.5
+  return x, y
+
+
+def label_grid(view: View, hw: tuple[int, int], out_hw) -> LabelGrid:
+  """The grid of original pixels (image size hw) whose labels `warp_labels` reads for `view`:
+  the bilinear and nearest taps of the output pixels. Labelling only these (e.g. depth
+  reprojection on a sub-grid) skips the pixels the crop drops or an upscale never touches."""
+  def read(coord, size):
+    lo, hi, _, nearest = _taps(coord, size)
+    return np.unique(np.concatenate([lo, hi, nearest]))
+  x, y = _output_in_original(view, out_hw)
+  return LabelGrid(read(y, hw[0]), read(x, hw[1]), (int(hw[0]), int(hw[1])))
+
+
+def warp_labels(sample: Mapping[str, np.ndarray], view0: View, view1: View, out_hw,
+                grid: LabelGrid | None = None) -> dict:
   """Flow and masks of a (source view0 -> target view1) sample, in output pixels.
 
   Sampled in float64 coordinates with numpy (not cv2's 1/32-pixel fixed point) so labels stay
-  exact to float precision.
+  exact to float precision. With `grid`, the sample's label arrays hold only the pixels of
+  `label_grid(view0, ...)` (the output is the same as with full-size labels).
   """
   out_h, out_w = out_hw
   valid = np.asarray(sample["flow_valid"], bool)
   flow = np.asarray(sample["flow"], np.float32)
-  h, w = valid.shape
+  h, w = valid.shape if grid is None else grid.hw
   xp = np.arange(out_w, dtype=np.float64)
   yp = np.arange(out_h, dtype=np.float64)
-  x = (xp + view0.cx + 0.5) / view0.sx - 0.5   # original source coordinates of output pixels
-  y = (yp + view0.cy + 0.5) / view0.sy - 0.5
+  x, y = _output_in_original(view0, out_hw)
   x0, x1, wx, xn = _taps(x, w)
   y0, y1, wy, yn = _taps(y, h)
+  if grid is not None:  # original pixel -> its place in the grid (every tap is on it)
+    x0, x1, xn = (np.searchsorted(grid.cols, t) for t in (x0, x1, xn))
+    y0, y1, yn = (np.searchsorted(grid.rows, t) for t in (y0, y1, yn))
 
   # u and v as two planes [2, h, w]: every broadcast below runs over a contiguous last axis
   # (numpy is several times slower broadcasting over a trailing axis of 2).
@@ -258,18 +289,21 @@ def color_jitter(image: np.ndarray, params) -> np.ndarray:
 
 
 def apply(sample: Mapping[str, Any], params: Params, out_hw,
-          backward: Mapping[str, Any] | None = None) -> list[dict]:
+          backward: Mapping[str, Any] | None = None,
+          label_grids: tuple[LabelGrid, LabelGrid] | None = None) -> list[dict]:
   """Augments one pair; with `backward` (the (image1 -> image0) labels) returns [fwd, bwd].
 
   The backward pair reuses the forward's augmented images swapped, so (a, b) and (b, a) in a
-  symmetrized batch show exactly the same pixels.
+  symmetrized batch show exactly the same pixels. `label_grids`: the forward labels hold only
+  the pixels of the first grid (`label_grid(params.view0, ...)`), the backward ones the second's.
   """
   out_hw = tuple(int(s) for s in out_hw)
+  g0, g1 = label_grids or (None, None)
   im0 = color_jitter(warp_image(np.asarray(sample["image0"]), params.view0, out_hw), params.color0)
   im1 = color_jitter(warp_image(np.asarray(sample["image1"]), params.view1, out_hw), params.color1)
-  pairs = [(im0, im1, warp_labels(sample, params.view0, params.view1, out_hw))]
+  pairs = [(im0, im1, warp_labels(sample, params.view0, params.view1, out_hw, g0))]
   if backward is not None:
-    pairs.append((im1, im0, warp_labels(backward, params.view1, params.view0, out_hw)))
+    pairs.append((im1, im0, warp_labels(backward, params.view1, params.view0, out_hw, g1)))
   outs = []
   for a, b, labels in pairs:
     if params.hflip:

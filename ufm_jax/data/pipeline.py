@@ -20,8 +20,11 @@ symmetrize, rows (2i, 2i+1) are (a, b) and (b, a): backward labels come from the
 depth + poses in meta, else (backward_fallback='unsupervised', e.g. FlyingChairs, HD1K) the (b, a)
 row has all masks False, so
 the loss must tolerate rows without supervised pixels (FlyingChairs' covis_valid is all False too).
+A static-scene source with `lazy_pair(i)` (the posed datasets) is labelled only at the pixels the
+augmentation reads, both directions from its views' own depth and float64 poses: the same rows
+as from its full-size labels for a fraction of the depth reprojection.
 
-A sample that raises while loading or fails validation is skipped: a replacement is drawn from the
+A sample that raises while loading, labelling or augmenting, or fails validation, is skipped: a replacement is drawn from the
 same dataset (deterministically), the failure is logged with the error text (readers name the
 file) and counted; the iterator raises when the skipped fraction exceeds `max_skip_fraction`.
 """
@@ -175,11 +178,7 @@ def check_sample(sample: Mapping[str, Any], where: str) -> dict:
   if missing:
     raise ValueError(f"{where}: sample lacks keys {missing}")
   out = dict(sample)
-  for k in ("image0", "image1"):
-    a = np.asarray(sample[k])
-    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8 or min(a.shape[:2]) < 2:
-      raise ValueError(f"{where}: {k} must be HxWx3 uint8, got {a.shape} {a.dtype}")
-    out[k] = a
+  out["image0"], out["image1"] = check_images(sample["image0"], sample["image1"], where)
   hw = out["image0"].shape[:2]
   flow = np.asarray(sample["flow"])
   if flow.shape != hw + (2,) or not np.issubdtype(flow.dtype, np.floating):
@@ -197,6 +196,16 @@ def check_sample(sample: Mapping[str, Any], where: str) -> dict:
     raise ValueError(f"{where}{f' ({path})' if path else ''}: non-finite flow at {bad} pixels "
                      "marked flow_valid")
   return out
+
+
+def check_images(image0, image1, where: str) -> tuple[np.ndarray, np.ndarray]:
+  out = []
+  for k, a in (("image0", image0), ("image1", image1)):
+    a = np.asarray(a)
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8 or min(a.shape[:2]) < 2:
+      raise ValueError(f"{where}: {k} must be HxWx3 uint8, got {a.shape} {a.dtype}")
+    out.append(a)
+  return out[0], out[1]
 
 
 def _declared(source, name: str) -> tuple[bool, bool]:
@@ -298,12 +307,40 @@ class LoadPair:
                          f"{backward['image1'].shape} do not swap the forward's")
     return sample, backward
 
+  def _lazy_pairs(self, pair, mode, out_hw, rng, where):
+    """`augment` of a source's lazy pair (static scene), labelled only at the pixels the crop
+    reads (augment.label_grid): the same rows as from full-size labels, for a fraction of the
+    depth reprojection (the largest host cost of the posed datasets)."""
+    image0, image1 = check_images(pair.image0, pair.image1, where)
+    hw0, hw1 = image0.shape[:2], image1.shape[:2]
+    params = augment_lib.sample_params(rng, hw0, hw1, out_hw, self.cfg)
+    grids = (augment_lib.label_grid(params.view0, hw0, out_hw),
+             augment_lib.label_grid(params.view1, hw1, out_hw))
+    sample = {"image0": image0, "image1": image1,
+              **pair.labels(False, grids[0].rows, grids[0].cols)}
+    backward = None
+    if mode == "geometry":
+      backward = {"image0": image1, "image1": image0,
+                  **pair.labels(True, grids[1].rows, grids[1].cols)}
+    return augment_lib.apply(sample, params, out_hw, backward, grids)
+
+  def _augmented(self, d: int, i: int, out_hw, rng):
+    """Sample i of dataset d as [fwd] or [fwd, bwd] augmented rows."""
+    src = self.sources[d]
+    mode = self.backward_modes[d] if self.symmetrize else None
+    if (mode in (None, "geometry") and getattr(src, "static_scene", False)
+        and callable(getattr(src, "lazy_pair", None))):
+      return self._lazy_pairs(src.lazy_pair(i), mode, out_hw, rng, f"{self.names[d]}[{i}]")
+    sample, backward = self._load(d, i)
+    return augment_lib.augment(sample, rng, out_hw, self.cfg, backward=backward)
+
   def __call__(self, rec):
     d, i, g = rec["dataset_id"], rec["index"], rec["position"]
+    out_hw = augment_lib.shape_for_step(self.shapes, self.layout.seed, rec["step"])
     skipped = []
     for attempt in range(self.max_retries + 1):
       try:
-        sample, backward = self._load(d, i)
+        pairs = self._augmented(d, i, out_hw, np.random.default_rng([self.layout.seed, g, 4]))
         break
       except Exception as e:  # pylint: disable=broad-except  # any unreadable sample is skipped
         # Logged (with running counts) when the batch reaches the main process.
@@ -313,9 +350,6 @@ class LoadPair:
     else:
       raise SkipLimitExceeded(f"{self.max_retries + 1} consecutive unreadable samples from "
                               f"{self.names[d]!r}; last: {skipped[-1]}")
-    out_hw = augment_lib.shape_for_step(self.shapes, self.layout.seed, rec["step"])
-    rng = np.random.default_rng([self.layout.seed, g, 4])
-    pairs = augment_lib.augment(sample, rng, out_hw, self.cfg, backward=backward)
     # Rows stay separate arrays until `collate` stacks the batch: one copy of every row, not two.
     out = {k: [p[k] for p in pairs] for k in _ARRAY_KEYS}
     out["dataset_id"] = np.full(len(pairs), d, np.int32)

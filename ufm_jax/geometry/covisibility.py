@@ -205,9 +205,10 @@ class _Target:
 _BLOCK_PIXELS = 1 << 15
 
 
-def _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0):
+def _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0, rows=None, cols=None):
   """xyz(r0, r1) -> camera-2 coordinates X, Y, Z (float64 [r1 - r0, W]) of source rows r0:r1
-  -> the output dict of `covisibility_from_points`."""
+  -> the output dict of `covisibility_from_points`. `rows`, `cols`: the source pixel coordinates
+  of valid0's rows and columns when it is a sub-grid (default: all of them)."""
   h0, w0 = valid0.shape
   target = _Target(depth1, K1)
   h1, w1 = target.h, target.w
@@ -219,12 +220,13 @@ def _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0):
   if search:
     uv_all = np.empty((2, h0, w0))
     expected_all = np.empty((h0, w0), _F)
-  grid_u = np.arange(w0, dtype=np.float64)[None, :]
+  grid_u = (np.arange(w0) if cols is None else cols).astype(np.float64)[None, :]
+  all_v = (np.arange(h0) if rows is None else rows).astype(np.float64)
   step = max(1, _BLOCK_PIXELS // max(w0, 1))
   for r0 in range(0, h0, step):
     r1 = min(h0, r0 + step)
     X, Y, Z = xyz(r0, r1)
-    grid_v = np.arange(r0, r1, dtype=np.float64)[:, None]
+    grid_v = all_v[r0:r1, None]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
       front = valid0[r0:r1] & (Z > MIN_Z)
       inv_z = np.divide(1.0, Z)
@@ -275,14 +277,15 @@ def _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0):
               valid_other=valid_other, in_front=in_front, error=error)
 
 
-def _source_in_target(depth0, valid0, K0, rel, row0=0):
-  """Camera-2 coordinates (float64 X, Y, Z planes) of the unprojected source depth rows
-  (starting at image row `row0`) under the rigid transform rel [4, 4] (camera 1 -> camera 2)."""
+def _source_in_target(depth0, valid0, K0, rel, rows=None, cols=None):
+  """Camera-2 coordinates (float64 X, Y, Z planes) of the unprojected source depth under the rigid
+  transform rel [4, 4] (camera 1 -> camera 2). `rows`, `cols`: the image coordinates of depth0's
+  rows and columns (default 0, 1, ...)."""
   h, w = depth0.shape
   with np.errstate(invalid="ignore"):
     d = np.where(valid0, depth0, 0.0)
-  u = np.arange(w, dtype=np.float64)[None, :]
-  v = np.arange(row0, row0 + h, dtype=np.float64)[:, None]
+  u = (np.arange(w) if cols is None else cols).astype(np.float64)[None, :]
+  v = (np.arange(h) if rows is None else rows).astype(np.float64)[:, None]
   M = rel[:3, :3] @ _k_inverse(K0)
   out = []
   for i in range(3):
@@ -301,12 +304,16 @@ def _check_depth(name, depth):
 
 
 def correspondence_from_depth(depth0, K0, cam2world0, depth1, K1, cam2world1,
-                              tau_d: float, tau_r: float, subpixel_search: float = 0.0):
+                              tau_d: float, tau_r: float, subpixel_search: float = 0.0,
+                              rows=None, cols=None):
   """Static scene: flow 0->1 and covisibility from z-depths, intrinsics and OpenCV c2w poses.
 
   Invalid depths (0, inf, nan) mark pixels without ground truth: invalid source pixels get
   valid=False (and flow 0, all masks False); invalid target pixels never confirm covisibility.
   Returns the dict of `covisibility_from_points` (see there for `subpixel_search`).
+  rows, cols (int index vectors): only the source pixels of that grid, every output [len(rows),
+  len(cols)]. The rule is per source pixel, so they equal the full result there bit for bit; the
+  training pipeline labels just the pixels its crop reads (ufm_jax.data.augment.label_grid).
   """
   depth0 = _check_depth("depth0", depth0)
   _check_depth("depth1", depth1)
@@ -316,7 +323,12 @@ def correspondence_from_depth(depth0, K0, cam2world0, depth1, K1, cam2world1,
   for name, T in (("cam2world0", cam2world0), ("cam2world1", cam2world1)):
     if np.shape(T) != (4, 4):
       raise ValueError(f"{name} must be [4, 4], got shape {np.shape(T)}")
+  if rows is not None or cols is not None:
+    rows = np.arange(depth0.shape[0]) if rows is None else np.asarray(rows, np.intp)
+    cols = np.arange(depth0.shape[1]) if cols is None else np.asarray(cols, np.intp)
+    depth0 = depth0.take(rows, 0).take(cols, 1)
   valid0 = camera.valid_depth(depth0)
   rel = camera.invert_pose(cam2world1) @ np.asarray(cam2world0, np.float64)  # camera 1 -> 2
-  xyz = lambda r0, r1: _source_in_target(depth0[r0:r1], valid0[r0:r1], K0, rel, r0)
-  return _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search)
+  xyz = lambda r0, r1: _source_in_target(depth0[r0:r1], valid0[r0:r1], K0, rel,
+                                         np.arange(r0, r1) if rows is None else rows[r0:r1], cols)
+  return _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search, rows, cols)

@@ -218,20 +218,49 @@ def check_view(v: View, where: str) -> View:
 
 # --------------------------------------------------------------------------------- sample assembly
 
+@dataclasses.dataclass(frozen=True)
+class PosedPair:
+  """Two posed views of a static scene, labelled on request in either direction and on any grid
+  of source pixels: the training pipeline labels only the pixels its crop reads
+  (`PosedPairSource.lazy_pair`, ufm_jax.data.augment.label_grid)."""
+  v0: View
+  v1: View
+  thresholds: tuple[float, float]   # (tau_d, tau_r)
+
+  @property
+  def image0(self):
+    return self.v0.image
+
+  @property
+  def image1(self):
+    return self.v1.image
+
+  def labels(self, backward: bool = False, rows=None, cols=None) -> dict:
+    """flow, covisibility, flow_valid, covis_valid of (v0 -> v1), or (v1 -> v0) with `backward`,
+    at the source pixels rows x cols (default all)."""
+    a, b = (self.v1, self.v0) if backward else (self.v0, self.v1)
+    corr = geometry.correspondence_from_depth(a.depth, a.K, a.cam2world, b.depth, b.K,
+                                              b.cam2world, *self.thresholds, rows=rows, cols=cols)
+    return geometry.labels_from_correspondence(corr)
+
+
 def pair_sample(dataset: str, scene: str, frames: tuple, v0: View, v1: View,
                 thresholds: tuple[float, float] | None = None, extra_meta: dict | None = None):
   """Two posed views -> the common sample dict (flow / covisibility from depth reprojection)."""
-  tau_d, tau_r = thresholds if thresholds is not None else geometry.covis_thresholds(dataset)
-  corr = geometry.correspondence_from_depth(v0.depth, v0.K, v0.cam2world, v1.depth, v1.K,
-                                            v1.cam2world, tau_d, tau_r)
-  return labelled_sample(dataset, scene, frames, v0, v1, corr, extra_meta)
+  thresholds = thresholds if thresholds is not None else geometry.covis_thresholds(dataset)
+  return _with_meta(dataset, scene, frames, v0, v1, PosedPair(v0, v1, thresholds).labels(),
+                    extra_meta)
 
 
 def labelled_sample(dataset, scene, frames, v0: View, v1: View, corr: dict, extra_meta=None):
   """Geometry output -> sample dict. flow_valid = flow geometrically defined (valid source depth,
   in front of camera 1), as geometry.labels_from_correspondence; the flow loss additionally
   restricts to `covisibility` (paper eq. 3)."""
-  labels = geometry.labels_from_correspondence(corr)
+  return _with_meta(dataset, scene, frames, v0, v1, geometry.labels_from_correspondence(corr),
+                    extra_meta)
+
+
+def _with_meta(dataset, scene, frames, v0: View, v1: View, labels: dict, extra_meta=None):
   meta = dict(dataset=dataset, scene=scene, frame0=str(frames[0]), frame1=str(frames[1]),
               K0=np.asarray(v0.K, np.float32), K1=np.asarray(v1.K, np.float32),
               cam2world0=np.asarray(v0.cam2world, np.float32),
@@ -297,10 +326,16 @@ class PosedPairSource:
 
   def __getitem__(self, i):
     scene, f0, f1 = self.pairs[i]
+    pair = self.lazy_pair(i)
+    return pair_sample(self.name, scene, (f0, f1), pair.v0, pair.v1, pair.thresholds)
+
+  def lazy_pair(self, i) -> PosedPair:
+    """Pair i's views, labelled on request (both directions, any pixel grid): what the training
+    pipeline reads instead of the full-size labels of `self[i]` (ufm_jax.data.registry)."""
+    scene, f0, f1 = self.pairs[i]
     v0 = check_view(self.load_view(scene, f0), f"{self.name}:{scene}/{f0}")
     v1 = check_view(self.load_view(scene, f1), f"{self.name}:{scene}/{f1}")
-    thresholds = self.thresholds or geometry.covis_thresholds(self.name)
-    return pair_sample(self.name, scene, (f0, f1), v0, v1, thresholds)
+    return PosedPair(v0, v1, tuple(self.thresholds or geometry.covis_thresholds(self.name)))
 
 
 # ----------------------------------------------------------------------------------- pair mining
