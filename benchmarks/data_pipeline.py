@@ -3,7 +3,7 @@
   python benchmarks/data_pipeline.py                       # synthetic mixture, tiny + 560 shapes
   python benchmarks/data_pipeline.py --longest_side 560 --workers 0,2,4 --batch_size 16
   python benchmarks/data_pipeline.py --config configs/ufm560.py --data_root /data/ufm  # real mixture
-  python benchmarks/data_pipeline.py --table1 --longest_side 560 [--native]  # Table 1 formats
+  python benchmarks/data_pipeline.py --table1 --longest_side 560 [--native] [--no_keep_heap]  # Table 1 formats
 
 Source per shape: up to --render_max_side the synthetic source renders pairs on the fly at 3:4 of
 the training side; above it (rendering a 420x560 pair takes seconds, far more than reading one), the
@@ -113,6 +113,7 @@ def _measured(block, args, longest_side, workers):
   block.longest_side = longest_side
   block.num_workers = workers
   block.read_threads = args.read_threads
+  block.keep_heap = args.keep_heap
   if not workers:
     # Synchronous: each timed batch is made inside the timed window. With read threads a
     # prefetch buffer fills during the warm-up and the CPU time of those rows goes uncounted.
@@ -150,6 +151,8 @@ def main(argv=None):
   p.add_argument("--warmup", type=int, default=2, help="untimed batches (worker start-up)")
   p.add_argument("--read_threads", type=int, default=1)
   p.add_argument("--no_symmetrize", dest="symmetrize", action="store_false")
+  p.add_argument("--no_keep_heap", dest="keep_heap", action="store_false",
+                 help="input.keep_heap=False: glibc's default malloc trimming (what it saves)")
   p.add_argument("--quota", type=int, default=1000, help="pairs per epoch")
   p.add_argument("--source_options", default="{}", help="JSON options of the synthetic source")
   p.add_argument("--render_max_side", type=int, default=224,
