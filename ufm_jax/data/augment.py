@@ -283,7 +283,7 @@ def color_jitter(image: np.ndarray, params) -> np.ndarray:
                         (1 - saturation) * bc, m * (1 - contrast))
   if hue:
     hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV_FULL)
-    hsv[..., 0] = (hsv[..., 0].astype(np.int32) + int(round(hue * 256))) % 256
+    hsv[..., 0] += np.uint8(int(round(hue * 256)) % 256)  # uint8 wraps: the shift mod 256
     img = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB_FULL)
   return img
 
