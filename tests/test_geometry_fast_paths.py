@@ -149,6 +149,13 @@ def test_rigid_matches_float64_reference(monkeypatch):
   np.testing.assert_array_equal(out["valid"], valid0)
   assert not valid0[:4].any() and valid0[seg == 3].mean() > 0.8
   _compare(out, ref)
+  # On a pixel grid (the training pipeline's lazy labels): the full result there, bit for bit.
+  rows, cols = np.unique(rng.integers(0, 36, 20)), np.unique(rng.integers(0, 44, 25))
+  sub = g.correspondence_from_rigid_objects(d0, K0, c2w0, seg, poses0, d1, K1, c2w1, poses1,
+                                            *tau, rows=rows, cols=cols)
+  for k, v in out.items():
+    expected = np.ascontiguousarray(v[np.ix_(rows, cols)])
+    assert np.array_equal(np.ascontiguousarray(sub[k]).view(np.uint8), expected.view(np.uint8)), k
 
 
 def test_source_load_benchmark_covers_every_reader():

@@ -1,12 +1,12 @@
-"""The training pipeline labels static posed pairs only at the pixels its crop reads
-(PosedPairSource.lazy_pair + augment.label_grid): the rows must equal those made from the
-full-size labels of the same readers, bit for bit, in both directions."""
+"""The training pipeline labels posed pairs only at the pixels its crop reads (the sources'
+lazy_pair + augment.label_grid): the rows must equal those made from the full-size labels of the
+same readers, bit for bit, in both directions."""
 
 import numpy as np
 import pytest
 
 from ufm_jax.data import get_source, pipeline, register
-from ufm_jax.data.sources import posed
+from ufm_jax.data.sources import kubric4d, posed
 from ufm_jax.testing import wide_trees
 
 STATIC = ("blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat", "staticthings")
@@ -23,7 +23,12 @@ def _eager_source(name):
     class Eager(reader):
       lazy_pair = None
 
+      def both(self, i):   # Kubric-4D: the two directions read separately
+        return self[i], self.backward(i)
+
       def __getitem__(self, i):   # PosedPairSource.__getitem__, float64 meta
+        if name == "kubric4d":
+          return super().__getitem__(i)
         pair = reader.lazy_pair(self, i)
         sample = posed.pair_sample(self.name, *self.pairs[i][:1], self.pairs[i][1:], pair.v0,
                                    pair.v1, pair.thresholds)
@@ -36,23 +41,22 @@ def _eager_source(name):
   return make
 
 
-for _name in STATIC:
+for _name in STATIC + ("kubric4d",):
   register(f"_eager_{_name}")(_eager_source(_name))
 
 
-@pytest.mark.parametrize("name", STATIC)
+@pytest.mark.parametrize("name", STATIC + ("kubric4d",))
 @pytest.mark.parametrize("longest_side,symmetrize", [(112, True), (56, True), (56, False)])
 def test_lazy_labels_equal_full_labels(tmp_path, monkeypatch, name, longest_side, symmetrize):
   writer, kwargs = TREES[name]
   writer(str(tmp_path))
   grids = []   # (labelled pixels, image pixels) of every label call on a grid
-  labels = posed.PosedPair.labels
-
-  def spy(self, backward=False, rows=None, cols=None):
-    if rows is not None:
-      grids.append((len(rows) * len(cols), self.v0.depth.size))
-    return labels(self, backward, rows, cols)
-  monkeypatch.setattr(posed.PosedPair, "labels", spy)
+  for cls in (posed.PosedPair, kubric4d.KubricPair):
+    def spy(self, backward=False, rows=None, cols=None, labels=cls.labels):
+      if rows is not None:
+        grids.append((len(rows) * len(cols), self.v0.depth.size))
+      return labels(self, backward, rows, cols)
+    monkeypatch.setattr(cls, "labels", spy)
   aug = {"hflip_prob": 0.5, "crop_shift": 0.1, "zoom": (1.0, 1.5), "view_scale_jitter": 0.1}
   out = []
   for prefix in ("", "_eager_"):

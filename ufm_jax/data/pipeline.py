@@ -20,9 +20,9 @@ symmetrize, rows (2i, 2i+1) are (a, b) and (b, a): backward labels come from the
 depth + poses in meta, else (backward_fallback='unsupervised', e.g. FlyingChairs, HD1K) the (b, a)
 row has all masks False, so
 the loss must tolerate rows without supervised pixels (FlyingChairs' covis_valid is all False too).
-A static-scene source with `lazy_pair(i)` (the posed datasets) is labelled only at the pixels the
-augmentation reads, both directions from its views' own depth and float64 poses: the same rows
-as from its full-size labels for a fraction of the depth reprojection.
+A source with `lazy_pair(i)` (the posed datasets, Kubric-4D) is labelled only at the pixels the
+augmentation reads, in both directions (static scenes from the views' own depth and float64
+poses): the same rows as from its full-size labels for a fraction of the depth reprojection.
 
 A sample that raises while loading, labelling or augmenting, or fails validation, is skipped: a replacement is drawn from the
 same dataset (deterministically), the failure is logged with the error text (readers name the
@@ -308,9 +308,9 @@ class LoadPair:
     return sample, backward
 
   def _lazy_pairs(self, pair, mode, out_hw, rng, where):
-    """`augment` of a source's lazy pair (static scene), labelled only at the pixels the crop
-    reads (augment.label_grid): the same rows as from full-size labels, for a fraction of the
-    depth reprojection (the largest host cost of the posed datasets)."""
+    """`augment` of a source's lazy pair, labelled only at the pixels the crop reads
+    (augment.label_grid): the same rows as from full-size labels, for a fraction of the depth
+    reprojection (the largest host cost of the posed datasets)."""
     image0, image1 = check_images(pair.image0, pair.image1, where)
     hw0, hw1 = image0.shape[:2], image1.shape[:2]
     params = augment_lib.sample_params(rng, hw0, hw1, out_hw, self.cfg)
@@ -319,7 +319,7 @@ class LoadPair:
     sample = {"image0": image0, "image1": image1,
               **pair.labels(False, grids[0].rows, grids[0].cols)}
     backward = None
-    if mode == "geometry":
+    if mode is not None:   # 'geometry' or 'source': the lazy pair's own backward labels
       backward = {"image0": image1, "image1": image0,
                   **pair.labels(True, grids[1].rows, grids[1].cols)}
     return augment_lib.apply(sample, params, out_hw, backward, grids)
@@ -328,8 +328,7 @@ class LoadPair:
     """Sample i of dataset d as [fwd] or [fwd, bwd] augmented rows."""
     src = self.sources[d]
     mode = self.backward_modes[d] if self.symmetrize else None
-    if (mode in (None, "geometry") and getattr(src, "static_scene", False)
-        and callable(getattr(src, "lazy_pair", None))):
+    if mode != "unsupervised" and callable(getattr(src, "lazy_pair", None)):
       return self._lazy_pairs(src.lazy_pair(i), mode, out_hw, rng, f"{self.names[d]}[{i}]")
     sample, backward = self._load(d, i)
     return augment_lib.augment(sample, rng, out_hw, self.cfg, backward=backward)

@@ -18,10 +18,11 @@ symmetrizes batches (ufm_jax.data.pipeline.backward_mode):
                   follow from depth + poses in meta (`thresholds` of the source, else those of
                   meta's dataset)
 
-A static-scene source may also offer `lazy_pair(i)`: an object with `image0`, `image1` and
+A source may also offer `lazy_pair(i)`: an object with `image0`, `image1` and
 `labels(backward, rows, cols)` -> the four label arrays of either direction at the source pixels
-rows x cols only (posed.PosedPair). The training pipeline then labels just the pixels its crop
-reads (augment.label_grid) instead of the whole frame, in both directions.
+rows x cols only (posed.PosedPair: static scenes from depth + poses; kubric4d.KubricPair: rigid
+objects). The training pipeline then labels just the pixels its crop reads (augment.label_grid)
+instead of the whole frame, in both directions.
 """
 
 from __future__ import annotations

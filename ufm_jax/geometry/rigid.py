@@ -49,13 +49,15 @@ def object_motions(object_poses0, object_poses1) -> tuple[np.ndarray, np.ndarray
 
 def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, object_poses0,
                                       depth1, K1, cam2world1, object_poses1,
-                                      tau_d: float, tau_r: float, subpixel_search: float = 0.0):
+                                      tau_d: float, tau_r: float, subpixel_search: float = 0.0,
+                                      rows=None, cols=None):
   """Flow 0->1 and covisibility for a scene of rigid objects.
 
   segmentation0: [H, W] int object id per source pixel. object_poses0/1: object-to-world poses
   at the two times, as an array [N, 4, 4] indexed by id or a dict {id: 4x4}; give the static
   background (Kubric id 0) the identity (or any equal poses) at both times. Pixels whose id has
   no pose at either time get valid=False. Returns the dict of `covisibility_from_points`.
+  rows, cols: only the source pixels of that grid, as in `correspondence_from_depth`.
   """
   depth0 = _check_depth("depth0", depth0)
   depth1 = _check_depth("depth1", depth1)
@@ -64,6 +66,10 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
     raise ValueError(f"segmentation0 shape {seg.shape} differs from depth0 shape {depth0.shape}")
   if not np.issubdtype(seg.dtype, np.integer):
     raise ValueError(f"segmentation0 must hold integer object ids, got dtype {seg.dtype}")
+  if rows is not None or cols is not None:
+    rows = np.arange(depth0.shape[0]) if rows is None else np.asarray(rows, np.intp)
+    cols = np.arange(depth0.shape[1]) if cols is None else np.asarray(cols, np.intp)
+    depth0, seg = (a.take(rows, 0).take(cols, 1) for a in (depth0, seg))
   motions, known = object_motions(object_poses0, object_poses1)
   in_table = (seg >= 0) & (seg < len(motions))
   ids = np.where(in_table, seg, 0)
@@ -75,12 +81,12 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
   ids = ids.reshape(-1).astype(np.intp, copy=False)
   counts = np.bincount(ids, minlength=len(rel))
   base = int(counts.argmax())
-  xyz = _source_in_target(depth0, valid0, K0, rel[base])
+  xyz = _source_in_target(depth0, valid0, K0, rel[base], rows, cols)
   others = np.flatnonzero(ids != base) if counts[base] < ids.size else np.zeros(0, np.intp)
   if others.size:
-    rows = rel[:, :3].copy()
-    rows[:, :, :3] = rows[:, :, :3] @ _k_inverse(K0)
-    coef = rows.reshape(len(rows), 12)  # per id the rows of [R K0^-1 | t]
+    affine = rel[:, :3].copy()
+    affine[:, :, :3] = affine[:, :, :3] @ _k_inverse(K0)
+    coef = affine.reshape(len(affine), 12)  # per id the rows of [R K0^-1 | t]
     # Objects one at a time with scalar coefficients (the same float64 operations as a per-pixel
     # coefficient gather, without the gather): pixels grouped by id with a stable sort.
     present = np.flatnonzero(counts)
@@ -95,10 +101,13 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
     flat_valid, flat_depth = valid0.reshape(-1), depth0.reshape(-1)
     for k, pix in groups:
       c = coef[k]
-      u, v = (pix % w).astype(np.float64), (pix // w).astype(np.float64)
+      u, v = pix % w, pix // w
+      if rows is not None:
+        u, v = cols[u], rows[v]
+      u, v = u.astype(np.float64), v.astype(np.float64)
       d = np.where(flat_valid[pix], flat_depth[pix], 0.0)
       for i in range(3):
         xyz[i].reshape(-1)[pix] = (c[4 * i] * u + c[4 * i + 1] * v + c[4 * i + 2]) * d \
             + c[4 * i + 3]
   return _correspond(lambda r0, r1: [c[r0:r1] for c in xyz], valid0, depth1, K1, tau_d, tau_r,
-                     subpixel_search)
+                     subpixel_search, rows, cols)

@@ -26,6 +26,7 @@ test. Pairs: `<root>/pairs_<split>.txt` written by `python data/kubric4d/sample_
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
@@ -265,30 +266,79 @@ class Kubric4D(posed.PosedPairSource):
 
   def __getitem__(self, i):
     scene, f0, f1 = self.pairs[i]
-    return self._pair(scene, f0, f1)
+    return self._pair(scene, f0, f1, backward=False).sample(False)
 
   def backward(self, i):
     """The pair reversed (view 1 at time 1 -> view 0 at time 0), with its own rigid-object labels;
     the pipeline's static-scene reversal from meta would be wrong here (objects move)."""
     scene, f0, f1 = self.pairs[i]
-    return self._pair(scene, f1, f0)
+    return self._pair(scene, f1, f0, backward=False).sample(False)
 
   def both(self, i):
-    return self[i], self.backward(i)
+    pair = self.lazy_pair(i)   # every file read once for both directions
+    return pair.sample(False), pair.sample(True)
 
-  def _pair(self, scene, f0, f1):
+  def lazy_pair(self, i) -> "KubricPair":
+    """Pair i's views and segmentations, labelled on request in either direction and on any
+    pixel grid (the training pipeline's lazy labels; ufm_jax.data.registry)."""
+    scene, f0, f1 = self.pairs[i]
+    return self._pair(scene, f0, f1, backward=True)
+
+  def _pair(self, scene, f0, f1, backward: bool) -> "KubricPair":
     from ufm_jax import geometry
     v0, seg0, m0, t0 = self._view(scene, f0)
-    v1, _, m1, t1 = self._view(scene, f1, with_segmentation=False)  # only the source's is used
-    for v, f in ((v0, f0), (v1, f1)):
+    # The target's segmentation is read only for backward labels.
+    v1, seg1, m1, t1 = self._view(scene, f1, with_segmentation=backward)
+    for v, seg, f in ((v0, seg0, f0), (v1, seg1, f1)):
       posed.check_view(v, f"kubric4d:{scene}/{f}")
-    if seg0.shape != v0.depth.shape:
-      raise ValueError(f"kubric4d:{scene}/{f0}: segmentation {seg0.shape} vs depth "
-                       f"{v0.depth.shape}")
-    tau_d, tau_r = self.thresholds or geometry.covis_thresholds(self.name)
-    # Object poses are scene properties; every view's metadata carries them.
+      if seg is not None and seg.shape != v.depth.shape:
+        raise ValueError(f"kubric4d:{scene}/{f}: segmentation {seg.shape} vs depth "
+                         f"{v.depth.shape}")
+    # Object poses are scene properties; every view's metadata carries them (each direction
+    # takes its source view's).
+    return KubricPair(self.name, scene, (f0, f1), (t0, t1), v0, v1, seg0, seg1,
+                      (object_poses(m0, t0), object_poses(m0, t1)),
+                      (object_poses(m1, t1), object_poses(m1, t0)),
+                      tuple(self.thresholds or geometry.covis_thresholds(self.name)))
+
+
+@dataclasses.dataclass(frozen=True)
+class KubricPair:
+  """Two Kubric views with the source's (and, for backward labels, the target's) segmentation."""
+  dataset: str
+  scene: str
+  frames: tuple
+  times: tuple
+  v0: posed.View
+  v1: posed.View
+  seg0: np.ndarray
+  seg1: np.ndarray | None
+  poses_forward: tuple     # object poses at (time0, time1)
+  poses_backward: tuple    # at (time1, time0)
+  thresholds: tuple
+
+  @property
+  def image0(self):
+    return self.v0.image
+
+  @property
+  def image1(self):
+    return self.v1.image
+
+  def labels(self, backward: bool = False, rows=None, cols=None) -> dict:
+    """flow, covisibility, flow_valid, covis_valid of (v0 -> v1), or (v1 -> v0) with `backward`,
+    by the rigid-object rule at the source pixels rows x cols (default all)."""
+    from ufm_jax import geometry
+    a, b, seg, (pa, pb) = ((self.v1, self.v0, self.seg1, self.poses_backward) if backward else
+                           (self.v0, self.v1, self.seg0, self.poses_forward))
     corr = geometry.correspondence_from_rigid_objects(
-        v0.depth, v0.K, v0.cam2world, seg0, object_poses(m0, t0), v1.depth, v1.K, v1.cam2world,
-        object_poses(m0, t1), tau_d, tau_r)
-    return posed.labelled_sample(self.name, scene, (f0, f1), v0, v1, corr,
-                                  dict(time0=t0, time1=t1))
+        a.depth, a.K, a.cam2world, seg, pa, b.depth, b.K, b.cam2world, pb, *self.thresholds,
+        rows=rows, cols=cols)
+    return geometry.labels_from_correspondence(corr)
+
+  def sample(self, backward: bool) -> dict:
+    """The full-size sample dict of one direction."""
+    a, b = (self.v1, self.v0) if backward else (self.v0, self.v1)
+    frames, times = (self.frames[::-1], self.times[::-1]) if backward else (self.frames, self.times)
+    return posed.labelled_sample(self.dataset, self.scene, frames, a, b, self.labels(backward),
+                                 dict(time0=times[0], time1=times[1]))

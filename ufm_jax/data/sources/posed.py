@@ -248,19 +248,14 @@ def pair_sample(dataset: str, scene: str, frames: tuple, v0: View, v1: View,
                 thresholds: tuple[float, float] | None = None, extra_meta: dict | None = None):
   """Two posed views -> the common sample dict (flow / covisibility from depth reprojection)."""
   thresholds = thresholds if thresholds is not None else geometry.covis_thresholds(dataset)
-  return _with_meta(dataset, scene, frames, v0, v1, PosedPair(v0, v1, thresholds).labels(),
-                    extra_meta)
+  return labelled_sample(dataset, scene, frames, v0, v1, PosedPair(v0, v1, thresholds).labels(),
+                         extra_meta)
 
 
-def labelled_sample(dataset, scene, frames, v0: View, v1: View, corr: dict, extra_meta=None):
-  """Geometry output -> sample dict. flow_valid = flow geometrically defined (valid source depth,
-  in front of camera 1), as geometry.labels_from_correspondence; the flow loss additionally
-  restricts to `covisibility` (paper eq. 3)."""
-  return _with_meta(dataset, scene, frames, v0, v1, geometry.labels_from_correspondence(corr),
-                    extra_meta)
-
-
-def _with_meta(dataset, scene, frames, v0: View, v1: View, labels: dict, extra_meta=None):
+def labelled_sample(dataset, scene, frames, v0: View, v1: View, labels: dict, extra_meta=None):
+  """Labels (geometry.labels_from_correspondence: flow_valid = flow geometrically defined, i.e.
+  valid source depth, in front of camera 1; the flow loss additionally restricts to
+  `covisibility`, paper eq. 3) + the views -> sample dict with the views' meta."""
   meta = dict(dataset=dataset, scene=scene, frame0=str(frames[0]), frame1=str(frames[1]),
               K0=np.asarray(v0.K, np.float32), K1=np.asarray(v1.K, np.float32),
               cam2world0=np.asarray(v0.cam2world, np.float32),
