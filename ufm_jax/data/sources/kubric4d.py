@@ -296,34 +296,24 @@ class Kubric4D(posed.PosedPairSource):
                          f"{v.depth.shape}")
     # Object poses are scene properties; every view's metadata carries them (each direction
     # takes its source view's).
-    return KubricPair(self.name, scene, (f0, f1), (t0, t1), v0, v1, seg0, seg1,
+    return KubricPair(v0, v1, tuple(self.thresholds or geometry.covis_thresholds(self.name)),
+                      self.name, scene, (f0, f1), (t0, t1), seg0, seg1,
                       (object_poses(m0, t0), object_poses(m0, t1)),
-                      (object_poses(m1, t1), object_poses(m1, t0)),
-                      tuple(self.thresholds or geometry.covis_thresholds(self.name)))
+                      (object_poses(m1, t1), object_poses(m1, t0)))
 
 
 @dataclasses.dataclass(frozen=True)
-class KubricPair:
-  """Two Kubric views with the source's (and, for backward labels, the target's) segmentation."""
+class KubricPair(posed.PosedPair):
+  """Two Kubric views with the source's (and, for backward labels, the target's) segmentation:
+  labelled by the rigid-object rule instead of the static one."""
   dataset: str
   scene: str
   frames: tuple
   times: tuple
-  v0: posed.View
-  v1: posed.View
   seg0: np.ndarray
   seg1: np.ndarray | None
   poses_forward: tuple     # object poses at (time0, time1)
   poses_backward: tuple    # at (time1, time0)
-  thresholds: tuple
-
-  @property
-  def image0(self):
-    return self.v0.image
-
-  @property
-  def image1(self):
-    return self.v1.image
 
   def labels(self, backward: bool = False, rows=None, cols=None) -> dict:
     """flow, covisibility, flow_valid, covis_valid of (v0 -> v1), or (v1 -> v0) with `backward`,
