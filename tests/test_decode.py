@@ -180,3 +180,10 @@ def test_readers_use_it_and_keep_their_results(tmp_path):
   f, v = io.read_kitti_flow(tmp_path / "f.png")
   np.testing.assert_array_equal(v, valid)
   np.testing.assert_allclose(f[valid], flow[valid], atol=1 / 64)
+
+
+def test_prefix_sum_equals_wrapping_cumsum():
+  rng = np.random.default_rng(0)
+  for shape in [(1, 1, 3), (3, 2, 1), (5, 17, 3), (4, 64, 4), (2, 300, 6), (7, 129)]:
+    f = rng.integers(0, 256, shape, dtype=np.uint8)
+    np.testing.assert_array_equal(decode.prefix_sum_u8(f), np.cumsum(f, axis=1, dtype=np.uint8))
