@@ -29,9 +29,9 @@ def _eager_source(name):
       def __getitem__(self, i):   # PosedPairSource.__getitem__, float64 meta
         if name == "kubric4d":
           return super().__getitem__(i)
+        scene, f0, f1 = self.pairs[i][:3]
         pair = reader.lazy_pair(self, i)
-        sample = posed.pair_sample(self.name, *self.pairs[i][:1], self.pairs[i][1:], pair.v0,
-                                   pair.v1, pair.thresholds)
+        sample = posed.pair_sample(self.name, scene, (f0, f1), pair.v0, pair.v1, pair.thresholds)
         meta = dict(sample["meta"], K0=pair.v0.K, K1=pair.v1.K, cam2world0=pair.v0.cam2world,
                     cam2world1=pair.v1.cam2world)
         return dict(sample, meta=meta)

@@ -24,9 +24,10 @@ A source with `lazy_pair(i)` (the posed datasets, Kubric-4D) is labelled only at
 augmentation reads, in both directions (static scenes from the views' own depth and float64
 poses): the same rows as from its full-size labels for a fraction of the depth reprojection.
 
-A sample that raises while loading, labelling or augmenting, or fails validation, is skipped: a replacement is drawn from the
-same dataset (deterministically), the failure is logged with the error text (readers name the
-file) and counted; the iterator raises when the skipped fraction exceeds `max_skip_fraction`.
+A sample that raises while loading, labelling or augmenting, or fails validation, is skipped: a
+replacement is drawn from the same dataset (deterministically), the failure is logged with the
+error text (readers name the file) and counted; the iterator raises when the skipped fraction
+exceeds `max_skip_fraction`.
 """
 
 from __future__ import annotations
@@ -524,9 +525,9 @@ def keep_heap(worker_index: int = 0, worker_count: int = 0) -> bool:
   """Makes glibc's malloc keep freed memory for the next sample (this process only).
 
   A sample's dozens of 0.1-10 MB temporaries are otherwise mmap'd fresh and unmapped again each
-  time (or trimmed from the heap top), and the page faults of touching them anew cost ~15% of a
-  row's host CPU at 560 (`benchmarks/data_pipeline.py --table1`, with and without
-  `input.keep_heap`). Serving them from a heap that is not trimmed: mmap threshold at its 32 MiB
+  time (or trimmed from the heap top), and the page faults of touching them anew cost ~12% of a
+  row's host CPU at 560 (`benchmarks/data_pipeline.py --table1` with and without
+  `--no_keep_heap`: 14.3 vs 12.6 ms, docs/host_input.md). Serving them from a heap that is not trimmed: mmap threshold at its 32 MiB
   maximum, trim threshold 512 MiB (freed memory up to that stays with the process). Runs in every
   process that makes samples: the grain workers (as their worker_init_fn, hence the signature)
   or, with num_workers=0, the training process. False where the C library is not glibc."""

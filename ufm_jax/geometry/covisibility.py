@@ -296,6 +296,17 @@ def _source_in_target(depth0, valid0, K0, rel, rows=None, cols=None):
   return out
 
 
+def on_grid(rows, cols, *planes):
+  """(rows, cols, *planes at rows x cols): int index vectors, None for both when neither is given
+  (the whole image); a missing one of the two means every row / column."""
+  if rows is None and cols is None:
+    return (None, None, *planes)
+  h, w = np.shape(planes[0])[:2]
+  rows = np.arange(h) if rows is None else np.asarray(rows, np.intp)
+  cols = np.arange(w) if cols is None else np.asarray(cols, np.intp)
+  return (rows, cols, *(np.asarray(a).take(rows, 0).take(cols, 1) for a in planes))
+
+
 def _check_depth(name, depth):
   depth = np.asarray(depth)
   if depth.ndim != 2:
@@ -323,10 +334,7 @@ def correspondence_from_depth(depth0, K0, cam2world0, depth1, K1, cam2world1,
   for name, T in (("cam2world0", cam2world0), ("cam2world1", cam2world1)):
     if np.shape(T) != (4, 4):
       raise ValueError(f"{name} must be [4, 4], got shape {np.shape(T)}")
-  if rows is not None or cols is not None:
-    rows = np.arange(depth0.shape[0]) if rows is None else np.asarray(rows, np.intp)
-    cols = np.arange(depth0.shape[1]) if cols is None else np.asarray(cols, np.intp)
-    depth0 = depth0.take(rows, 0).take(cols, 1)
+  rows, cols, depth0 = on_grid(rows, cols, depth0)
   valid0 = camera.valid_depth(depth0)
   rel = camera.invert_pose(cam2world1) @ np.asarray(cam2world0, np.float64)  # camera 1 -> 2
   xyz = lambda r0, r1: _source_in_target(depth0[r0:r1], valid0[r0:r1], K0, rel,

@@ -11,7 +11,8 @@ from typing import Mapping
 import numpy as np
 
 from ufm_jax.geometry import camera
-from ufm_jax.geometry.covisibility import _check_depth, _correspond, _k_inverse, _source_in_target
+from ufm_jax.geometry.covisibility import (_check_depth, _correspond, _k_inverse,
+                                           _source_in_target, on_grid)
 
 
 def _pose_table(poses, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -66,10 +67,7 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
     raise ValueError(f"segmentation0 shape {seg.shape} differs from depth0 shape {depth0.shape}")
   if not np.issubdtype(seg.dtype, np.integer):
     raise ValueError(f"segmentation0 must hold integer object ids, got dtype {seg.dtype}")
-  if rows is not None or cols is not None:
-    rows = np.arange(depth0.shape[0]) if rows is None else np.asarray(rows, np.intp)
-    cols = np.arange(depth0.shape[1]) if cols is None else np.asarray(cols, np.intp)
-    depth0, seg = (a.take(rows, 0).take(cols, 1) for a in (depth0, seg))
+  rows, cols, depth0, seg = on_grid(rows, cols, depth0, seg)
   motions, known = object_motions(object_poses0, object_poses1)
   in_table = (seg >= 0) & (seg < len(motions))
   ids = np.where(in_table, seg, 0)
