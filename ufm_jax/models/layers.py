@@ -77,8 +77,9 @@ Dense = functools.partial(nn.Dense, dot_general=dot_general)
 
 ATTENTION_IMPLS = (None, "auto", "xla", "cudnn", "cpu")
 
-# The "cpu" path's logits tile ([batch, query chunk, keys] float32): small enough to stay in cache
-# between the two matmuls and the softmax. benchmarks/inference.py --breakdown measures it.
+# The "cpu" path's logits tile ([batch, query chunk, keys] float32), counted in logits: 4 Mi logits
+# are 16 MiB, small enough to stay in the 32 MiB L3 between the two matmuls and the softmax.
+# benchmarks/cpu_attention.py sweeps it; benchmarks/inference.py --breakdown measures the layers.
 CPU_ATTENTION_TILE = 4 * 2**20
 
 
@@ -131,7 +132,8 @@ def cpu_attention(q, k, v, scale: float, tile: int = CPU_ATTENTION_TILE):
     o = jnp.einsum("bqk,bkd->bqd", p.astype(vh.dtype), vh, preferred_element_type=jnp.float32)
     o = (o / jnp.sum(p, axis=-1, keepdims=True)).astype(out.dtype)
     zero = jnp.zeros((), start.dtype)
-    return jax.lax.dynamic_update_slice(out, o[:, :, None], (zero, start, hi.astype(start.dtype), zero))
+    return jax.lax.dynamic_update_slice(out, o[:, :, None],
+                                        (zero, start, hi.astype(start.dtype), zero))
 
   return jax.lax.fori_loop(0, h * chunks, step, jnp.zeros_like(q))
 
