@@ -1,13 +1,18 @@
 """The CPU attention path (layers.cpu_attention) at UFM-Base's 420x560 shapes, and its parts.
 
   python benchmarks/cpu_attention.py                    # tile sweep + per-head dot / softmax times
-  python benchmarks/cpu_attention.py --tiles 2,4,8      # logits tiles in MiB
+  python benchmarks/cpu_attention.py --tiles 2,4,8      # logits tiles in Mi logits (x4 bytes)
   taskset -c 0 python benchmarks/cpu_attention.py       # the same on one core
+  python benchmarks/cpu_attention.py --compare          # current loop vs the head-major one, interleaved
 
 Tile sweep: the whole attention core (no projections) of the encoder ([2, 1201, 16, 64]: two
 images, cls + 30x40 patches, 16 heads) and of the fusion transformer ([1, 2400, 12, 64]) for each
-logits tile size; GFLOP/s counts q.k and p.v. Parts: one head and query chunk at the default tile
-(the encoder's [2, 401, 64] x [2, 1201, 64]), its two dots and the softmax pieces alone.
+logits tile size; GFLOP/s counts q.k and p.v. Parts: one head and a 401-query chunk (the
+encoder's [2, 401, 64] x [2, 1201, 64]; at the default tile the loop takes all 1201 queries),
+its two dots and the softmax pieces alone.
+--compare instead times layers.cpu_attention against the head-major formulation it replaced
+(q, k, v and the output transposed to [heads, ...] around a lax.map over heads), alternating the
+two --runs times on each shape so load from other processes hits both alike.
 Minimum over --runs; prints figures, asserts nothing.
 """
 
@@ -35,22 +40,81 @@ def _best_ms(fn, *args, runs):
   return 1e3 * min(times)
 
 
+def head_major_attention(q, k, v, scale, tile=layers.CPU_ATTENTION_TILE):
+  """The CPU attention loop before it sliced heads in place (for --compare): head-major copies
+  of q, k, v, lax.map over heads and query chunks, the output transposed back."""
+  b, n, h, d = q.shape
+  m = k.shape[1]
+  q = q * jnp.asarray(scale, q.dtype)
+  chunks = max(1, -(-b * n * m // tile))
+  cq = -(-n // chunks)
+  pad = chunks * cq - n
+  if pad:
+    q = jnp.pad(q, ((0, 0), (0, pad), (0, 0), (0, 0)))
+  qs = jnp.moveaxis(q.reshape(b, chunks, cq, h, d), (3, 1), (0, 1))  # [h, chunks, b, cq, d]
+  ks, vs = jnp.moveaxis(k, 2, 0), jnp.moveaxis(v, 2, 0)  # [h, b, m, d]
+
+  def head(args):
+    qh, kh, vh = args
+
+    def chunk(qc):
+      s = jnp.einsum("bqd,bkd->bqk", qc, kh, preferred_element_type=jnp.float32)
+      p = jnp.exp(s - jnp.max(s, axis=-1, keepdims=True))
+      o = jnp.einsum("bqk,bkd->bqd", p.astype(vh.dtype), vh, preferred_element_type=jnp.float32)
+      return (o / jnp.sum(p, axis=-1, keepdims=True)).astype(q.dtype)
+    return jax.lax.map(chunk, qh)
+
+  o = jax.lax.map(head, (qs, ks, vs))  # [h, chunks, b, cq, d]
+  o = jnp.moveaxis(o, (0, 1), (3, 1)).reshape(b, chunks * cq, h, d)
+  return o[:, :n] if pad else o
+
+
+def compare(shapes, normal, runs):
+  for shape in shapes:
+    b, n, h, d = shape
+    q, k, v = normal(*shape), normal(*shape), normal(*shape)
+    fns = {
+        "head-major": jax.jit(lambda q, k, v: head_major_attention(q, k, v, d ** -0.5)),
+        "in place": jax.jit(lambda q, k, v: layers.cpu_attention(q, k, v, d ** -0.5)),
+    }
+    fns = {name: f.lower(q, k, v).compile() for name, f in fns.items()}
+    outs = [jax.block_until_ready(f(q, k, v)) for f in fns.values()]
+    times = {name: [] for name in fns}
+    for _ in range(runs):
+      for name, f in fns.items():
+        t = time.perf_counter()
+        jax.block_until_ready(f(q, k, v))
+        times[name].append(time.perf_counter() - t)
+    diff = float(jnp.max(jnp.abs(outs[0] - outs[1])))
+    print(f"  {str(shape):18s} max |difference| {diff:.1e}")
+    for name, ts in times.items():
+      ms = 1e3 * np.array(ts)
+      print(f"    {name:10s} min {ms.min():7.1f} ms  median {np.median(ms):7.1f} ms  "
+            f"{4 * b * n * n * h * d / ms.min() / 1e6:6.0f} GFLOP/s", flush=True)
+
+
 def main(argv=None):
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-  p.add_argument("--tiles", default="0.25,0.5,1,2,4,8", help="logits tile sizes in MiB")
+  p.add_argument("--tiles", default="0.25,0.5,1,2,4,8",
+                 help="logits tile sizes in Mi logits (4 bytes each in float32)")
   p.add_argument("--runs", type=int, default=7)
+  p.add_argument("--compare", action="store_true",
+                 help="time the current loop against the head-major one it replaced, interleaved")
   args = p.parse_args(argv)
   rng = np.random.default_rng(0)
   normal = lambda *s: jnp.asarray(rng.standard_normal(s), jnp.float32)  # noqa: E731
   print(f"load average {os.getloadavg()[0]:.2f}, {len(os.sched_getaffinity(0))} usable cores; "
-        f"default tile {layers.CPU_ATTENTION_TILE / 2**20:g} MiB")
-  for shape in ((2, 1201, 16, 64), (1, 2400, 12, 64)):
+        f"default tile {layers.CPU_ATTENTION_TILE / 2**20:g} Mi logits")
+  shapes = ((2, 1201, 16, 64), (1, 2400, 12, 64))
+  if args.compare:
+    return compare(shapes, normal, args.runs)
+  for shape in shapes:
     b, n, h, d = shape
     q, k, v = normal(*shape), normal(*shape), normal(*shape)
     for mib in (float(t) for t in args.tiles.split(",")):
       ms = _best_ms(lambda q, k, v, t=int(mib * 2**20): layers.cpu_attention(q, k, v, d ** -0.5, tile=t),
                     q, k, v, runs=args.runs)
-      print(f"  {str(shape):18s} tile {mib:5g} MiB  {ms:7.1f} ms  "
+      print(f"  {str(shape):18s} tile {mib:5g} Mi  {ms:7.1f} ms  "
             f"{4 * b * n * n * h * d / ms / 1e6:6.0f} GFLOP/s", flush=True)
   s, qc, kh = normal(2, 401, 1201), normal(2, 401, 64), normal(2, 1201, 64)
   parts = {
@@ -61,7 +125,7 @@ def main(argv=None):
       "exp(s - max) and its row sum": (
           lambda s: (lambda e: (e, e.sum(-1)))(jnp.exp(s - jnp.max(s, -1, keepdims=True))), s),
   }
-  print("  one encoder head and query chunk at the default tile:")
+  print("  one encoder head and a 401-query chunk (the loop at the default tile takes all 1201):")
   for label, (fn, *a) in parts.items():
     print(f"    {label:34s} {_best_ms(fn, *a, runs=3 * args.runs):6.2f} ms", flush=True)
 

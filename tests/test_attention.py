@@ -21,7 +21,7 @@ def _xla(q, k, v):
 
 @pytest.mark.parametrize("b,n,m,h,d,tile", [
     (2, 37, 37, 3, 8, layers.CPU_ATTENTION_TILE),   # one chunk
-    (2, 37, 37, 3, 8, 500),                           # 6 chunks of 7 queries, 5 padded rows
+    (2, 37, 37, 3, 8, 500),                           # 6 chunks of 7 queries, the last overlapping by 5
     (3, 16, 29, 2, 16, 100),                          # cross attention, keys != queries
 ])
 def test_cpu_attention_equals_xla(b, n, m, h, d, tile):

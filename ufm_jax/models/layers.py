@@ -77,8 +77,9 @@ Dense = functools.partial(nn.Dense, dot_general=dot_general)
 
 ATTENTION_IMPLS = (None, "auto", "xla", "cudnn", "cpu")
 
-# The "cpu" path's logits tile ([batch, query chunk, keys] float32): small enough to stay in cache
-# between the two matmuls and the softmax. benchmarks/inference.py --breakdown measures it.
+# The "cpu" path's logits tile ([batch, query chunk, keys] float32), counted in logits: 4 Mi logits
+# are 16 MiB, small enough to stay in the 32 MiB L3 between the two matmuls and the softmax.
+# benchmarks/cpu_attention.py sweeps it; benchmarks/inference.py --breakdown measures the layers.
 CPU_ATTENTION_TILE = 4 * 2**20
 
 
@@ -105,32 +106,36 @@ def cpu_attention(q, k, v, scale: float, tile: int = CPU_ATTENTION_TILE):
   time keeps each logits tile in cache and reaches ~90%. Logits and the softmax are float32 for
   any input dtype, as in jax.nn.dot_product_attention. The batch stays a dimension of every op
   (no loop over it), so a batch-sharded input needs no collective.
+
+  Each step slices its head and chunk straight out of the [B, N, heads, hd] operands and writes
+  its output back in place: head-major copies of q, k, v and of the output (four XLA:CPU
+  transposes per layer) made the attention core 6-9% slower at UFM-Base's shapes
+  (benchmarks/cpu_attention.py --compare). A last chunk that would overhang N starts earlier
+  and recomputes a few rows, so q needs no padded copy either.
   """
   b, n, h, d = q.shape
   m = k.shape[1]
-  q = q * jnp.asarray(scale, q.dtype)
   # A symbolic batch (jax.export) sizes the chunks for one pair.
   chunks = max(1, -(-(b if isinstance(b, int) else 1) * n * m // tile))
   cq = -(-n // chunks)
-  pad = chunks * cq - n
-  if pad:
-    q = jnp.pad(q, ((0, 0), (0, pad), (0, 0), (0, 0)))
-  qs = jnp.moveaxis(q.reshape(b, chunks, cq, h, d), (3, 1), (0, 1))  # [h, chunks, b, cq, d]
-  ks, vs = jnp.moveaxis(k, 2, 0), jnp.moveaxis(v, 2, 0)  # [h, b, m, d]
+  scale = jnp.asarray(scale, q.dtype)
 
-  def head(args):
-    qh, kh, vh = args
+  def step(i, out):
+    hi = i // chunks
+    start = jnp.minimum((i % chunks) * cq, n - cq)
+    qc = jax.lax.dynamic_slice_in_dim(
+        jax.lax.dynamic_index_in_dim(q, hi, axis=2, keepdims=False), start, cq, axis=1) * scale
+    kh = jax.lax.dynamic_index_in_dim(k, hi, axis=2, keepdims=False)
+    vh = jax.lax.dynamic_index_in_dim(v, hi, axis=2, keepdims=False)
+    s = jnp.einsum("bqd,bkd->bqk", qc, kh, preferred_element_type=jnp.float32)
+    p = jnp.exp(s - jnp.max(s, axis=-1, keepdims=True))
+    o = jnp.einsum("bqk,bkd->bqd", p.astype(vh.dtype), vh, preferred_element_type=jnp.float32)
+    o = (o / jnp.sum(p, axis=-1, keepdims=True)).astype(out.dtype)
+    zero = jnp.zeros((), start.dtype)
+    return jax.lax.dynamic_update_slice(out, o[:, :, None],
+                                        (zero, start, hi.astype(start.dtype), zero))
 
-    def chunk(qc):
-      s = jnp.einsum("bqd,bkd->bqk", qc, kh, preferred_element_type=jnp.float32)
-      p = jnp.exp(s - jnp.max(s, axis=-1, keepdims=True))
-      o = jnp.einsum("bqk,bkd->bqd", p.astype(vh.dtype), vh, preferred_element_type=jnp.float32)
-      return (o / jnp.sum(p, axis=-1, keepdims=True)).astype(q.dtype)
-    return jax.lax.map(chunk, qh)
-
-  o = jax.lax.map(head, (qs, ks, vs))  # [h, chunks, b, cq, d]
-  o = jnp.moveaxis(o, (0, 1), (3, 1)).reshape(b, chunks * cq, h, d)
-  return o[:, :n] if pad else o
+  return jax.lax.fori_loop(0, h * chunks, step, jnp.zeros_like(q))
 
 
 def dot_product_attention(q, k, v, scale: float, impl: Optional[str] = None):
