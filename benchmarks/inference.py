@@ -301,9 +301,10 @@ STAGES = (
     ("flow head regression", r"head1_0_1", "__call__"),
     ("covisibility head DPT feature", r"uncertainty_head_0_0", "__call__"),
     ("covisibility head regression", r"uncertainty_head_0_1", "__call__"),
-    ("refiner U-Net", r"refiner/unet_feature", "__call__"),
-    ("refiner classification head", r"refiner/classification_head", "__call__"),
-    ("refiner local refinement", r"refiner", "refine"),
+    # UFMRefine shares the refiner's scope with the root (its params sit at the top level).
+    ("refiner U-Net", r"(refiner/)?unet_feature", "__call__"),
+    ("refiner classification head", r"(refiner/)?classification_head", "__call__"),
+    ("refiner local refinement", r"(refiner)?", "refine"),
 )
 
 
@@ -343,7 +344,7 @@ def breakdown(model, params, src, tgt, peak: Peak, runs: int, t_model: float) ->
       continue
     st = found[label]
     sub = params
-    for key in st["path"].split("/"):
+    for key in filter(None, st["path"].split("/")):
       sub = sub[key]
     make = lambda x: (jnp.asarray(rng.standard_normal(x.shape), x.dtype)  # noqa: E731
                       if isinstance(x, jax.ShapeDtypeStruct) else x)

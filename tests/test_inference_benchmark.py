@@ -28,3 +28,17 @@ def test_breakdown_counts_every_head_of_cpu_attention(tmp_path):
   matmuls = 2 * b * n * c * 4 * c + 2 * 2 * b * n * n * c
   stage = next(s for s in res["stages"] if s["stage"] == "encoder attention")
   assert matmuls <= stage["gflop"] * 1e9 <= 1.25 * matmuls, (stage, matmuls / 1e9)
+
+
+def test_breakdown_times_the_refiner_stages(tmp_path):
+  # UFMRefine shares the refiner's scope with the root: its stages must still be found.
+  out = tmp_path / "bench.json"
+  cmd = [sys.executable, str(REPO / "benchmarks" / "inference.py"), "--config", "tiny_refine",
+         "--size", "56x56", "--runs", "1", "--warmup", "0", "--breakdown", "--json", str(out)]
+  r = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=REPO)
+  assert r.returncode == 0, r.stderr[-3000:]
+  stages = {s["stage"]: s for s in json.loads(out.read_text())["stages"]}
+  assert stages["refiner U-Net"]["calls"] == 1                 # both views in one batch
+  assert stages["refiner classification head"]["calls"] == 2   # per view
+  assert stages["refiner local refinement"]["calls"] == 1
+  assert all(stages[k]["gflop"] > 0 for k in stages if k.startswith("refiner"))
