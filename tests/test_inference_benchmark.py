@@ -15,13 +15,18 @@ from ufm_jax.models import variants
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
-def test_breakdown_counts_every_head_of_cpu_attention(tmp_path):
+def _breakdown(config, tmp_path):
+  """The JSON of one `--breakdown` run of benchmarks/inference.py at 56x56."""
   out = tmp_path / "bench.json"
-  cmd = [sys.executable, str(REPO / "benchmarks" / "inference.py"), "--config", "fixture_small",
+  cmd = [sys.executable, str(REPO / "benchmarks" / "inference.py"), "--config", config,
          "--size", "56x56", "--runs", "1", "--warmup", "0", "--breakdown", "--json", str(out)]
   r = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=REPO)
   assert r.returncode == 0, r.stderr[-3000:]
-  res = json.loads(out.read_text())
+  return json.loads(out.read_text())
+
+
+def test_breakdown_counts_every_head_of_cpu_attention(tmp_path):
+  res = _breakdown("fixture_small", tmp_path)
   enc = variants.get("fixture_small").encoder
   b, n, c = 2, (56 // enc.patch_size) ** 2 + 1, enc.embed_dim  # two images; patches + cls token
   # qkv and output projections, then q.k and p.v over all heads.
@@ -32,12 +37,7 @@ def test_breakdown_counts_every_head_of_cpu_attention(tmp_path):
 
 def test_breakdown_times_the_refiner_stages(tmp_path):
   # UFMRefine shares the refiner's scope with the root: its stages must still be found.
-  out = tmp_path / "bench.json"
-  cmd = [sys.executable, str(REPO / "benchmarks" / "inference.py"), "--config", "tiny_refine",
-         "--size", "56x56", "--runs", "1", "--warmup", "0", "--breakdown", "--json", str(out)]
-  r = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=REPO)
-  assert r.returncode == 0, r.stderr[-3000:]
-  stages = {s["stage"]: s for s in json.loads(out.read_text())["stages"]}
+  stages = {s["stage"]: s for s in _breakdown("tiny_refine", tmp_path)["stages"]}
   assert stages["refiner U-Net"]["calls"] == 1                 # both views in one batch
   assert stages["refiner classification head"]["calls"] == 2   # per view
   assert stages["refiner local refinement"]["calls"] == 1
