@@ -1,22 +1,33 @@
 r"""One script for a machine with one GPU: the figures a user asks for first, in minutes.
 
-  python benchmarks/gpu_check.py                 # on the GPU machine (~5-8 minutes)
+  python benchmarks/gpu_check.py --fixture DIR --out results.jsonl   # the GPU machine, ~5 minutes
   python benchmarks/gpu_check.py --smoke         # CPU, tiny model, seconds (the test suite runs it)
 
-1. UFM-Base inference latency at 560 (420x560) and 980 (742x980), batch 1 and 8, float32 and
-   bfloat16, attention "xla" and "cudnn" (fused, bf16 only): median of timed runs after warm-up,
-   pairs/s, and XLA's FLOP count per pair.
-2. The full UFM-560 train step (ufm_jax.trainer.setup, the exact train.py step) with remat and
-   bf16 at the largest batch of --train_batches that compiles and runs: step time, pairs/s, peak
-   device memory, MFU (XLA cost-analysis FLOPs / step time / the chip's dense bf16 peak).
+In order of priority; once `--budget_s` seconds have passed no new case starts (each one left is
+listed as not run), and every finished case is appended to `--out` at once, so a run cut short by
+the machine's time limit still reports what it measured:
+
+1. Parity on this device (`--fixture`: an official snapshot folder holding config.json,
+   model.safetensors and the io.npz made by the official PyTorch code, e.g.
+   fixtures/ufm_reference/base): max |flow| and |covisibility| difference from the official
+   float32 outputs, for float32 at the default matmul precision (TF32 on NVIDIA GPUs), float32 at
+   "highest", and bfloat16 with the default (fused cuDNN) attention.
+2. UFM-Base / UFM-Refine inference at 420x560 (and 742x980): median and min of `--iters` timed
+   runs after a warm-up, pairs/s, compile seconds, XLA's FLOP count and temp memory per call,
+   and which attention kernel the compiled HLO holds (cuDNN fused custom calls, or none).
+3. The full UFM-560 train step (ufm_jax.trainer.setup, the exact train.py step; bf16, remat) at
+   `--train_batch`: step time, pairs/s, peak device memory, MFU (XLA's FLOPs / step time / the
+   chip's dense bf16 peak).
 Prints a table, then one JSON line with every figure. Asserts nothing about speed.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import pathlib
+import re
 import statistics
 import sys
 import time
@@ -26,6 +37,21 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 # Dense bf16 peak FLOP/s by device kind (vendor datasheets, no sparsity).
 PEAK_BF16 = {"H200": 989e12, "H100": 989e12, "A100": 312e12, "L4": 121e12, "A10": 125e12,
              "TPU v5 lite": 197e12, "TPU v4": 275e12, "TPU v5p": 459e12}
+BASE, REFINE = "ufm_base", "ufm_refine"
+# (variant, (H, W), batch, dtype, attention, head_dtype), most wanted first.
+FORWARD_CASES = [
+    (BASE, (420, 560), 1, "bfloat16", "auto", "float32"),
+    (BASE, (420, 560), 1, "float32", "auto", "float32"),
+    (BASE, (420, 560), 1, "bfloat16", "xla", "float32"),
+    (BASE, (420, 560), 8, "bfloat16", "auto", "float32"),
+    (REFINE, (420, 560), 1, "bfloat16", "auto", "float32"),
+    "train",
+    (BASE, (420, 560), 8, "bfloat16", "auto", "bfloat16"),
+    (BASE, (742, 980), 1, "bfloat16", "auto", "float32"),
+    (REFINE, (420, 560), 1, "float32", "auto", "float32"),
+    (BASE, (420, 560), 8, "float32", "auto", "float32"),
+    (BASE, (742, 980), 8, "bfloat16", "auto", "float32"),
+]
 
 
 def _peak(device) -> float | None:
@@ -45,6 +71,24 @@ def _flops(compiled) -> float | None:
     return None
 
 
+def _temp_gib(compiled) -> float | None:
+  try:
+    return compiled.memory_analysis().temp_size_in_bytes / 2**30
+  except Exception:  # noqa: BLE001 - not every backend reports a memory analysis
+    return None
+
+
+def attention_kernels(hlo_text: str) -> str:
+  """Which attention the compiled program runs: its cuDNN fused-attention custom calls, counted
+  by target ("__cudnn$fmha..."), or "none fused" (XLA's dot + softmax + dot)."""
+  targets = re.findall(r'custom_call_target="([^"]+)"', hlo_text)
+  fused = [t for t in targets if "fmha" in t.lower() or "flash" in t.lower()]
+  if not fused:
+    return "none fused"
+  counts = {t: fused.count(t) for t in sorted(set(fused))}
+  return ", ".join(f"{n} x {t}" for t, n in counts.items())
+
+
 def _timed(fn, iters):
   import jax
   jax.block_until_ready(fn())  # warm-up
@@ -56,14 +100,49 @@ def _timed(fn, iters):
   return statistics.median(times), min(times)
 
 
-def bench_forward(variant, hw, batch, dtype, attention, iters):
+def parity(fixture_dir):
+  """The official snapshot's forward on this device against the official float32 outputs."""
   import jax
   import numpy as np
+  from ufm_jax import convert
+  d = pathlib.Path(fixture_dir)
+  model, params = convert.load_official(d)
+  io = dict(np.load(d / "io.npz"))
+  rows = []
+  for label, dtype, precision in (("float32, default precision", "float32", None),
+                                  ("float32, precision highest", "float32", "highest"),
+                                  ("bfloat16, default attention", "bfloat16", None)):
+    m = model.clone(config=model.config.replace(dtype=dtype))
+    ctx = jax.default_matmul_precision(precision) if precision else contextlib.nullcontext()
+    with ctx:
+      fwd = jax.jit(lambda p, a, b, m=m: m.apply({"params": p}, a, b))
+      out = fwd(params, io["img1_uint8"], io["img2_uint8"])
+      hlo = fwd.lower(params, io["img1_uint8"], io["img2_uint8"]).compile().as_text()
+    flow = np.asarray(out["flow"], np.float64).transpose(0, 3, 1, 2)
+    covis = np.asarray(out["covisibility"], np.float64)[:, None]
+    rows.append({"kind": "parity", "case": label, "fixture": d.name,
+                 "flow_max_px": float(np.abs(flow - io["flow"]).max()),
+                 "flow_mean_px": float(np.abs(flow - io["flow"]).mean()),
+                 "covis_max": float(np.abs(covis - io["covisibility_mask"]).max()),
+                 "attention_kernels": attention_kernels(hlo)})
+  return rows
+
+
+_PARAMS: dict = {}
+
+
+def bench_forward(variant, hw, batch, dtype, attention, head_dtype, iters):
+  import jax
+  import numpy as np
+  from ufm_jax import trainer
   from ufm_jax.models import variants
-  model = variants.build_model(variant, dtype=dtype, attention_impl=attention)
+  model = variants.build_model(variant, dtype=dtype, attention_impl=attention,
+                               head_dtype=head_dtype)
+  if variant not in _PARAMS:  # the parameters do not depend on the compute dtype
+    _PARAMS[variant] = trainer.random_params(variants.build_model(variant))
+  params = _PARAMS[variant]
   h, w = hw
-  x = np.random.default_rng(0).integers(0, 256, (batch, h, w, 3), dtype=np.uint8)
-  params = jax.jit(model.init)(jax.random.PRNGKey(0), x[:1], x[:1])["params"]
+  x = jax.device_put(np.random.default_rng(0).integers(0, 256, (batch, h, w, 3), dtype=np.uint8))
   fwd = jax.jit(lambda p, s, t: model.apply({"params": p}, s, t))
   t0 = time.perf_counter()
   compiled = fwd.lower(params, x, x).compile()
@@ -71,9 +150,12 @@ def bench_forward(variant, hw, batch, dtype, attention, iters):
   med, best = _timed(lambda: compiled(params, x, x), iters)
   flops = _flops(compiled)
   return {"kind": "forward", "variant": variant, "size": f"{h}x{w}", "batch": batch,
-          "dtype": dtype, "attention": attention, "ms": med * 1e3, "ms_min": best * 1e3,
-          "pairs_per_s": batch / med, "gflop_per_pair": flops / batch / 1e9 if flops else None,
-          "compile_s": compile_s}
+          "dtype": dtype, "head_dtype": head_dtype, "attention": attention,
+          "attention_kernels": attention_kernels(compiled.as_text()),
+          "ms": med * 1e3, "ms_min": best * 1e3, "pairs_per_s": batch / med,
+          "gflop_per_pair": flops / batch / 1e9 if flops else None,
+          "tflop_s": flops / med / 1e12 if flops else None,
+          "temp_gib": _temp_gib(compiled), "compile_s": compile_s}
 
 
 def bench_train(config_spec, model_name, hw, batch, steps):
@@ -106,6 +188,7 @@ def bench_train(config_spec, model_name, hw, batch, steps):
           "remat": config.model.get("remat"), "step_ms": med * 1e3, "step_ms_min": best * 1e3,
           "pairs_per_s": batch / med, "compile_s": compile_s,
           "peak_memory_gib": stats.get("peak_bytes_in_use", 0) / 2**30 or None,
+          "temp_gib": _temp_gib(compiled),
           "tflop_per_step": flops / 1e12 if flops else None,
           "mfu": flops / med / peak if (flops and peak) else None}
 
@@ -116,59 +199,94 @@ def _fmt(v, nd=1):
   return f"{v:.{nd}f}" if isinstance(v, float) else str(v)
 
 
+def _table(rows):
+  lines = []
+  par = [r for r in rows if r["kind"] == "parity"]
+  if par:
+    lines += ["| parity vs official | max |flow| px | mean |flow| px | max |covis| | attention |",
+              "|---|---|---|---|---|"]
+    lines += [f"| {r['case']} | {r['flow_max_px']:.2e} | {r['flow_mean_px']:.2e} | "
+              f"{r['covis_max']:.2e} | {r['attention_kernels']} |" for r in par]
+  lines += ["| what | size | batch | dtype | attention (kernels) | ms (min) | pairs/s | "
+            "GFLOP/pair | TFLOP/s | temp GiB | compile s | peak GiB | MFU |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+  for r in rows:
+    if r["kind"] == "forward":
+      dt = r["dtype"] + (", heads bf16" if r["head_dtype"] == "bfloat16" else "")
+      lines.append(f"| forward {r['variant']} | {r['size']} | {r['batch']} | {dt} | "
+                   f"{r['attention']} ({r['attention_kernels']}) | {_fmt(r['ms'])} "
+                   f"({_fmt(r['ms_min'])}) | {_fmt(r['pairs_per_s'])} | "
+                   f"{_fmt(r['gflop_per_pair'], 0)} | {_fmt(r['tflop_s'])} | "
+                   f"{_fmt(r['temp_gib'])} | {_fmt(r['compile_s'])} | - | - |")
+    elif r["kind"] == "train":
+      lines.append(f"| train step {r['model']} (remat={r['remat']}) | {r['size']} | "
+                   f"{r['batch']} | {r['dtype']} | - | {_fmt(r['step_ms'])} "
+                   f"({_fmt(r['step_ms_min'])}) | {_fmt(r['pairs_per_s'])} | - | "
+                   f"{_fmt(r['tflop_per_step'] and r['tflop_per_step'] * 1e3 / r['step_ms'])} | "
+                   f"{_fmt(r['temp_gib'])} | {_fmt(r['compile_s'])} | "
+                   f"{_fmt(r['peak_memory_gib'])} | {_fmt(r['mfu'], 3)} |")
+  return "\n".join(lines)
+
+
 def main(argv=None):
   ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   ap.add_argument("--smoke", action="store_true", help="tiny model on any device, seconds")
+  ap.add_argument("--fixture", help="official snapshot folder with io.npz: parity on this device")
   ap.add_argument("--iters", type=int, default=10)
-  ap.add_argument("--train_batches", default="64,48,32,24,16,8",
-                  help="global batches to try for the train step, largest first")
+  ap.add_argument("--train_batch", type=int, default=16, help="global batch of the train step")
+  ap.add_argument("--budget_s", type=float, default=300.0,
+                  help="start no new case after this many seconds")
+  ap.add_argument("--out", help="append each finished case here as a JSON line")
   args = ap.parse_args(argv)
   import jax
+  start = time.perf_counter()
   dev = jax.devices()[0]
   if args.smoke:
-    fwd_cases = [("tiny", (56, 56), 2, "bfloat16", "xla")]
-    train_case = (str(REPO / "configs" / "synthetic.py"), "tiny", (56, 56), [2])
+    cases = [("tiny", (56, 56), 2, "bfloat16", "xla", "float32"), "train"]
+    train_case = (str(REPO / "configs" / "synthetic.py"), "tiny", (56, 56), 2)
     iters = 2
   else:
-    fwd_cases = [("ufm_base", hw, b, d, a) for hw in ((420, 560), (742, 980)) for b in (1, 8)
-                 for d in ("float32", "bfloat16") for a in ("xla", "cudnn")
-                 if not (a == "cudnn" and d == "float32")]  # the fused kernel takes bf16/f16
-    train_case = (str(REPO / "configs" / "ufm560.py"), "ufm_base", (420, 560),
-                  [int(x) for x in args.train_batches.split(",")])
+    cases = FORWARD_CASES
+    train_case = (str(REPO / "configs" / "ufm560.py"), BASE, (420, 560), args.train_batch)
     iters = args.iters
-  rows, failures = [], []
-  for case in fwd_cases:
-    try:
-      rows.append(bench_forward(*case, iters))
-    except Exception as e:  # noqa: BLE001 - a case that does not fit or is unsupported is reported
-      failures.append({"case": list(map(str, case)), "error": f"{type(e).__name__}: {e}"[:300]})
-  spec, model_name, hw, batches = train_case
-  for batch in batches:
-    try:
-      rows.append(bench_train(spec, model_name, hw, batch, max(iters // 2, 2)))
-      break
-    except Exception as e:  # noqa: BLE001 - out of memory: try the next smaller batch
-      failures.append({"case": ["train", str(batch)], "error": f"{type(e).__name__}: {e}"[:300]})
-      if "RESOURCE_EXHAUSTED" not in str(e) and "out of memory" not in str(e).lower():
-        traceback.print_exc()
-        break
   print(f"device: {dev.device_kind} ({dev.platform}), jax {jax.__version__}, peak bf16 "
-        f"{_fmt((_peak(dev) or 0) / 1e12 or None, 0)} TFLOP/s")
-  print("| what | size | batch | dtype | attention | ms | pairs/s | GFLOP/pair | peak GiB | MFU |")
-  print("|---|---|---|---|---|---|---|---|---|---|")
-  for r in rows:
-    if r["kind"] == "forward":
-      print(f"| forward {r['variant']} | {r['size']} | {r['batch']} | {r['dtype']} | "
-            f"{r['attention']} | {_fmt(r['ms'])} | {_fmt(r['pairs_per_s'])} | "
-            f"{_fmt(r['gflop_per_pair'], 0)} | - | - |")
-    else:
-      print(f"| train step {r['model']} (remat={r['remat']}) | {r['size']} | {r['batch']} | "
-            f"{r['dtype']} | - | {_fmt(r['step_ms'])} | {_fmt(r['pairs_per_s'])} | - | {_fmt(r['peak_memory_gib'])} | "
-            f"{_fmt(r['mfu'], 3)} |")
+        f"{_fmt((_peak(dev) or 0) / 1e12 or None, 0)} TFLOP/s", flush=True)
+  out = open(args.out, "a") if args.out else None  # noqa: SIM115 - closed below
+  rows, failures = [], []
+
+  def record(new):
+    for r in new:
+      rows.append(r)
+      print(json.dumps(r), flush=True)
+      if out:
+        out.write(json.dumps(r) + "\n")
+        out.flush()
+
+  jobs = ([("parity", args.fixture)] if args.fixture else []) + cases
+  for case in jobs:
+    label = case if isinstance(case, str) else " ".join(map(str, case))
+    if time.perf_counter() - start > args.budget_s:
+      failures.append({"case": label, "error": f"not started: past --budget_s {args.budget_s:.0f}"})
+      continue
+    try:
+      if isinstance(case, tuple) and case[0] == "parity":
+        record(parity(case[1]))
+      elif case == "train":
+        record([bench_train(*train_case, max(iters // 2, 2))])
+      else:
+        record([bench_forward(*case, iters)])
+    except Exception as e:  # noqa: BLE001 - a case that does not fit or is unsupported is reported
+      failures.append({"case": label, "error": f"{type(e).__name__}: {e}"[:400]})
+      traceback.print_exc()
+  print(_table(rows))
   for f in failures:
-    print(f"not run: {' '.join(f['case'])}: {f['error']}")
-  print(json.dumps({"device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
-                    "results": rows, "failures": failures}))
+    print(f"not run: {f['case']}: {f['error']}")
+  result = {"device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
+            "seconds": time.perf_counter() - start, "results": rows, "failures": failures}
+  if out:
+    out.write(json.dumps({"failures": failures, "seconds": result["seconds"]}) + "\n")
+    out.close()
+  print(json.dumps(result))
   return 0 if rows else 1
 
 
