@@ -62,9 +62,11 @@ def _peak(device) -> float | None:
   return None
 
 
-def _flops(compiled) -> float | None:
+def _flops(lowered) -> float | None:
+  """XLA's FLOP count of the program as traced. The compiled GPU program's own count leaves out
+  the cuBLAS/cuDNN custom calls (a fifth to a fortieth of the work), so it cannot give an MFU."""
   try:
-    ca = compiled.cost_analysis()
+    ca = lowered.cost_analysis()
     ca = ca[0] if isinstance(ca, (list, tuple)) else ca
     return float(ca.get("flops")) if ca and ca.get("flops") else None
   except Exception:  # noqa: BLE001 - not every backend reports a cost analysis
@@ -129,6 +131,12 @@ def parity(fixture_dir):
 
 
 _PARAMS: dict = {}
+_START = time.perf_counter()
+
+
+def _progress(msg):
+  """Where a long case is, on stderr, so a run cut short shows where its time went."""
+  print(f"[{time.perf_counter() - _START:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
 
 def bench_forward(variant, hw, batch, dtype, attention, head_dtype, iters):
@@ -140,15 +148,18 @@ def bench_forward(variant, hw, batch, dtype, attention, head_dtype, iters):
                                head_dtype=head_dtype)
   if variant not in _PARAMS:  # the parameters do not depend on the compute dtype
     _PARAMS[variant] = trainer.random_params(variants.build_model(variant))
+    _progress(f"{variant} initialised")
   params = _PARAMS[variant]
   h, w = hw
   x = jax.device_put(np.random.default_rng(0).integers(0, 256, (batch, h, w, 3), dtype=np.uint8))
   fwd = jax.jit(lambda p, s, t: model.apply({"params": p}, s, t))
   t0 = time.perf_counter()
-  compiled = fwd.lower(params, x, x).compile()
+  lowered = fwd.lower(params, x, x)
+  compiled = lowered.compile()
   compile_s = time.perf_counter() - t0
+  _progress(f"compiled in {compile_s:.1f} s")
   med, best = _timed(lambda: compiled(params, x, x), iters)
-  flops = _flops(compiled)
+  flops = _flops(lowered)
   return {"kind": "forward", "variant": variant, "size": f"{h}x{w}", "batch": batch,
           "dtype": dtype, "head_dtype": head_dtype, "attention": attention,
           "attention_kernels": attention_kernels(compiled.as_text()),
@@ -170,9 +181,12 @@ def bench_train(config_spec, model_name, hw, batch, steps):
   state = ts.init_state()
   b = ts.random_batch(mesh, batch, hw)
   h, w = hw
+  _progress("train state initialised")
   t0 = time.perf_counter()
-  compiled = ts.train_step.lower(state, b).compile()
+  lowered = ts.train_step.lower(state, b)
+  compiled = lowered.compile()
   compile_s = time.perf_counter() - t0
+  _progress(f"compiled in {compile_s:.1f} s")
   holder = [state]
 
   def step():
@@ -180,7 +194,7 @@ def bench_train(config_spec, model_name, hw, batch, steps):
     return m
 
   med, best = _timed(step, steps)
-  flops = _flops(compiled)
+  flops = _flops(lowered)
   peak = _peak(jax.devices()[0])
   stats = jax.devices()[0].memory_stats() or {}
   return {"kind": "train", "config": config_spec.split("/")[-1], "model": model_name,
@@ -237,6 +251,8 @@ def main(argv=None):
   ap.add_argument("--budget_s", type=float, default=300.0,
                   help="start no new case after this many seconds")
   ap.add_argument("--out", help="append each finished case here as a JSON line")
+  ap.add_argument("--cases", help="comma-separated indices into the case list (0 = first after "
+                  "parity), in the order to run them; default all")
   args = ap.parse_args(argv)
   import jax
   start = time.perf_counter()
@@ -262,12 +278,15 @@ def main(argv=None):
         out.write(json.dumps(r) + "\n")
         out.flush()
 
+  if args.cases:
+    cases = [cases[int(i)] for i in args.cases.split(",")]
   jobs = ([("parity", args.fixture)] if args.fixture else []) + cases
   for case in jobs:
     label = case if isinstance(case, str) else " ".join(map(str, case))
     if time.perf_counter() - start > args.budget_s:
       failures.append({"case": label, "error": f"not started: past --budget_s {args.budget_s:.0f}"})
       continue
+    _progress(f"start {label}")
     try:
       if isinstance(case, tuple) and case[0] == "parity":
         record(parity(case[1]))
