@@ -138,15 +138,61 @@ def cpu_attention(q, k, v, scale: float, tile: int = CPU_ATTENTION_TILE):
   return jax.lax.fori_loop(0, h * chunks, step, jnp.zeros_like(q))
 
 
+def _xla_attention(q, k, v, scale):
+  return jax.nn.dot_product_attention(q, k, v, scale=scale, implementation="xla")
+
+
+def _cudnn_attention(q, k, v, scale):
+  return jax.nn.dot_product_attention(q, k, v, scale=scale, implementation="cudnn")
+
+
+def fused_forward_xla_backward(forward: Callable) -> Callable:
+  """(q, k, v, scale) -> attention whose forward is `forward` (the fused kernel) and whose
+  gradient is XLA's attention's (logits recomputed from the saved q, k, v).
+
+  jax's cuDNN attention refuses to be differentiated at an odd sequence length ("Unsupported
+  sequence length Q 1201, KV 1201", seen with jax 0.11.2 on an H200): its training check counts
+  the empty placeholder it passes for "no bias" as a bias, and biased training needs even
+  lengths. UFM's encoder sees 1 + h*w tokens (1201 at 420x560, 3711 at 742x980), so the UFM-560
+  train step failed on GPU; its forward runs fused at those lengths.
+  """
+  @functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
+  def attention(q, k, v, scale):
+    return forward(q, k, v, scale)
+
+  def fwd(q, k, v, scale):
+    return forward(q, k, v, scale), (q, k, v)
+
+  def bwd(scale, res, g):
+    _, vjp = jax.vjp(lambda q, k, v: _xla_attention(q, k, v, scale), *res)
+    return vjp(g)
+
+  attention.defvjp(fwd, bwd)
+  return attention
+
+
+_cudnn_forward_xla_backward = fused_forward_xla_backward(
+    lambda q, k, v, scale: _cudnn_attention(q, k, v, scale))
+
+
+def _cudnn(q, k, v, scale):
+  """cuDNN's fused attention, trainable at any sequence length: its own gradient where the
+  lengths are even, else XLA's (fused_forward_xla_backward)."""
+  n, m = q.shape[1], k.shape[1]
+  if isinstance(n, int) and isinstance(m, int) and n % 2 == 0 and m % 2 == 0:
+    return _cudnn_attention(q, k, v, scale)
+  return _cudnn_forward_xla_backward(q, k, v, scale)
+
+
 def dot_product_attention(q, k, v, scale: float, impl: Optional[str] = None):
   """[B, N, heads, hd] attention by `attention_implementation`. In auto mode a cuDNN refusal
   at trace time (cuDNN missing, an unsupported GPU or shape) falls back to XLA; a forced
   "cudnn" raises it."""
   chosen = attention_implementation(impl, q.dtype, q.shape[-1])
-  xla = lambda q, k, v: jax.nn.dot_product_attention(q, k, v, scale=scale, implementation="xla")  # noqa: E731
+  xla = lambda q, k, v: _xla_attention(q, k, v, scale)  # noqa: E731
   if chosen == "cudnn" and impl in (None, "auto"):
     try:
-      return jax.nn.dot_product_attention(q, k, v, scale=scale, implementation="cudnn")
+      return _cudnn(q, k, v, scale)
     except (NotImplementedError, RuntimeError, ValueError):
       chosen = "xla"
   if chosen == "auto":
@@ -156,7 +202,7 @@ def dot_product_attention(q, k, v, scale: float, impl: Optional[str] = None):
     return cpu_attention(q, k, v, scale)
   if chosen == "xla":
     return xla(q, k, v)
-  return jax.nn.dot_product_attention(q, k, v, scale=scale, implementation=chosen)
+  return _cudnn(q, k, v, scale)
 
 
 class Attention(nn.Module):
