@@ -26,8 +26,10 @@ def test_gpu_check_smoke_runs_parity_forward_and_train_step(reference_dir, tmp_p
   bf16 = res["results"][2]
   assert 1e-3 < bf16["flow_max_px"] < 2.0, bf16
   assert all(r["attention_kernels"] == "none fused" for r in res["results"][:4])
-  train = res["results"][-1]
+  fwd, train = res["results"][-2:]
+  assert fwd["gflop_per_pair"] > 0 and fwd["tflop_s"] > 0  # counted on the host CPU
   assert train["step_ms"] > 0 and train["pairs_per_s"] > 0 and train["batch"] == 2
+  assert train["tflop_per_step"] > 0
   assert "| train step tiny (remat=False) |" in out.stdout
   # Each case reached --out as it finished, then the closing line with the failures.
   lines = [json.loads(x) for x in out_file.read_text().splitlines()]
