@@ -34,7 +34,7 @@ def get_config(arg=None):
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.seed = 0
   c.total_steps = arg.steps
-  c.num_epochs = None
+  c.num_epochs = config_lib.unset(int)
   shift, train_shift = {}, {}  # source options of shift pairs; only training ones are aligned
   if arg.pairs == "shift":
     shift = {"max_shift": arg.max_shift}
@@ -54,7 +54,7 @@ def get_config(arg=None):
   # Unrolled: segments of 1-2 blocks gain nothing from scan, and the measured figures of
   # docs/synthetic_training.md are of this layout.
   c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
-  c.model_init = ml_collections.FieldReference(None, field_type=str)  # e.g. ckpt:WORKDIR
+  c.model_init = config_lib.unset(str)  # e.g. ckpt:WORKDIR
   c.optim = config_lib.ufm_optim(lr=arg.lr, encoder_lr=arg.lr)
   c.optim.warmup_frac = 0.05
   c.optim.grad_clip_norm = 1.0

@@ -30,7 +30,7 @@ def get_config(arg=None):
   c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
   # dinov2:PATH (facebook/dinov2-large), snapshot:DIR or ckpt:WORKDIR; typed so that
   # `--config.model_init=...` parses (a plain None field cannot be overridden from the flags).
-  c.model_init = ml_collections.FieldReference(None, field_type=str)
+  c.model_init = config_lib.unset(str)
   c.optim = config_lib.ufm_optim()
   c.evals = ml_collections.ConfigDict({"sintel": config_lib.bench_eval("sintel")})
   return c

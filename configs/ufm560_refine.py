@@ -43,7 +43,7 @@ def get_config(arg=None):
   c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
   if arg.data == "synthetic":
     c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=True)
-  c.model_init = ml_collections.FieldReference(None, field_type=str)  # the UFM-560 base
+  c.model_init = config_lib.unset(str)  # the UFM-560 base
   c.loss = "refine"
   c.loss_kwargs = {}
   c.optim = config_lib.ufm_optim(lr=1e-4, encoder_lr=1e-4)

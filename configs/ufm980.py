@@ -25,7 +25,7 @@ def get_config(arg=None):
   c.loss_kwargs.flow_pixels = "all"
   c.model_name = arg.model
   c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
-  c.model_init = ml_collections.FieldReference(None, field_type=str)  # required: the 560 run
+  c.model_init = config_lib.unset(str)  # required: the 560 run
   c.optim = config_lib.ufm_optim(lr=1e-5, encoder_lr=5e-7)
   c.evals = ml_collections.ConfigDict({"sintel": config_lib.bench_eval("sintel", resolution="980")})
   return c

@@ -50,3 +50,42 @@ def test_model_options_override_from_the_command_line(name, impl):
                                        ("ufm560_refine", True), ("synthetic", False)])
 def test_training_configs_scan_their_blocks(name, scan):
   assert _parse(name).model.scan_blocks is scan
+
+
+def _none_leaves(c, prefix=""):
+  import ml_collections
+  for k in c.keys():
+    v = c[k]
+    if isinstance(v, ml_collections.ConfigDict):
+      yield from _none_leaves(v, f"{prefix}{k}.")
+    elif v is None:
+      yield prefix + k
+
+
+# A source rendered on the fly has no root to set.
+_NOT_SETTABLE = {"input.datasets.synthetic.root", "evals.heldout.root"}
+
+
+@pytest.mark.parametrize("name", ["ufm560", "ufm980", "ufm560_refine", "synthetic"])
+def test_every_none_default_can_be_set_from_the_command_line(name):
+  """`--config.total_steps=1000` or `--config.matmul_precision=highest` on a plain None field
+  stops train.py at flag parsing; each None default must carry its type."""
+  config = _parse(name)
+  keys = sorted(set(_none_leaves(config)) - _NOT_SETTABLE)
+  assert "matmul_precision" in keys and "optim.no_decay" in keys
+  values = {int: "7", float: "0.5", str: "highest"}
+  types = {}
+  for key in keys:
+    parent, _, leaf = key.rpartition(".")
+    types[key] = _lookup(config, parent).get_ref(leaf).get_type()
+    assert types[key] in values, f"{key}: a None default of type {types[key]}"
+  parsed = _parse(name, *(f"--config.{k}={values[types[k]]}" for k in keys))
+  for key in keys:
+    got = _lookup(parsed, key.rpartition(".")[0])[key.rpartition(".")[2]]
+    assert got == types[key](values[types[key]]), key
+
+
+def _lookup(config, dotted):
+  for part in filter(None, dotted.split(".")):
+    config = config[part]
+  return config
