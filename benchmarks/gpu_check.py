@@ -72,6 +72,14 @@ def _flops(lowered) -> float | None:
     return None
 
 
+def _param_shapes(model):
+  """The model's parameter tree as ShapeDtypeStructs (no weights made)."""
+  import jax
+  from ufm_jax import trainer
+  hw = (2 * model.config.encoder.patch_size,) * 2
+  return jax.eval_shape(lambda: trainer.init_params(model, hw, jax.random.PRNGKey(0)))
+
+
 def _on_cpu(tree):
   import jax
   cpu = jax.sharding.SingleDeviceSharding(jax.devices("cpu")[0])
@@ -85,11 +93,10 @@ def forward_flops(variant, hw, batch, dtype, head_dtype) -> float | None:
   cuDNN calls (it gave 65 of ~2900 GFLOP per UFM-Base pair on an H200)."""
   import jax
   import jax.numpy as jnp
-  from ufm_jax import trainer
   from ufm_jax.models import variants
   model = variants.build_model(variant, dtype=dtype, attention_impl="xla", head_dtype=head_dtype,
                                scan_blocks=False)
-  params = jax.eval_shape(lambda: trainer.init_params(model, (28, 28), jax.random.PRNGKey(0)))
+  params = _param_shapes(model)
   x = jax.ShapeDtypeStruct((batch, *hw, 3), jnp.uint8)
   fwd = jax.jit(lambda p, s, t: model.apply({"params": p}, s, t))
   return _flops(fwd.lower(*_on_cpu((params, x, x))))
@@ -155,8 +162,9 @@ def parity(fixture_dir):
     ctx = jax.default_matmul_precision(precision) if precision else contextlib.nullcontext()
     with ctx:
       fwd = jax.jit(lambda p, a, b, m=m: m.apply({"params": p}, a, b))
-      out = fwd(params, io["img1_uint8"], io["img2_uint8"])
-      hlo = fwd.lower(params, io["img1_uint8"], io["img2_uint8"]).compile().as_text()
+      compiled = fwd.lower(params, io["img1_uint8"], io["img2_uint8"]).compile()
+    out = compiled(params, io["img1_uint8"], io["img2_uint8"])
+    hlo = compiled.as_text()
     flow = np.asarray(out["flow"], np.float64).transpose(0, 3, 1, 2)
     covis = np.asarray(out["covisibility"], np.float64)[:, None]
     rows.append({"kind": "parity", "case": label, "fixture": d.name,
@@ -182,13 +190,10 @@ def timing_params(model):
   per model on an H200, a tenth of a 15-minute device session."""
   import jax
   import numpy as np
-  from ufm_jax import trainer
-  hw = (2 * model.config.encoder.patch_size,) * 2
-  shapes = jax.eval_shape(lambda: trainer.init_params(model, hw, jax.random.PRNGKey(0)))
   rng = np.random.default_rng(0)
   return jax.tree.map(
       lambda s: jax.device_put((rng.standard_normal(s.shape, np.float32) * 0.02).astype(s.dtype)),
-      shapes)
+      _param_shapes(model))
 
 
 def bench_forward(variant, hw, batch, dtype, attention, head_dtype, iters):

@@ -171,6 +171,7 @@ def fused_forward_xla_backward(forward: Callable) -> Callable:
   return attention
 
 
+# The kernel is looked up at each call, so a test can stand in for cuDNN on CPU.
 _cudnn_forward_xla_backward = fused_forward_xla_backward(
     lambda q, k, v, scale: _cudnn_attention(q, k, v, scale))
 
