@@ -42,10 +42,19 @@ def init_params(model, image_shape, rng):
   return model.init(rng, dummy, dummy)["params"]
 
 
-# Initialisation runs once, so XLA's backend optimisations only cost compile time: on a loaded
-# 2-core CPU host they took fixture_small's init from 14 s to 32 s of compile, for 1 s of run.
+# Initialisation runs once, so for small models XLA's backend optimisations only cost compile time
+# (fixture_small, 6.5M params: 11.3 s in all with them, 6.7 s without). Without them the random
+# number generators run ~45 ns per parameter instead of ~7, which at full size costs more than
+# the compile saves (UFM-Base, 428M: 26.6 s with them, 37.1 s without); the two meet somewhere
+# past 100M. Figures from `python benchmarks/init_time.py` on the 2-core host.
 _INIT_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0,
                           "xla_llvm_disable_expensive_passes": True}
+_UNOPTIMIZED_INIT_MAX_PARAMS = 100_000_000
+
+
+def init_compiler_options(num_params: int) -> dict:
+  """XLA options for compiling `init_params` of a model with `num_params` parameters."""
+  return _INIT_COMPILER_OPTIONS if num_params <= _UNOPTIMIZED_INIT_MAX_PARAMS else {}
 
 
 def random_params(model, seed: int = 0, image_shape=None):
@@ -56,8 +65,9 @@ def random_params(model, seed: int = 0, image_shape=None):
   if image_shape is None:
     image_shape = (2 * model.config.encoder.patch_size,) * 2
   key = jax.random.PRNGKey(seed)
-  init = jax.jit(functools.partial(init_params, model, tuple(image_shape)))
-  return init.lower(key).compile(compiler_options=_INIT_COMPILER_OPTIONS)(key)
+  lowered = jax.jit(functools.partial(init_params, model, tuple(image_shape))).lower(key)
+  num_params = sum(leaf.size for leaf in jax.tree.leaves(lowered.out_info))
+  return lowered.compile(compiler_options=init_compiler_options(num_params))(key)
 
 
 def build_input(config, process_batch: int, seed: int):
