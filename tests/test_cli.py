@@ -137,6 +137,13 @@ def test_convert_help_matches_the_readme():
   assert "python -m ufm_jax convert UFM-Base/ ckpt/" in readme
 
 
+def test_top_level_help_gives_the_whole_first_sentence(capsys):
+  with pytest.raises(SystemExit):
+    cli.main(["--help"])
+  text = " ".join(capsys.readouterr().out.split())
+  assert "(also installed as `ufm-jax`)." in text
+
+
 def test_infer_help_says_checkpoint_takes_a_workdir():
   r = _run("infer", "--help", timeout=120)
   assert r.returncode == 0, r.stderr

@@ -339,7 +339,8 @@ SUBCOMMANDS = [_add_infer_parser, _add_export_parser, _add_match_parser, _add_co
 
 def main(argv: list[str] | None = None) -> int:
   argv = list(sys.argv[1:] if argv is None else argv)
-  parser = argparse.ArgumentParser(prog="python -m ufm_jax", description=__doc__.split("\n")[0])
+  parser = argparse.ArgumentParser(prog="python -m ufm_jax",
+                                   description=" ".join(__doc__.split("\n\n")[0].split()))
   sub = parser.add_subparsers(dest="command", required=True)
   for add in SUBCOMMANDS:
     add(sub)
