@@ -10,13 +10,11 @@ from ufm_jax.models import variants
 
 
 def test_small_models_skip_backend_optimisations_and_full_size_keeps_them():
-  small = jax.eval_shape(functools.partial(trainer.init_params, variants.build_model("tiny"), (28, 28)),
-                         jax.random.PRNGKey(0))
-  full = jax.eval_shape(functools.partial(trainer.init_params, variants.build_model("ufm_base"),
-                                          (28, 28)), jax.random.PRNGKey(0))
-  count = lambda tree: sum(leaf.size for leaf in jax.tree.leaves(tree))
-  assert trainer.init_compiler_options(count(small)) == trainer._INIT_COMPILER_OPTIONS
-  assert trainer.init_compiler_options(count(full)) == {}
+  def count(name):
+    init = functools.partial(trainer.init_params, variants.build_model(name), (28, 28))
+    return sum(leaf.size for leaf in jax.tree.leaves(jax.eval_shape(init, jax.random.PRNGKey(0))))
+  assert trainer.init_compiler_options(count("tiny")) == trainer._INIT_COMPILER_OPTIONS
+  assert trainer.init_compiler_options(count("ufm_base")) == {}
 
 
 def test_random_params_equal_with_and_without_backend_optimisations():
