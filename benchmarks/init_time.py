@@ -19,7 +19,7 @@ import time
 
 import jax
 
-from ufm_jax import trainer
+from ufm_jax import optim, trainer
 from ufm_jax.models import variants
 
 
@@ -35,7 +35,7 @@ def time_init(model, compiler_options: dict) -> dict:
   t3 = time.perf_counter()
   return {"trace_s": round(t1 - t0, 2), "compile_s": round(t2 - t1, 2), "run_s": round(t3 - t2, 2),
           "total_s": round(t3 - t0, 2),
-          "params": sum(leaf.size for leaf in jax.tree.leaves(params))}
+          "params": optim.count_params(params)["total"]}
 
 
 def main(argv=None) -> list[dict]:

@@ -3,6 +3,7 @@ ml_collections refuses `--config.model_init=...` on a plain None field, so it mu
 
 import pathlib
 
+import ml_collections
 import pytest
 
 from ufm_jax import config_lib
@@ -53,7 +54,6 @@ def test_training_configs_scan_their_blocks(name, scan):
 
 
 def _none_leaves(c, prefix=""):
-  import ml_collections
   for k in c.keys():
     v = c[k]
     if isinstance(v, ml_collections.ConfigDict):

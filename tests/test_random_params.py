@@ -5,14 +5,14 @@ import functools
 import jax
 import numpy as np
 
-from ufm_jax import trainer
+from ufm_jax import optim, trainer
 from ufm_jax.models import variants
 
 
 def test_small_models_skip_backend_optimisations_and_full_size_keeps_them():
   def count(name):
     init = functools.partial(trainer.init_params, variants.build_model(name), (28, 28))
-    return sum(leaf.size for leaf in jax.tree.leaves(jax.eval_shape(init, jax.random.PRNGKey(0))))
+    return optim.count_params(jax.eval_shape(init, jax.random.PRNGKey(0)))["total"]
   assert trainer.init_compiler_options(count("tiny")) == trainer._INIT_COMPILER_OPTIONS
   assert trainer.init_compiler_options(count("ufm_base")) == {}
 

@@ -62,12 +62,13 @@ def random_params(model, seed: int = 0, image_shape=None):
   from scratch of tests, benchmarks and tools. The parameter shapes do not depend on the image
   size; the default is two patches square, the smallest the model accepts."""
   import jax
+  from ufm_jax import optim
   if image_shape is None:
     image_shape = (2 * model.config.encoder.patch_size,) * 2
   key = jax.random.PRNGKey(seed)
   lowered = jax.jit(functools.partial(init_params, model, tuple(image_shape))).lower(key)
-  num_params = sum(leaf.size for leaf in jax.tree.leaves(lowered.out_info))
-  return lowered.compile(compiler_options=init_compiler_options(num_params))(key)
+  options = init_compiler_options(optim.count_params(lowered.out_info)["total"])
+  return lowered.compile(compiler_options=options)(key)
 
 
 def build_input(config, process_batch: int, seed: int):

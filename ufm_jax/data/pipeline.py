@@ -529,9 +529,8 @@ def keep_heap(worker_index: int = 0, worker_count: int = 0) -> bool:
   row's host CPU at 560 (`benchmarks/data_pipeline.py --table1` with and without
   `--no_keep_heap`: 14.3 vs 12.6 ms, docs/host_input.md). Serving them from a heap that is not
   trimmed: mmap threshold at its 32 MiB maximum, trim threshold 512 MiB (freed memory up to that
-  stays with the process). Runs in every
-  process that makes samples: the grain workers (as their worker_init_fn, hence the signature)
-  or, with num_workers=0, the training process. False where the C library is not glibc."""
+  stays with the process). Runs in every process that makes samples: the grain workers (as their
+  worker_init_fn, hence the signature) or, with num_workers=0, the training process. False where the C library is not glibc."""
   del worker_index, worker_count
   import ctypes  # pylint: disable=g-import-not-at-top
   try:
