@@ -35,9 +35,6 @@ import time
 import traceback
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-# Dense bf16 peak FLOP/s by device kind (vendor datasheets, no sparsity).
-PEAK_BF16 = {"H200": 989e12, "H100": 989e12, "A100": 312e12, "L4": 121e12, "A10": 125e12,
-             "TPU v5 lite": 197e12, "TPU v4": 275e12, "TPU v5p": 459e12}
 BASE, REFINE = "ufm_base", "ufm_refine"
 # (variant, (H, W), batch, dtype, attention, head_dtype), most wanted first.
 FORWARD_CASES = [
@@ -56,20 +53,15 @@ FORWARD_CASES = [
 
 
 def _peak(device) -> float | None:
-  kind = getattr(device, "device_kind", "")
-  for name, flops in PEAK_BF16.items():
-    if name.lower() in kind.lower():
-      return flops
-  return None
+  """Dense bf16 peak FLOP/s of the device (ufm_jax.topologies.CHIPS), None if unknown."""
+  from ufm_jax import topologies
+  chip = topologies.chip_of(getattr(device, "device_kind", ""))
+  return chip.peak_bf16_flops if chip else None
 
 
 def _flops(lowered) -> float | None:
-  try:
-    ca = lowered.cost_analysis()
-    ca = ca[0] if isinstance(ca, (list, tuple)) else ca
-    return float(ca.get("flops")) if ca and ca.get("flops") else None
-  except Exception:  # noqa: BLE001 - not every backend reports a cost analysis
-    return None
+  from ufm_jax import hlo_stats
+  return hlo_stats.flops(lowered)
 
 
 def _param_shapes(model):
@@ -103,18 +95,10 @@ def forward_flops(variant, hw, batch, dtype, head_dtype) -> float | None:
 
 
 def train_flops(config, hw, batch) -> float | None:
-  """The train step's FLOP count as traced (remat's recomputation included), likewise on CPU.
-  Blocks unrolled: XLA counts a loop body once, so a scanned model would count one block."""
-  import copy
-
-  import jax
-  from ufm_jax import sharding, trainer
-  config = copy.deepcopy(config)
-  config.model.attention_impl = "xla"
-  config.model.scan_blocks = False
-  mesh = sharding.make_mesh("data:-1,fsdp:1", jax.devices("cpu")[:1])
-  ts = trainer.setup(config, mesh, hw, total_steps=1000)
-  return _flops(ts.train_step.lower(ts.sharded_abstract_state(), ts.abstract_batch(batch, hw)))
+  """The train step's FLOP count as traced, counted on the host CPU with the blocks unrolled
+  (ufm_jax.hlo_stats.train_step_flops)."""
+  from ufm_jax import hlo_stats
+  return hlo_stats.train_step_flops(config, hw, batch)
 
 
 def _temp_gib(compiled) -> float | None:

@@ -71,3 +71,35 @@ ENTRY %main (a: f32[2,8]) -> f32[4,8] {
   assert by_kind["all-reduce"].bytes == 4 * 8 * 4 and by_kind["all-reduce"].count == 12
   s = hlo_stats.summary(colls)
   assert s["all-reduce"]["bytes"] == 12 * 128 and s["all-gather"]["bytes"] == 256
+
+
+def test_collectives_parser_reads_xla_tpu_forms():
+  # XLA:TPU's while ops carry no known_trip_count (the bound is the condition's constant), and
+  # its reduce-scatter is a custom fusion around an all-reduce of the full operands.
+  text = """
+%all-reduce-scatter.1 (p0: f32[64,192]) -> f32[64,48] {
+  %ar = f32[64,192]{0,1} all-reduce(%p0), channel_id=1, replica_groups={{0,1,2,3}}, to_apply=%add
+  ROOT %ds = f32[64,48]{0,1} dynamic-slice(%ar, %z, %o), dynamic_slice_sizes={64,48}
+}
+
+%body (p: (s32[], f32[64,48])) -> (s32[], f32[64,48]) {
+  %ag = f32[64,192]{1,0:T(8,128)} all-gather(%w), channel_id=2, dimensions={1}
+  %rs = f32[64,48]{0,1:T(8,128)S(1)} fusion(%g), kind=kCustom, calls=%all-reduce-scatter.1
+  ROOT %t = (s32[], f32[64,48]) tuple(%i, %rs)
+}
+
+%cond (p: (s32[], f32[64,48])) -> pred[] {
+  %constant.7 = s32[]{:T(128)} constant(24)
+  %gte = s32[]{:T(128)} get-tuple-element(%p), index=0
+  ROOT %lt = pred[]{:T(512)} compare(%gte, %constant.7), direction=LT
+}
+
+ENTRY %main (a: f32[64,48]) -> f32[64,48] {
+  %w = (s32[], f32[64,48]) while(%init), condition=%cond, body=%body
+  ROOT %r = f32[64,48] get-tuple-element(%w), index=1
+}
+"""
+  s = hlo_stats.summary(hlo_stats.collectives(text))
+  assert set(s) == {"all-gather", "reduce-scatter"}
+  assert s["all-gather"]["count"] == 24 and s["all-gather"]["bytes"] == 24 * 64 * 192 * 4
+  assert s["reduce-scatter"]["count"] == 24 and s["reduce-scatter"]["bytes"] == 24 * 64 * 48 * 4

@@ -1,11 +1,14 @@
-"""Collectives of a compiled XLA program, read from its HLO text (`compiled.as_text()`).
+"""Collectives of a compiled XLA program, read from its HLO text (`compiled.as_text()`), and the
+FLOPs of a train step (`train_step_flops`).
 
 What a step moves between devices decides whether it scales, and none of it shows on one device:
 an FSDP step should gather each weight for the forward and backward pass and reduce-scatter its
 gradient (about 3x the parameter bytes per device), never move the batch. `collectives(text)`
 lists every all-gather / all-reduce / reduce-scatter / all-to-all / collective-permute with its
 result shape and bytes per device, counted as often as it runs: ops inside a `while` body (a scan
-over layers) are multiplied by the loop's known trip count.
+over layers) are multiplied by the loop's trip count (XLA's known_trip_count, or the bound of the
+loop condition in XLA:TPU's programs, which carry none). XLA:TPU's reduce-scatter, a custom fusion
+around an all-reduce, counts as a reduce-scatter of its results.
 """
 
 from __future__ import annotations
@@ -27,6 +30,14 @@ _SHAPE = re.compile(r"\b(" + "|".join(DTYPE_BYTES) + r")\[([\d,]*)\]")
 _CALLEE = re.compile(r"\b(body|condition|to_apply|calls|true_computation|false_computation|"
                      r"branch_computations)=(?:\{([^}]*)\}|(%?[\w.\-]+))")
 _TRIP = re.compile(r'"known_trip_count":\{"n":"(\d+)"\}')
+# A loop condition `counter < N` (XLA:TPU's while ops carry no known_trip_count).
+_CONST = re.compile(r"%([\w.\-]+)\s+=\s+s32\[\]\S*\s+constant\((\d+)\)")
+_LT = re.compile(r"^\s*ROOT\s.*\scompare\(%?[\w.\-]+,\s*%?([\w.\-]+)\),\s*direction=LT")
+_COND = re.compile(r"\bcondition=%?([\w.\-]+)")
+# XLA:TPU emits a reduce-scatter as a custom fusion whose body all-reduces the full operands: count
+# it once, as a reduce-scatter of the fusion's (sharded) results, and not its body.
+_FUSED_RS = re.compile(r"^\s*(?:ROOT\s+)?%?[\w.\-]+\s+=\s+(.+?)\s+fusion\(.*\bcalls=%?"
+                       r"(all-reduce-scatter[\w.\-]*)")
 
 
 @dataclasses.dataclass
@@ -80,19 +91,35 @@ def collectives(hlo_text: str) -> list[Collective]:
   # caller; everything else once. Collectives sit in the entry, loop bodies or called graphs.
   runs: dict[str, int] = collections.defaultdict(int)
 
+  def trips(line: str) -> int:
+    """Trip count of a while op: its known_trip_count, else the N of a `counter < N` condition
+    (a counter from 0 by 1, as lax.scan and fori_loop lower), else 1."""
+    known = _TRIP.search(line)
+    if known:
+      return int(known.group(1))
+    cond = _COND.search(line)
+    lines = comps.get(cond.group(1), []) if cond else []
+    consts = dict(_CONST.findall("\n".join(lines)))
+    for cline in lines:
+      lt = _LT.match(cline)
+      if lt and lt.group(1) in consts:
+        return int(consts[lt.group(1)])
+    return 1
+
   def visit(name: str, times: int, depth: int = 0):
     if depth > 64 or name not in comps:
       return
     runs[name] += times
     for line in comps[name]:
-      trip = _TRIP.search(line)
       for role, listed, single in _CALLEE.findall(line):
         names = listed or single
         if role == "to_apply":   # reductions of all-reduce/reduce: scalar graphs, no collectives
           continue
-        n = int(trip.group(1)) if (trip and role in ("body", "condition")) else 1
+        n = trips(line) if role in ("body", "condition") else 1
         for callee in names.split(","):
-          visit(callee.strip().lstrip("%"), times * n, depth + 1)
+          callee = callee.strip().lstrip("%")
+          if not callee.startswith("all-reduce-scatter"):
+            visit(callee, times * n, depth + 1)
 
   visit(entry, 1)
   out = []
@@ -100,6 +127,11 @@ def collectives(hlo_text: str) -> list[Collective]:
     if not runs.get(name):
       continue
     for line in lines:
+      fused = _FUSED_RS.match(line)
+      if fused:
+        shapes = _shapes(fused.group(1))
+        out.append(Collective("reduce-scatter", shapes, _nbytes(shapes), runs[name], name))
+        continue
       m = _OP.match(line)
       if not m or m.group(3) == "-done":
         continue
@@ -139,3 +171,33 @@ def format_summary(s: dict) -> str:
 
 def to_json(s: dict) -> str:
   return json.dumps({k: v["bytes"] for k, v in s.items()})
+
+
+def flops(lowered) -> float | None:
+  """XLA's FLOP count of a lowered (or compiled) program; None where the backend has none."""
+  try:
+    ca = lowered.cost_analysis()
+    ca = ca[0] if isinstance(ca, (list, tuple)) else ca
+    return float(ca.get("flops")) if ca and ca.get("flops") else None
+  except Exception:  # noqa: BLE001 - not every backend reports a cost analysis
+    return None
+
+
+def train_step_flops(config, hw, batch: int) -> float | None:
+  """FLOPs of one train step of `config` at global `batch` and (H, W) `hw`, counted by XLA on
+  the step as traced (remat's recomputation included), lowered for one host CPU device.
+
+  Blocks unrolled and XLA's attention: XLA counts a loop body once, so a scanned model (or the
+  CPU attention's loop) would count one block; a compiled TPU/GPU program is no better (a loop
+  body once, and on GPU no cuBLAS/cuDNN calls). Lowered, not compiled: seconds, not minutes.
+  """
+  import copy
+
+  import jax
+  from ufm_jax import sharding, trainer
+  config = copy.deepcopy(config)
+  config.model.attention_impl = "xla"
+  config.model.scan_blocks = False
+  mesh = sharding.make_mesh("data:-1,fsdp:1", jax.devices("cpu")[:1])
+  ts = trainer.setup(config, mesh, hw, total_steps=1000)
+  return flops(ts.train_step.lower(ts.sharded_abstract_state(), ts.abstract_batch(batch, hw)))
