@@ -38,7 +38,8 @@ def maybe_initialize_distributed():
   """`jax.distributed.initialize()` when launched as one of several processes.
 
   Explicit localhost/multi-node launch: JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID.
-  Managed clusters (TPU pods, SLURM, ...) are detected by JAX itself when UFM_MULTIHOST=1.
+  Managed clusters (TPU pods, SLURM, ...) are detected by JAX itself when UFM_MULTIHOST=1
+  (launch/slurm/train.sbatch sets it).
   Returns True when distributed mode was initialised.
   """
   if os.environ.get("JAX_NUM_PROCESSES"):
@@ -50,9 +51,20 @@ def maybe_initialize_distributed():
       return True
     return False
   if os.environ.get("UFM_MULTIHOST") == "1":
-    jax.distributed.initialize()
+    jax.distributed.initialize(local_device_ids=_slurm_host_gpus())
     return True
   return False
+
+
+def _slurm_host_gpus():
+  """Under Slurm with one task per host, the ids of all the GPUs Slurm gave the host: JAX's
+  Slurm detection otherwise assumes a task per GPU and hands each task the GPU of its local rank
+  (GPU 0 only, with one task per host). None elsewhere (JAX decides)."""
+  per_node = os.environ.get("SLURM_STEP_TASKS_PER_NODE", "")
+  gpus = os.environ.get("SLURM_GPUS_ON_NODE", "")
+  if per_node.split("(")[0] != "1" or not gpus.isdigit():
+    return None
+  return list(range(int(gpus)))
 
 
 def parse_mesh(mesh_config) -> list[tuple[str, int]]:
