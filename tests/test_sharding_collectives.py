@@ -74,8 +74,9 @@ ENTRY %main (a: f32[2,8]) -> f32[4,8] {
 
 
 def test_collectives_parser_reads_xla_tpu_forms():
-  # XLA:TPU's while ops carry no known_trip_count (the bound is the condition's constant), and
-  # its reduce-scatter is a custom fusion around an all-reduce of the full operands.
+  # XLA:TPU's while ops carry no known_trip_count (the bound is the condition's constant), its
+  # reduce-scatter is a custom fusion around an all-reduce of the full operands, and an
+  # asynchronous collective is a start and a done fusion, each calling a copy of the op.
   text = """
 %all-reduce-scatter.1 (p0: f32[64,192]) -> f32[64,48] {
   %ar = f32[64,192]{0,1} all-reduce(%p0), channel_id=1, replica_groups={{0,1,2,3}}, to_apply=%add
@@ -94,12 +95,26 @@ def test_collectives_parser_reads_xla_tpu_forms():
   ROOT %lt = pred[]{:T(512)} compare(%gte, %constant.7), direction=LT
 }
 
+%fused_computation.1 (p0: bf16[16,8]) -> (bf16[16,8], bf16[64,8]) {
+  %all-gather.5 = bf16[64,8]{1,0} all-gather(%p0), channel_id=5, dimensions={0}
+  ROOT %cc = (bf16[16,8], bf16[64,8]) custom-call(%p0, %all-gather.5), custom_call_target="x"
+}
+
+%fused_computation.2 (p0: bf16[16,8]) -> bf16[64,8] {
+  %all-gather.6 = bf16[64,8]{1,0} all-gather(%p0), channel_id=5, dimensions={0}
+  ROOT %cc = bf16[64,8] custom-call(%p0, %all-gather.6), custom_call_target="x"
+}
+
 ENTRY %main (a: f32[64,48]) -> f32[64,48] {
   %w = (s32[], f32[64,48]) while(%init), condition=%cond, body=%body
+  %async-collective-start.1 = (bf16[16,8], bf16[64,8]) fusion(%b), kind=kCustom, calls=%fused_computation.1
+  %async-collective-done.1 = bf16[64,8] fusion(%s), kind=kCustom, calls=%fused_computation.2
   ROOT %r = f32[64,48] get-tuple-element(%w), index=1
 }
 """
   s = hlo_stats.summary(hlo_stats.collectives(text))
   assert set(s) == {"all-gather", "reduce-scatter"}
-  assert s["all-gather"]["count"] == 24 and s["all-gather"]["bytes"] == 24 * 64 * 192 * 4
+  # 24 in the loop, and the asynchronous one once (its start, not its done).
+  assert s["all-gather"]["count"] == 25
+  assert s["all-gather"]["bytes"] == 24 * 64 * 192 * 4 + 64 * 8 * 2
   assert s["reduce-scatter"]["count"] == 24 and s["reduce-scatter"]["bytes"] == 24 * 64 * 48 * 4

@@ -8,7 +8,8 @@ lists every all-gather / all-reduce / reduce-scatter / all-to-all / collective-p
 result shape and bytes per device, counted as often as it runs: ops inside a `while` body (a scan
 over layers) are multiplied by the loop's trip count (XLA's known_trip_count, or the bound of the
 loop condition in XLA:TPU's programs, which carry none). XLA:TPU's reduce-scatter, a custom fusion
-around an all-reduce, counts as a reduce-scatter of its results.
+around an all-reduce, counts as a reduce-scatter of its results, and its asynchronous collectives
+(a start and a done fusion, each holding a copy of the op) once.
 """
 
 from __future__ import annotations
@@ -34,6 +35,9 @@ _TRIP = re.compile(r'"known_trip_count":\{"n":"(\d+)"\}')
 _CONST = re.compile(r"%([\w.\-]+)\s+=\s+s32\[\]\S*\s+constant\((\d+)\)")
 _LT = re.compile(r"^\s*ROOT\s.*\scompare\(%?[\w.\-]+,\s*%?([\w.\-]+)\),\s*direction=LT")
 _COND = re.compile(r"\bcondition=%?([\w.\-]+)")
+# XLA:TPU's asynchronous collectives: a start fusion and a done fusion, each calling a copy of the
+# collective. The start's copy is counted, the done's is not.
+_ASYNC_DONE = re.compile(r"^\s*(?:ROOT\s+)?%?async-collective-done[\w.\-]*\s+=")
 # XLA:TPU emits a reduce-scatter as a custom fusion whose body all-reduces the full operands: count
 # it once, as a reduce-scatter of the fusion's (sharded) results, and not its body.
 _FUSED_RS = re.compile(r"^\s*(?:ROOT\s+)?%?[\w.\-]+\s+=\s+(.+?)\s+fusion\(.*\bcalls=%?"
@@ -111,6 +115,8 @@ def collectives(hlo_text: str) -> list[Collective]:
       return
     runs[name] += times
     for line in comps[name]:
+      if _ASYNC_DONE.match(line):
+        continue
       for role, listed, single in _CALLEE.findall(line):
         names = listed or single
         if role == "to_apply":   # reductions of all-reduce/reduce: scalar graphs, no collectives
