@@ -83,3 +83,21 @@ def test_device_prefetch_state_is_the_last_returned_batch():
   fresh = sharding.DevicePrefetch(_Counter(), mesh, depth=3)
   fresh.set_state(state)
   assert [int(np.asarray(b["x"])[0, 0]) for b in fresh] == [4, 5, 6, 7, 8, 9]
+
+
+def test_fsdp_never_shards_the_layer_axis_of_a_scanned_stack():
+  mesh = jax.sharding.AbstractMesh((1, 8), ("data", "fsdp"))
+  rules = [(".*", "fsdp")]
+  shape = (24, 16, 8)   # 24 layers: the largest dimension, and divisible by 8
+  assert sharding.spec_for("encoder/blocks_3/mlp/fc1/kernel", shape, rules, mesh) == P("fsdp", None, None)
+  for path in ("encoder/blocks/mlp/fc1/kernel", "info_sharing/self_attention_blocks/attn/qkv/bias",
+               "opt_state/0/mu/encoder/blocks/mlp/fc1/kernel"):
+    assert sharding.spec_for(path, shape, rules, mesh) == P(None, "fsdp", None), path
+
+
+def test_layer_gather_refuses_a_rule_sharding_the_layer_axis():
+  assert sharding.layer_gather(jax.sharding.AbstractMesh((1, 1), ("data", "fsdp")), []) is None
+  mesh = jax.sharding.AbstractMesh((1, 4), ("data", "fsdp"))
+  hook = sharding.layer_gather(mesh, [(r"blocks/", ("fsdp", None))])
+  with pytest.raises(ValueError, match="encoder/blocks/w .*layer axis"):
+    hook("encoder/blocks", {"w": np.zeros((4, 4))})

@@ -62,6 +62,9 @@ def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
   # norms, layer scales) stay replicated.
   c.sharding_rules = [(r".*", "fsdp")]
   c.sharding_min_size = 2 ** 14
+  # "layer": the scanned blocks are gathered a layer at a time inside the scan; "step": every
+  # param is gathered at the start of the step (ufm_jax.sharding.fsdp_gathers).
+  c.fsdp_gather = "layer"
   c.ckpt_steps = 1000
   c.keep_ckpt = 3
   c.async_checkpoint = True

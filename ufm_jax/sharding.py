@@ -13,6 +13,10 @@ Config:
   The batch is always sharded on its leading dimension over ("data", "fsdp"), and so is every
   activation at the model's block boundaries (`activation_constraint`): FSDP gathers the weights
   of a layer, never the batch.
+
+FSDP gathers: the scanned blocks' stacked params (models/scan.py) are gathered one layer at a time
+inside the scan (`layer_gather`), and their gradients reduce-scattered there; every other param is
+gathered whole at the start of the step (`gathered`). The layer axis of a stack is never sharded.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from ufm_jax import optim
+from ufm_jax.models import scan
 
 BATCH_AXES = ("data", "fsdp")
 
@@ -104,11 +109,13 @@ def make_mesh(mesh_config, devices=None) -> Mesh:
   return Mesh(arr, names)
 
 
-def _fsdp_spec(shape, axis_size: int, axis: str = "fsdp", min_size: int = 0) -> P:
-  """Shard the largest dimension divisible by axis_size; replicate if none (or tiny arrays)."""
+def _fsdp_spec(shape, axis_size: int, axis: str = "fsdp", min_size: int = 0,
+               first: int = 0) -> P:
+  """Shard the largest dimension (from `first` on) divisible by axis_size; replicate if none (or
+  tiny arrays)."""
   if axis_size == 1 or int(np.prod(shape, dtype=np.int64)) < min_size:
     return P()
-  order = sorted(range(len(shape)), key=lambda i: -shape[i])
+  order = sorted(range(first, len(shape)), key=lambda i: -shape[i])
   for i in order:
     if shape[i] % axis_size == 0 and shape[i] >= axis_size:
       spec = [None] * len(shape)
@@ -121,7 +128,9 @@ def spec_for(path: str, shape, rules, mesh: Mesh, min_size: int = 0) -> P:
   for rx, rule in rules:
     if re.search(rx, path):
       if rule == "fsdp":
-        return _fsdp_spec(shape, mesh.shape["fsdp"], min_size=min_size)
+        # A scanned stack's leading axis is its layers: each scan step gathers one of them.
+        first = 1 if scan.STACKED_PATH.search(path) else 0
+        return _fsdp_spec(shape, mesh.shape["fsdp"], min_size=min_size, first=first)
       if rule == "replicate":
         return P()
       rule = tuple(rule)
@@ -153,15 +162,82 @@ def batch_sharding(mesh: Mesh) -> NamedSharding:
   return NamedSharding(mesh, P(BATCH_AXES))
 
 
-def gathered(mesh: Mesh):
+FSDP_GATHERS = ("layer", "step")
+
+
+def fsdp_gathers(mesh: Mesh, config):
+  """(gather_params, layer_gather) by `config.fsdp_gather`: "layer" (default) gathers the
+  scanned blocks a layer at a time inside the scan and every other param at the start of the
+  step; "step" gathers every param at the start of the step (the whole model on each device for
+  the step's duration). Both None on a one-device mesh."""
+  mode = config.get("fsdp_gather") or "layer"
+  if mode not in FSDP_GATHERS:
+    raise ValueError(f"config.fsdp_gather={mode!r}; expected one of {FSDP_GATHERS}")
+  if mode == "step":
+    return gathered(mesh), None
+  min_size = int(config.get("sharding_min_size", 0) or 0)
+  return (gathered(mesh, except_stacks=True),
+          layer_gather(mesh, config.get("sharding_rules"), min_size))
+
+
+def gathered(mesh: Mesh, except_stacks: bool = False):
   """params -> params constrained to a full copy per device, at the start of the forward pass:
   FSDP's weight all-gather (the stored params and optimizer state stay sharded; gradients are
   reduce-scattered back). Left free, XLA may instead move a batch-sharded activation to the
-  layout of a feature-sharded weight. None on a one-device mesh."""
+  layout of a feature-sharded weight. `except_stacks` leaves the scanned blocks' stacks as they
+  are, for the model to gather a layer at a time (`layer_gather`). None on a one-device mesh."""
   if mesh.size == 1:
     return None
   full = replicated(mesh)
-  return lambda tree: jax.lax.with_sharding_constraint(tree, jax.tree.map(lambda _: full, tree))
+
+  def gather(path, x):
+    if except_stacks and scan.STACKED_PATH.search(optim.path_str(path)):
+      return x
+    return jax.lax.with_sharding_constraint(x, full)
+
+  return lambda tree: jax.tree_util.tree_map_with_path(gather, tree)
+
+
+def layer_gather(mesh: Mesh, rules, min_size: int = 0):
+  """The model's per-layer FSDP hook (`scan.run`): (param path of a scanned stack, its stacked
+  params) -> a function that gathers one layer's params inside the scan body.
+
+  The layer's params are first constrained to their own shard of the stored sharding (the
+  stack's `rules` spec without the layer axis), then to a full copy: the forward pass all-gathers
+  one layer, and its gradient is constrained to that shard inside the backward scan (a
+  reduce-scatter), so neither the whole model nor its whole gradient is ever materialised on one
+  device. None on a one-device mesh.
+  """
+  if mesh.size == 1:
+    return None
+  rules = [tuple(r) for r in (rules or [])]
+  full = replicated(mesh)
+
+  def for_stack(path: str, stack):
+    def layer_sharding(leaf_path, a):
+      name = f"{path}/{optim.path_str(leaf_path)}"
+      spec = tuple(spec_for(name, a.shape, rules, mesh, min_size))
+      if spec and spec[0] is not None:
+        raise ValueError(f"sharding rule for {name} {P(*spec)} shards the layer axis of a "
+                         "scanned stack; shard another dimension (scan gathers one layer a step)")
+      return NamedSharding(mesh, P(*spec[1:]))
+
+    shards = jax.tree_util.tree_map_with_path(layer_sharding, stack)
+
+    @jax.custom_vjp
+    def gather(layer):
+      layer = jax.lax.with_sharding_constraint(layer, shards)
+      return jax.lax.with_sharding_constraint(layer, jax.tree.map(lambda _: full, layer))
+
+    # The gradient goes from the devices' partial sums straight to the shard (a reduce-scatter);
+    # the transpose of the constraints above would all-reduce a full copy first.
+    def backward(_, grad):
+      return (jax.lax.with_sharding_constraint(grad, shards),)
+
+    gather.defvjp(lambda layer: (gather(layer), None), backward)
+    return gather
+
+  return for_stack
 
 
 def activation_constraint(mesh: Mesh):

@@ -20,18 +20,20 @@ def import_attr(spec: str):
   return getattr(importlib.import_module(module), attr)
 
 
-def build_model(config, activation_sharding=None):
+def build_model(config, activation_sharding=None, layer_gather=None):
   """The flax module from config: `config.model_fn` ("module:fn", called with config.model) or
   the named variant of ufm_jax.models.variants with `config.model` overrides.
 
   `activation_sharding`: the hook the model applies at block boundaries (from
-  `ufm_jax.sharding.activation_constraint`), None on one device.
+  `ufm_jax.sharding.activation_constraint`), None on one device. `layer_gather`: FSDP's
+  per-layer gather of the scanned blocks (`ufm_jax.sharding.layer_gather`).
   """
   if config.get("model_fn"):
     return import_attr(config.model_fn)(config.model)
   from ufm_jax.models import ufm, variants
   cfg = variants.get(config.model_name, **config.model.to_dict())
-  return ufm.model_from_config(cfg, activation_sharding=activation_sharding)
+  return ufm.model_from_config(cfg, activation_sharding=activation_sharding,
+                               layer_gather=layer_gather)
 
 
 def init_params(model, image_shape, rng):
@@ -207,7 +209,8 @@ def setup(config, mesh, image_shape, total_steps: int) -> TrainSetup:
   eval predict. Nothing is allocated: params exist only as shapes until `init_fn` runs."""
   import jax
   from ufm_jax import optim, sharding
-  model = build_model(config, sharding.activation_constraint(mesh))
+  gather_params, layer_gather = sharding.fsdp_gathers(mesh, config)
+  model = build_model(config, sharding.activation_constraint(mesh), layer_gather)
   apply_kwargs = dict(config.get("apply_kwargs", {}))
   init_fn = functools.partial(init_params, model, tuple(image_shape))
   abstract_params = jax.eval_shape(init_fn, jax.random.PRNGKey(0))
@@ -220,11 +223,10 @@ def setup(config, mesh, image_shape, total_steps: int) -> TrainSetup:
   state_sh = sharding.tree_shardings(abstract_state, mesh, config.sharding_rules, min_size)
   batch_sh = sharding.batch_sharding(mesh)
   repl = sharding.replicated(mesh)
-  step = make_train_step(model, build_loss(config), tx, labels, apply_kwargs,
-                         sharding.gathered(mesh))
+  step = make_train_step(model, build_loss(config), tx, labels, apply_kwargs, gather_params)
   train_step = jax.jit(step, in_shardings=(state_sh, batch_sh), out_shardings=(state_sh, repl),
                        donate_argnums=(0,))
-  predict = jax.jit(make_predict(model, apply_kwargs, sharding.gathered(mesh)),
+  predict = jax.jit(make_predict(model, apply_kwargs, gather_params),
                     in_shardings=(param_sh, batch_sh), out_shardings=repl)
   return TrainSetup(model, tx, labels, schedules, init_fn, abstract_params, abstract_state,
                     param_sh, state_sh, batch_sh, train_step, predict)

@@ -7,7 +7,7 @@ the selected block outputs go through the final `norm`, cls/register tokens are 
 """
 
 import dataclasses
-from typing import Optional, Sequence, Tuple, Union
+from typing import Callable, Optional, Sequence, Tuple, Union
 
 import flax.linen as nn
 import jax
@@ -205,6 +205,7 @@ class DinoV2(nn.Module):
   activation_sharding: layers.ActivationHook = None
   attention_impl: Optional[str] = None
   scan: bool = False  # blocks as stacked params + lax.scan (models/scan.py)
+  layer_gather: Optional[Callable] = None  # scan.LayerGather: FSDP per-layer gather (scan only)
 
   @nn.compact
   def __call__(self, images: jax.Array) -> Sequence[jax.Array]:
@@ -246,8 +247,10 @@ class DinoV2(nn.Module):
       block = layers.Block(**kw, parent=None)
       stack = scan.stacked_params(self, "blocks", block, cfg.depth, c)
       collect = self.is_mutable_collection("intermediates")
+      path = "/".join((*self.scope.path, "blocks"))
       for lo, hi in scan.segments([i + 1 for i in take]):
-        x, ys = scan.run(block, stack, x, lo, hi, self.remat, constrain, collect)
+        x, ys = scan.run(block, stack, x, lo, hi, self.remat, constrain, collect,
+                         self.layer_gather, path)
         for i in range(lo, hi) if collect else ():
           self.sow("intermediates", f"block{i}_out", ys[i - lo])
         outs[hi - 1] = x

@@ -8,7 +8,7 @@ same final `norm`.
 """
 
 import dataclasses
-from typing import Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import flax.linen as nn
 import jax
@@ -60,6 +60,7 @@ class InfoSharing(nn.Module):
   activation_sharding: layers.ActivationHook = None
   attention_impl: Optional[str] = None
   scan: bool = False  # blocks as stacked params + lax.scan (models/scan.py)
+  layer_gather: Optional[Callable] = None  # scan.LayerGather: FSDP per-layer gather (scan only)
 
   @nn.compact
   def __call__(self, feat1: jax.Array, feat2: jax.Array):
@@ -89,8 +90,10 @@ class InfoSharing(nn.Module):
       block = layers.Block(**kw, parent=None)
       stack = scan.stacked_params(self, "self_attention_blocks", block, cfg.depth, cfg.dim)
       collect = self.is_mutable_collection("intermediates")
+      path = "/".join((*self.scope.path, "self_attention_blocks"))
       for lo, hi in scan.segments([i + 1 for i in take] + [cfg.depth]):
-        x, ys = scan.run(block, stack, x, lo, hi, self.remat, constrain, collect)
+        x, ys = scan.run(block, stack, x, lo, hi, self.remat, constrain, collect,
+                         self.layer_gather, path)
         for i in range(lo, hi) if collect else ():
           self.sow("intermediates", f"block{i}_out", ys[i - lo])
         if hi - 1 in take:

@@ -11,9 +11,14 @@ Intermediate taps stay exact: the stack runs as one scan per contiguous segment 
 and the tap is that segment's final carry. When the "intermediates" collection is mutable (the
 parity tests), each segment also returns its per-block outputs as scan ys and they are sown as
 `block{i}_out`, as the unrolled model does; training never pays for them.
+
+FSDP: with a `layer_gather` hook (`ufm_jax.sharding.layer_gather`) the stacked params stay sharded
+and each block's weights are all-gathered inside the scan body, and its gradient reduce-scattered
+there, so a device holds one or two gathered layers at a time instead of the whole model.
 """
 
-from typing import Callable, Dict, Sequence, Tuple
+import re
+from typing import Callable, Dict, Optional, Sequence, Tuple
 
 import flax.linen as nn
 import jax
@@ -23,6 +28,11 @@ import numpy as np
 # (top-level module, per-layer name prefix) of every scanned stack; the stacked tree is named
 # like the prefix without the index.
 STACKS = (("encoder", "blocks"), ("info_sharing", "self_attention_blocks"))
+# "/"-joined param paths (or optimizer-state paths, which end in them) inside a stacked tree.
+STACKED_PATH = re.compile(r"(^|/)(" + "|".join(f"{t}/{p}" for t, p in STACKS) + r")/")
+
+# (path of a stacked tree, its params) -> a function gathering one layer's params, or None.
+LayerGather = Optional[Callable[[str, object], Callable]]
 
 
 def segments(stops: Sequence[int]) -> Tuple[Tuple[int, int], ...]:
@@ -45,20 +55,31 @@ def stacked_params(module: nn.Module, name: str, block: nn.Module, depth: int, d
 
 
 def run(block: nn.Module, stack, x: jax.Array, lo: int, hi: int, remat: bool,
-        constrain: Callable[[jax.Array], jax.Array], collect: bool):
+        constrain: Callable[[jax.Array], jax.Array], collect: bool,
+        gather: LayerGather = None, path: str = ""):
   """Blocks lo..hi-1 of `stack` on x; returns (x, per-block outputs [hi-lo, ...] or None).
 
   `constrain` (the activation-sharding hook) is applied to every block's output, as at every
   block boundary of the unrolled stack. With remat the body is checkpointed per block
   (prevent_cse=False: the scan already keeps XLA from merging the recomputation away).
+  `gather` (FSDP's `layer_gather` hook, `path` the stacked tree's param path) gathers each
+  block's weights inside the body; remat then gathers them again for the backward pass instead
+  of keeping them. Without remat the backward pass would keep every layer's gathered weights
+  anyway, so the segment's stack is gathered once before the scan, as unscanned params are.
   """
+  part = jax.tree.map(lambda a: a[lo:hi], stack)
+  gather_layer = gather(path, stack) if gather is not None else None
+  if gather_layer is not None and not remat:
+    part, gather_layer = jax.vmap(gather_layer)(part), None
+
   def body(h, p):
+    if gather_layer is not None:
+      p = gather_layer(p)
     h = constrain(block.apply({"params": p}, h))
     return h, (h if collect else None)
 
   if remat:
     body = jax.checkpoint(body, prevent_cse=False)
-  part = jax.tree.map(lambda a: a[lo:hi], stack)
   return jax.lax.scan(body, x, part)
 
 

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ufm_jax.models import dinov2, dpt, layers
+from ufm_jax.models import dinov2, dpt, layers, scan
 from ufm_jax.models import info_sharing as info_sharing_lib
 
 # UniCeption data_norm_type "dinov2" (ImageNet), float32 like the official tensors.
@@ -177,9 +177,11 @@ def split_views(x, symmetrized: bool):
 class UFM(nn.Module):
   """UniFlowMatchConfidence. `activation_sharding` (optional, `ufm_jax.sharding.
   activation_constraint`) is applied to every batch-leading activation at block boundaries:
-  images, encoder and fusion blocks, DPT stages, outputs."""
+  images, encoder and fusion blocks, DPT stages, outputs. `layer_gather` (optional,
+  `ufm_jax.sharding.layer_gather`) gathers the scanned blocks' weights one layer at a time."""
   config: UFMConfig
   activation_sharding: layers.ActivationHook = None
+  layer_gather: scan.LayerGather = None
 
   def constrain(self, x):
     return x if self.activation_sharding is None else self.activation_sharding(x)
@@ -189,10 +191,10 @@ class UFM(nn.Module):
     compute = DTYPES[cfg.dtype]
     bb_dtype = None if cfg.dtype == "float32" else compute
     self.encoder = dinov2.DinoV2(cfg.encoder, bb_dtype, cfg.remat, self.activation_sharding,
-                                 cfg.attention_impl, cfg.scan_blocks)
+                                 cfg.attention_impl, cfg.scan_blocks, self.layer_gather)
     self.info_sharing = info_sharing_lib.InfoSharing(cfg.info_sharing, bb_dtype, cfg.remat,
                                                      self.activation_sharding, cfg.attention_impl,
-                                                     cfg.scan_blocks)
+                                                     cfg.scan_blocks, self.layer_gather)
     # float64 mode runs the heads in float64 too (their inputs are float64).
     hd = jnp.bfloat16 if cfg.head_dtype == "bfloat16" and cfg.dtype != "float64" else None
     # torch: head1 = Sequential(Sequential(DPTFeature, DPTRegressionProcessor), AdaptorMap).
