@@ -19,9 +19,11 @@ GIB = 2 ** 30
 def test_slice_table():
   for name, s in topologies.SLICES.items():
     gen, n = name.split("-")
-    # v5e/v6e are named by chips, v4/v5p by TensorCores (two per chip).
+    # v5e/v6e (and GPU nodes) are named by chips, v4/v5p by TensorCores (two per chip).
     assert s.chips * (2 if s.chip_config == "megacore" else 1) == int(n), name
     assert s.chip == gen and s.chip in topologies.CHIPS
+  with pytest.raises(ValueError, match="GPU"):
+    topologies.devices("h100-8")
   assert topologies.get("v5e-8").topology == "v5e:2x4"
   assert topologies.get("v5p-128").topology == "v5:4x4x4" and topologies.get("v5p-128").chips == 64
   with pytest.raises(KeyError, match="v5e-8"):

@@ -49,15 +49,17 @@ CHIPS = {
 
 @dataclasses.dataclass(frozen=True)
 class Slice:
-  name: str                # Cloud accelerator type, e.g. "v5e-8"
+  name: str                # Cloud accelerator type, e.g. "v5e-8"; GPU nodes: "h100-8"
   chip: str                # key of CHIPS
-  topology: str            # libtpu's topology name, e.g. "v5e:2x4"
-  chip_config: str         # "default" (a device per chip) or "megacore" (v4/v5p)
-  host_bounds: tuple       # chips per host along each axis
-  wrap: tuple              # wrap-around links along each axis (a full torus)
+  topology: str = ""       # libtpu's topology name, e.g. "v5e:2x4" ("" for GPU nodes)
+  chip_config: str = ""    # "default" (a device per chip) or "megacore" (v4/v5p)
+  host_bounds: tuple = ()  # chips per host along each axis
+  wrap: tuple = ()         # wrap-around links along each axis (a full torus)
 
   @property
   def chips(self) -> int:
+    if not self.topology:
+      return int(self.name.split("-")[1])
     return math.prod(int(d) for d in self.topology.split(":")[1].split("x"))
 
   @property
@@ -86,6 +88,9 @@ def _slices():
       name = f"{gen}-{2 * chips}"
       out[name] = Slice(name, gen, f"{prefix}:{shape}", "megacore", (2, 2, 1),
                         (True,) * 3 if chips >= 64 else (False,) * 3)
+  # GPU nodes of 8: nothing to compile for without the GPUs, but their step time can be estimated.
+  for gpu in ("h100", "h200", "a100"):
+    out[f"{gpu}-8"] = Slice(f"{gpu}-8", gpu)
   return out
 
 
@@ -96,7 +101,7 @@ def get(name: str) -> Slice:
   try:
     return SLICES[name]
   except KeyError:
-    raise KeyError(f"unknown TPU slice {name!r}; known: {', '.join(SLICES)}") from None
+    raise KeyError(f"unknown slice {name!r}; known: {', '.join(SLICES)}") from None
 
 
 def chip_of(device_kind: str) -> Chip | None:
@@ -119,6 +124,8 @@ def devices(name: str, num_slices: int = 1):
   """The abstract devices of slice `name` (`num_slices` of them joined by the data-center
   network), to build a mesh on and compile for; nothing runs on them."""
   s = get(name)
+  if not s.topology:
+    raise ValueError(f"{name} is a GPU node: XLA compiles for GPUs only on the GPUs themselves")
   if not has_libtpu():
     raise RuntimeError(f"compiling for {name} needs libtpu: pip install 'ufm_jax[tpu]' "
                        "(no TPU needed)")
@@ -127,6 +134,8 @@ def devices(name: str, num_slices: int = 1):
   os.environ.setdefault("TPU_SKIP_MDS_QUERY", "1")
   os.environ.setdefault("TPU_WORKER_HOSTNAMES", "localhost")
   os.environ.setdefault("TPU_ACCELERATOR_TYPE", s.accelerator_type)
+  # libtpu locks the host's TPUs for one process; compiling opens none, so several may plan.
+  os.environ.setdefault("ALLOW_MULTIPLE_LIBTPU_LOAD", "1")
   from jax.experimental import topologies  # pylint: disable=g-import-not-at-top
   desc = topologies.get_topology_desc(
       platform="tpu", topology_name=s.topology, chip_config_name=s.chip_config,
