@@ -146,9 +146,9 @@ def devices(name: str, num_slices: int = 1):
 def fit_search(probe, start: int, quantum: int, capacity: int, max_probes: int):
   """The largest per-chip batch (a multiple of `quantum`) whose step fits in `capacity` bytes of
   HBM, by compiling: `probe(b)` compiles at per-chip batch b and returns {"fits": bool,
-  "hbm_bytes_per_chip": int (when it fits)}. Double from `start` while it fits (halve while
+  "hbm_bytes_per_chip": int (when it compiled)}. Double from `start` while it fits (halve while
   it does not) until the answer is bracketed, then close the bracket, trying first the batch the
-  two largest fitting probes predict (HBM is affine in the batch). Returns (largest batch found
+  two largest compiled probes predict (HBM is affine in the batch). Returns (largest batch found
   to fit, 0 if none; smallest found not to, None if every probe fit; {batch: probe result}): the
   answer is exact when the two differ by `quantum`, else `max_probes` ran out first."""
   results = {}
@@ -172,7 +172,7 @@ def fit_search(probe, start: int, quantum: int, capacity: int, max_probes: int):
         b = max(quantum, b // 2 // quantum * quantum)
   while hi - lo > quantum and len(results) < max_probes:
     guess = (lo + hi) // 2
-    known = sorted(k for k, v in results.items() if v["fits"])[-2:]
+    known = sorted(k for k, v in results.items() if v.get("hbm_bytes_per_chip"))[-2:]
     if len(known) == 2:
       (b1, b2), (m1, m2) = known, [results[k]["hbm_bytes_per_chip"] for k in known]
       if m2 > m1:
