@@ -109,11 +109,16 @@ def _input_block(args, longest_side, workers):
 
 def _measured(block, args, longest_side, workers):
   """`block` with the benchmark's batch, shape, worker and read settings."""
+  from ufm_jax.data import augment  # pylint: disable=g-import-not-at-top
   block.batch_size = args.batch_size
   block.longest_side = longest_side
+  official = {560: augment.SHAPES_560, 980: augment.SHAPES_980}.get(longest_side)
+  # The recipes' shapes at 560 and 980 (input.shapes), else W = longest_side with aspect_ratios.
+  block.shapes = official if official and not args.config else block.get("shapes", ())
   block.num_workers = workers
   block.read_threads = args.read_threads
   block.keep_heap = args.keep_heap
+  block.augment = {**dict(block.get("augment", {})), **json.loads(args.augment)}
   if not workers:
     # Synchronous: each timed batch is made inside the timed window. With read threads a
     # prefetch buffer fills during the warm-up and the CPU time of those rows goes uncounted.
@@ -170,6 +175,9 @@ def main(argv=None):
                       "real on-disk format (workers=0), and their mean weighted by the epoch quotas")
   p.add_argument("--native", action="store_true",
                  help="with --table1: the flow datasets' trees at their native frame sizes")
+  p.add_argument("--augment", default="{}",
+                 help="JSON of input.augment keys (ufm_jax.data.augment.AugmentConfig), e.g. "
+                      "'{\"fast_image_ops\": false}'")
   args = p.parse_args(argv)
   if args.table1:
     return table1(args)
@@ -218,7 +226,8 @@ def table1(args):
   mean = sum(mixture.QUOTAS[n] * ms for n, ms in rows.items()) / total
   print(f"  {'Table 1 mean':14s} {total:>8d} pairs/epoch {mean:8.1f} ms/row (weighted by quota)")
   print(json.dumps({"load_avg_1m": round(os.getloadavg()[0], 2), "longest_side": side,
-                    "native": args.native, "ms_per_row": rows, "table1_mean_ms_per_row": mean}))
+                    "native": args.native, "augment": json.loads(args.augment),
+                    "ms_per_row": rows, "table1_mean_ms_per_row": mean}))
   return mean
 
 

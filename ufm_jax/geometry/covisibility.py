@@ -324,8 +324,8 @@ def correspondence_from_depth(depth0, K0, cam2world0, depth1, K1, cam2world1,
   valid=False (and flow 0, all masks False); invalid target pixels never confirm covisibility.
   Returns the dict of `covisibility_from_points` (see there for `subpixel_search`).
   rows, cols (int index vectors): only the source pixels of that grid, every output [len(rows),
-  len(cols)]. The rule is per source pixel, so they equal the full result there bit for bit; the
-  training pipeline labels just the pixels its crop reads (ufm_jax.data.augment.label_grid).
+  len(cols)]. The rule is per source pixel, so they equal the full result there bit for bit
+  (e.g. only the pixels a crop reads).
   """
   depth0 = _check_depth("depth0", depth0)
   _check_depth("depth1", depth1)

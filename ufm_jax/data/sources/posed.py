@@ -221,8 +221,8 @@ def check_view(v: View, where: str) -> View:
 @dataclasses.dataclass(frozen=True)
 class PosedPair:
   """Two posed views of a static scene, labelled on request in either direction and on any grid
-  of source pixels: the training pipeline labels only the pixels its crop reads
-  (`PosedPairSource.lazy_pair`, ufm_jax.data.augment.label_grid)."""
+  of source pixels. The training pipeline crops the views and labels the crops, or (a posed set
+  read as a flow set) labels only the stored pixels its crop reads (ufm_jax.data.augment)."""
   v0: View
   v1: View
   thresholds: tuple[float, float]   # (tau_d, tau_r)
