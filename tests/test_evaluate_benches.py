@@ -12,52 +12,16 @@ import os
 import numpy as np
 import pytest
 
-from ufm_jax.testing import wide_trees as trees
+from ufm_jax.testing import bench_trees, wide_trees as trees
 from ufm_jax import evaluators, metrics
 from ufm_jax.data import get_source, io
 from ufm_jax.evaluators import base
 
 
 
-def write_sintel(root, h=28, w=42, frames=3, scene="alley_1"):
-  rng = np.random.default_rng(0)
-  tr = os.path.join(root, "training")
-  for sub in ("clean", "final", "flow", "occlusions", "invalid"):
-    os.makedirs(os.path.join(tr, sub, scene))
-  for k in range(1, frames + 1):
-    for p in ("clean", "final"):
-      io.write_image(os.path.join(tr, p, scene, f"frame_{k:04d}.png"),
-                     rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
-    if k < frames:
-      io.write_flo(os.path.join(tr, "flow", scene, f"frame_{k:04d}.flo"),
-                   rng.normal(0, 3, (h, w, 2)).astype(np.float32))
-      occ = np.zeros((h, w), bool)
-      occ[:, :5] = True
-      io.write_mask(os.path.join(tr, "occlusions", scene, f"frame_{k:04d}.png"), occ)
-      io.write_mask(os.path.join(tr, "invalid", scene, f"frame_{k:04d}.png"), np.zeros((h, w), bool))
-
-
-def write_kitti(root, h=30, w=50, n=2):
-  rng = np.random.default_rng(1)
-  tr = os.path.join(root, "training")
-  for sub in ("image_2", "flow_occ", "flow_noc", "obj_map"):
-    os.makedirs(os.path.join(tr, sub))
-  for i in range(n):
-    for f in (10, 11):
-      io.write_image(os.path.join(tr, "image_2", f"{i:06d}_{f}.png"),
-                     rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
-    flow = rng.normal(0, 20, (h, w, 2)).astype(np.float32)
-    valid = rng.random((h, w)) < 0.6
-    io.write_kitti_flow(os.path.join(tr, "flow_occ", f"{i:06d}_10.png"), flow, valid)
-    io.write_kitti_flow(os.path.join(tr, "flow_noc", f"{i:06d}_10.png"), flow, valid & (rng.random((h, w)) < 0.8))
-    obj = np.zeros((h, w), np.uint8)
-    obj[10:20, 10:30] = 1
-    io.write_image(os.path.join(tr, "obj_map", f"{i:06d}_10.png"), np.repeat(obj[..., None], 3, -1))
-
-
 def write_all(root):
-  write_sintel(os.path.join(root, "sintel"))
-  write_kitti(os.path.join(root, "kitti2015"))
+  bench_trees.write_sintel(os.path.join(root, "sintel"))
+  bench_trees.write_kitti(os.path.join(root, "kitti2015"))
   scene = trees.PlaneScene()
   trees.write_dtu(os.path.join(root, "dtu"), scene)
   pair = trees.write_eth3d_prepared(os.path.join(root, "eth3d"), scene)
