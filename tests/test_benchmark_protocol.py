@@ -8,8 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
+from ufm_jax import evaluators
 from ufm_jax.data import get_source
 from ufm_jax.data.sources import _benchmark_branch as branch
+from ufm_jax.evaluators import base, dense
 from ufm_jax.geometry import benchmark_labels as bl
 from ufm_jax.testing import bench_trees, wide_trees
 
@@ -253,3 +255,79 @@ def test_sintel_official_covisibility_is_not_occluded_only(tmp_path):
   assert (~occ & ~inside).any()                # pixels where the two rules differ
   np.testing.assert_array_equal(official["covisibility"], ~occ)
   np.testing.assert_array_equal(native["covisibility"], ~occ & inside)
+
+
+# ------------------------------------------------------------------------------------ metrics
+def _sample(flow, valid, covis, covis_valid=None, hw=(2, 3)):
+  return dict(image0=np.zeros(hw + (3,), np.uint8), image1=np.zeros(hw + (3,), np.uint8),
+              flow=np.asarray(flow, np.float32), flow_valid=np.asarray(valid, bool),
+              covisibility=np.asarray(covis, bool),
+              covis_valid=np.ones(hw, bool) if covis_valid is None else np.asarray(covis_valid, bool))
+
+
+def test_dense_metrics_official_pooled_by_hand():
+  # Prediction 0: EPE = |GT|. Sample A (2 x 3): EPEs 0.5 1.5 3 / 4 6 10 (all along x).
+  ea = np.array([[0.5, 1.5, 3.0], [4.0, 6.0, 10.0]])
+  a = _sample(np.stack([ea, 0 * ea], -1), [[1, 1, 1], [1, 1, 0]], [[1, 1, 0], [1, 0, 1]],
+              covis_valid=np.zeros((2, 3)))        # ignored by the official masks
+  # Sample B: EPEs 3-4-5 triangles: 5 everywhere, (3, 4) components.
+  b = _sample(np.broadcast_to([3.0, 4.0], (2, 3, 2)), np.ones((2, 3)), [[1, 0, 0], [0, 0, 0]])
+  acc = dense.DenseMetrics(official=True)
+  for s in (a, b):
+    acc(s, {"flow": np.zeros_like(s["flow"]), "covisibility": np.ones(s["flow"].shape[:2])})
+  r = acc.result()
+  covis = [0.5, 1.5, 4.0] + [5.0]                  # valid & covisible
+  occluded = [3.0, 6.0] + [5.0] * 5                 # valid & not covisible
+  every = [0.5, 1.5, 3.0, 4.0, 6.0] + [5.0] * 6
+  assert r["epe"] == pytest.approx(sum(covis) / 4)
+  assert r["px1"] == pytest.approx(100 * 3 / 4)     # 1.5, 4, 5 > 1
+  assert r["px2"] == pytest.approx(100 * 2 / 4)
+  assert r["px5"] == pytest.approx(0.0)             # 5 is not > 5
+  assert r["epe_occluded"] == pytest.approx(sum(occluded) / 7)
+  assert r["epe_all"] == pytest.approx(sum(every) / 11)
+
+
+def test_dense_metrics_native_occluded_needs_target_in_view_and_covis_valid():
+  # 1 x 4, GT flow x = (0, 0, 0, 10): pixel 3 lands outside a 4-wide image1.
+  flow = np.array([[[0, 0], [0, 0], [0, 0], [10, 0]]], np.float32)
+  s = _sample(flow, np.ones((1, 4)), [[1, 0, 0, 0]], covis_valid=[[1, 1, 0, 1]], hw=(1, 4))
+  pred = {"flow": flow + np.array([2.0, 0.0], np.float32), "covisibility": np.ones((1, 4))}
+  acc = dense.DenseMetrics()
+  acc(s, pred)
+  r = acc.result()
+  assert r["epe"] == pytest.approx(2.0) and r["epe_occluded"] == pytest.approx(2.0)
+  assert acc.pooled.count["epe_occluded"] == 1     # pixel 1 only: 2 lacks covis_valid, 3 leaves
+
+
+# --------------------------------------------------------------------------- bench wiring
+class ZeroFlow:
+  inference_resolution = (42, 56)
+
+  def apply(self, variables, source, target):
+    import jax.numpy as jnp
+    b, h, w, _ = source.shape
+    return {"flow": jnp.zeros((b, h, w, 2)) + 0 * target.mean(), "covisibility": jnp.ones((b, h, w))}
+
+
+def test_run_bench_official_eth3d_scores_the_crop(official_root):
+  root, scene = official_root
+  runner = base.Runner(ZeroFlow(), {})
+  res, n = evaluators.run_bench("eth3d", runner, root, progress=False)
+  assert n == {"eth3d": 2}
+  # zero prediction: EPE = |GT flow| pooled over the covisible pixels of both (identical) pairs
+  e = scene.expected()
+  covis = e["inside"] & ~e["hole1"]
+  mag = np.linalg.norm(e["flow"], axis=-1)
+  assert res["eth3d/epe"] == pytest.approx(mag[covis].mean(), rel=2e-3)
+  assert res["eth3d/epe_all"] == pytest.approx(mag[e["inside"]].mean(), rel=1e-4)
+  with pytest.raises(ValueError, match="native"):
+    evaluators.run_bench("eth3d", base.Runner(ZeroFlow(), {}, 560), root, progress=False)
+
+
+def test_bench_table_protocols():
+  assert {n for n, b in evaluators.OFFICIAL.items()} == {"sintel", "kitti", "eth3d", "dtu", "tawb"}
+  assert evaluators.get_bench("eth3d").protocol == "official"
+  assert evaluators.get_bench("eth3d", "native") is evaluators.BENCHES["eth3d"]
+  assert evaluators.get_bench("eth3d_pose", "official") is evaluators.BENCHES["eth3d_pose"]
+  with pytest.raises(ValueError, match="protocol"):
+    evaluators.get_bench("eth3d", "paper")

@@ -1,6 +1,7 @@
-"""evaluate.py end to end on tiny trees in each dataset's real on-disk format.
+"""evaluate.py end to end on tiny trees in each dataset's real on-disk format (the native
+protocol; the official one: tests/test_evaluate_official.py).
 
-One `--bench all` run with the public fixture snapshot (random weights: the numbers are arbitrary,
+One `--bench all --protocol native` run with the public fixture snapshot (random weights: the numbers are arbitrary,
 so the checks are structural plus an independent recomputation of the reported EPE from the
 files written by --save_predictions). The fixture's fixed inference resolution (168x224) means a
 single compiled forward serves every dataset.
@@ -41,12 +42,14 @@ def test_bench_all_on_tiny_trees(snapshot, tmp_path_factory, run_evaluate):
   root = tmp_path_factory.mktemp("data")
   write_all(str(root))
   preds, out = root / "preds", root / "out"
-  rc, printed, err = run_evaluate("--bench", "all", "--snapshot", snapshot, "--data_root",
-                                  str(root), "--max_pairs", "2", "--save_predictions", str(preds),
-                                  "--num_panels", "1", "--out", str(out), "--no_progress")
+  rc, printed, err = run_evaluate("--bench", "all", "--protocol", "native", "--snapshot", snapshot,
+                                  "--data_root", str(root), "--max_pairs", "2",
+                                  "--save_predictions", str(preds), "--num_panels", "1", "--out",
+                                  str(out), "--no_progress")
   assert rc == 0, err[-3000:]
   res = json.loads((out / "results.json").read_text())
   assert res["skipped"] == {} and sorted(res["benches_run"]) == sorted(evaluators.BENCHES)
+  assert res["protocol"] == "native" and set(res["bench_protocols"].values()) == {"native"}
   assert res["n_pairs"]["sintel_clean"] == 2 and res["n_pairs"]["kitti"] == 2
   assert res["n_pairs"]["eth3d"] == 1 and res["n_pairs"]["scannet1500"] == 1
   m = res["metrics"]
