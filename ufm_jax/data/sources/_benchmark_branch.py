@@ -84,7 +84,7 @@ def resize_short_center_crop(image0, image1, flow, masks, size=BENCH_SIZE):
   antialiased bilinear and a truncating cast to uint8, flow and masks with legacy nearest (flow
   scaled per axis); centre crop; `non_occluded` then also requires the flow target inside the crop
   (0 <= x < W', 0 <= y < H'), and every other mask is ANDed with the cropped `non_occluded` before
-  that test (flow_manipulation.py:298-313: the branch's `additional_masks`).
+  that test (flow_manipulation.py:295-313: the branch's `additional_masks`).
   Returns (image0, image1, flow, masks) at `size`.
   """
   from ufm_jax import inference
