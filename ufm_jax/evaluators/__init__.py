@@ -61,7 +61,8 @@ OFFICIAL: dict[str, Bench] = {b.name: b for b in (
           (Split("sintel_clean", "sintel_clean", (("covis_in_image", False),)),
            Split("sintel_final", "sintel_final", (("covis_in_image", False),))),
           data_subdir=("Sintel", "sintel"),
-          layout=f"Sintel/ ({_BRANCH}) = MPI-Sintel-complete: training/{{clean,final,flow,occlusions}}/",
+          layout=f"Sintel/ ({_BRANCH}) = MPI-Sintel-complete: "
+                 f"training/{{clean,final,flow,occlusions}}/",
           tool="data/sintel/", options=(("kind", "sintel"),), protocol="official"),
     Bench("kitti", "flow", (Split("kitti", "kitti2015"),), data_subdir=("KITTI", "kitti2015"),
           layout=f"KITTI/ ({_BRANCH}): training/image_2/, training/flow_occ/, training/flow_noc/",

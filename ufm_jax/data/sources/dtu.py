@@ -15,7 +15,7 @@ source) entry among the top `num_src` of Cameras/pair.txt. Lighting index `light
 `dtu_official` reads the benchmark branch's own data instead (official download scripts
 download_dtu_processed.sh + download_pairs_eth3d_dtu.sh; uniflowmatch/datasets/dtu.py), in
 millimetres as the branch keeps it:
-  <root>/scan<N>/images/<view>.png                    600x450, lighting 3 (the tree `dtu_processed/`)
+  <root>/scan<N>/images/<view>.png                    600x450, lighting 3 (`dtu_processed/`)
   <root>/scan<N>/depths/<view>.npy                    z-depth mm, 0 = none
   <root>/scan<N>/camera_params/<view>_intrinsics.npy  3x3 K
   <root>/scan<N>/poses/<view>.npy                     4x4 world-to-camera (mm)
@@ -30,8 +30,8 @@ import os
 
 import numpy as np
 
-from ufm_jax.data.registry import register
 from ufm_jax.data import io
+from ufm_jax.data.registry import register
 from ufm_jax.data.sources import _benchmark_branch, posed
 from ufm_jax.geometry.benchmark_labels import BRANCH_THRESHOLDS
 

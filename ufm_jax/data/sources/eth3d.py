@@ -26,8 +26,8 @@ import os
 
 import numpy as np
 
-from ufm_jax.data.registry import register
 from ufm_jax.data import io
+from ufm_jax.data.registry import register
 from ufm_jax.data.sources import _benchmark_branch, posed
 from ufm_jax.geometry.benchmark_labels import BRANCH_THRESHOLDS
 from ufm_jax.data.sources.scannetpp import WaiScenes, wai_view

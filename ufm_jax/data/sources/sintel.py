@@ -10,11 +10,11 @@ Layout under `root` (the unpacked `MPI-Sintel-complete/`, see data/sintel/README
 Labels: flow_valid = known GT, |u|, |v| <= 1e9 (the .flo unknown marker; NaN/Inf is none, so it makes
 the sample corrupt, a ValueError; the standard "Sintel train" EPE averages over all pixels; the
 `invalid` map is kept in meta, not applied); covisibility = not occluded and landing inside
-image1 (`covis_in_image=False`: not occluded only, the benchmark branch's mask); covis_valid = not invalid. meta adds the boolean maps `occlusion`, `invalid` and
-`matched` (visible in both frames: not occluded, x + flow inside [0, W-1] x [0, H-1] and
-|u| <= W-1, |v| <= H-1, the unimatch approximation of the official matched/unmatched split;
-unmatched = ~matched). gt_relpath is `<pass>/<scene>/frame_%04d.flo` (the submission layout).
-No backward flow.
+image1 (`covis_in_image=False`: not occluded only, the benchmark branch's mask); covis_valid = not
+invalid. meta adds the boolean maps `occlusion`, `invalid` and `matched` (visible in both frames:
+not occluded, x + flow inside [0, W-1] x [0, H-1] and |u| <= W-1, |v| <= H-1, the unimatch
+approximation of the official matched/unmatched split; unmatched = ~matched). gt_relpath is
+`<pass>/<scene>/frame_%04d.flo` (the submission layout). No backward flow.
 """
 
 from __future__ import annotations

@@ -38,7 +38,11 @@ from ufm_jax.data.sources import _benchmark_branch, exr, posed
 
 
 def _load_npy(path, shape, what):
-  arr = _benchmark_branch.load_npy(path, what)
+  posed.require_file(path, what)
+  try:
+    arr = np.load(path)
+  except ValueError as e:
+    raise ValueError(f"{path}: not a .npy array ({e})") from e
   if arr.shape != shape:
     raise ValueError(f"{path}: expected shape {shape} ({what}), got {arr.shape}")
   return arr.astype(np.float64)
