@@ -220,6 +220,9 @@ def test_official_pair_table_errors(tmp_path):
   bench_trees.write_eth3d_processed(str(tmp_path / "eth3d_processed"), scene)
   with pytest.raises(FileNotFoundError, match="eth3d_valid_pairs.npz"):
     get_source("eth3d_official", str(tmp_path / "eth3d_processed"))
+  np.savez(tmp_path / "bytes.npz", data=np.array([[b"courtyard", b"DSC_0286", b"DSC_0287", b"1"]]))
+  src = get_source("eth3d_official", str(tmp_path / "eth3d_processed"), pairs=str(tmp_path / "bytes.npz"))
+  assert src.pairs == [("courtyard", "DSC_0286", "DSC_0287")]
   np.savez(tmp_path / "bad.npz", rows=np.zeros(3))
   with pytest.raises(ValueError, match="bad.npz.*`data`"):
     get_source("eth3d_official", str(tmp_path / "eth3d_processed"), pairs=str(tmp_path / "bad.npz"))

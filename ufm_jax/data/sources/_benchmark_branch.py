@@ -134,7 +134,8 @@ def read_pair_table(path: str) -> list[tuple[str, str, str]]:
   if rows.ndim != 2 or rows.shape[1] < 3 or len(rows) == 0:
     raise ValueError(f"{path}: `data` is {rows.shape}, expected [N, 4] rows (scene, view0, "
                      "view1, score)")
-  return [(str(r[0]), str(r[1]), str(r[2])) for r in rows]
+  text = lambda x: x.decode() if isinstance(x, bytes) else str(x)  # noqa: E731 (bytes arrays)
+  return [(text(r[0]), text(r[1]), text(r[2])) for r in rows]
 
 
 class BranchPosedPairs:
