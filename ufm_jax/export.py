@@ -26,8 +26,6 @@ import dataclasses
 import json
 import os
 import pathlib
-import shutil
-import tempfile
 from typing import Sequence
 
 import numpy as np
@@ -169,13 +167,12 @@ def onnx_failure(exc: BaseException) -> str | None:
 def write_onnx(fn, specs, input_names, output_names, path) -> None:
   """jax2onnx conversion of fn(*specs) -> tuple to `path`, written whole or not at all; an
   ExportError names the primitive and the model part that could not be converted."""
+  from ufm_jax.data import io
   jax2onnx = _jax2onnx()
   path = pathlib.Path(path).absolute()
-  path.parent.mkdir(parents=True, exist_ok=True)
   # Large graphs spill weights into a data file that the graph names: convert in a temp folder
   # under the final file name, then move both.
-  tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
-  try:
+  with io.staging_dir(path) as tmp:
     try:
       jax2onnx.to_onnx(fn, list(specs), input_names=list(input_names),
                        output_names=list(output_names), model_name=path.stem,
@@ -188,8 +185,6 @@ def write_onnx(fn, specs, input_names, output_names, path) -> None:
                         f"{type(e).__name__}: {str(e)[:300]}") from e
     for f in sorted(tmp.iterdir(), key=lambda f: f.name == path.name):  # the graph last
       os.replace(f, path.parent / f.name)
-  finally:
-    shutil.rmtree(tmp, ignore_errors=True)
 
 
 def export_onnx(model, params, size, path, *, batch=1, dtype="float32",
@@ -240,15 +235,6 @@ def _sidecar(fmt, model, size, batch, dtype, outputs, shapes, checkpoint, platfo
   }
 
 
-def _write_atomic(path: pathlib.Path, data: bytes) -> None:
-  tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-  try:
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-  finally:
-    tmp.unlink(missing_ok=True)
-
-
 def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32",
            outputs: Sequence[str] = DEFAULT_OUTPUTS, checkpoint=None,
            platforms=PLATFORMS) -> list[pathlib.Path]:
@@ -256,6 +242,7 @@ def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32
   import jax
   import jax.numpy as jnp
 
+  from ufm_jax.data import io
   if fmt not in FORMATS:
     raise ExportError(f"--format {fmt!r}; expected one of {', '.join(FORMATS)}")
   out = pathlib.Path(out)
@@ -264,7 +251,8 @@ def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32
   if fmt == "stablehlo":
     exp, model = export_stablehlo(model, params, size, batch=batch, dtype=dtype, outputs=outputs,
                                   platforms=platforms)
-    _write_atomic(out, bytes(exp.serialize()))
+    with io.atomic_file(out) as tmp:
+      pathlib.Path(tmp).write_bytes(bytes(exp.serialize()))
     written = [out]
   else:
     model = export_onnx(model, params, size, out, batch=batch, dtype=dtype, outputs=outputs)
@@ -277,7 +265,6 @@ def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32
     shapes[k], shapes[k + ":dtype"] = tuple(avals[k].shape), str(avals[k].dtype)
   meta = _sidecar(fmt, model, size, batch, dtype, outputs, shapes, checkpoint, platforms)
   side = sidecar_path(out)
-  from ufm_jax.data import io
   io.write_json_atomic(side, meta)
   return written + [side]
 
