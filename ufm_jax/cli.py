@@ -114,34 +114,10 @@ def _to_official_main(args) -> int:
   return 0
 
 
-def write_direction(out_dir: pathlib.Path, name: str, source, target, pred) -> list[pathlib.Path]:
-  """Writes the files of one direction (atomically); returns their paths."""
-  from ufm_jax import viz
-  from ufm_jax.data import io
-
-  flow = np.asarray(pred["flow"], np.float32)
-  covis = np.asarray(pred["covisibility"], np.float32)
-  paths = {k: out_dir / f"{name}{suffix}" for k, suffix in (
-      ("flo", ".flo"), ("npy", "_flow.npy"), ("cnpy", "_covisibility.npy"),
-      ("cpng", "_covisibility.png"), ("panel", "_panel.png"))}
-  io.write_flo(paths["flo"], flow)
-  _save_npy(paths["npy"], flow)
-  _save_npy(paths["cnpy"], covis)
-  io.write_image(paths["cpng"], viz.covisibility_to_image(covis))
-  io.write_image(paths["panel"], viz.panel(source, target, flow, covis))
-  return list(paths.values())
-
-
-def _save_npy(path: pathlib.Path, array: np.ndarray) -> None:
-  tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-  with open(tmp, "wb") as f:
-    np.save(f, array)
-  os.replace(tmp, path)
-
-
 def run_infer(model, params, source_path, target_path, out_dir, bidirectional=False):
-  """Reads the two images, predicts, writes the outputs; returns the written paths."""
-  from ufm_jax import inference
+  """Reads the two images, predicts, writes every output of `ufm_jax.outputs`; returns their
+  paths."""
+  from ufm_jax import inference, outputs
   from ufm_jax.data import io
 
   source, target = io.read_image(source_path), io.read_image(target_path)
@@ -151,9 +127,9 @@ def run_infer(model, params, source_path, target_path, out_dir, bidirectional=Fa
     fwd, bwd = inference.predict(model, params, [source, target], [target, source])
   else:
     fwd, bwd = inference.predict(model, params, source, target), None
-  written = write_direction(out_dir, "forward", source, target, fwd)
+  written = outputs.write(outputs.paths(out_dir, "forward"), source, target, fwd)
   if bwd is not None:
-    written += write_direction(out_dir, "backward", target, source, bwd)
+    written += outputs.write(outputs.paths(out_dir, "backward"), target, source, bwd)
   return written
 
 
