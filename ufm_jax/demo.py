@@ -1,4 +1,5 @@
-"""Local demo page: `python -m ufm_jax demo --checkpoint DIR [--snapshot] [--port 7860]`.
+"""Local demo page: `python -m ufm_jax demo --checkpoint DIR [--snapshot] [--port 7860]`
+(`serve(model, params, ...)` from Python).
 
 A Gradio app (the optional `[demo]` extra): upload two images (or pick the generated example
 pair) and see the flow in the Middlebury colour wheel, the covisibility, the target warped into
@@ -21,7 +22,6 @@ import hashlib
 import ipaddress
 import os
 import pathlib
-import sys
 import tempfile
 import threading
 import time
@@ -173,43 +173,18 @@ def is_loopback(host: str) -> bool:
     return False
 
 
-def add_parser(sub) -> None:
-  from ufm_jax.cli import _add_checkpoint_args
-  p = sub.add_parser("demo", help="local Gradio page: flow, covisibility, warp and matches of two "
-                     "images (the [demo] extra)", description=__doc__.split("\n")[0])
-  _add_checkpoint_args(p)
-  p.add_argument("--port", type=int, default=7860)
-  p.add_argument("--host", default="127.0.0.1",
-                 help="address to bind; anything but a loopback address exposes the page to the "
-                      "network")
-  p.add_argument("--share", action="store_true",
-                 help="also open a PUBLIC gradio.live link (off unless given)")
-  p.add_argument("--max-side", "--max_side", dest="max_side", type=int, default=DEFAULT_MAX_SIDE,
-                 help="refuse images with a side longer than this many px")
-  p.add_argument("--max-file-size", default=DEFAULT_MAX_FILE_SIZE,
-                 help="refuse uploads over this size (gradio syntax: 20mb, 500kb)")
-  p.set_defaults(func=main)
-
-
-def main(args) -> int:
-  """The `demo` subcommand: load the model, warm it up on the example pair, serve until Ctrl-C."""
-  try:
-    import gradio  # noqa: F401
-  except ImportError:
-    print(f"error: {INSTALL_HINT}", file=sys.stderr)
-    return 2
-  from ufm_jax.cli import load_model
-  if args.max_side < 14:
-    raise ValueError(f"--max-side {args.max_side}: must be at least the 14 px patch size")
+def serve(model, params, *, host: str = "127.0.0.1", port: int = 7860, share: bool = False,
+          max_side: int = DEFAULT_MAX_SIDE, max_file_size: str = DEFAULT_MAX_FILE_SIZE) -> None:
+  """Warms the model up on the example pair, then serves the page until Ctrl-C (needs gradio).
+  `python -m ufm_jax demo` parses its arguments and calls this."""
   os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")  # no calls home from a local tool
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
   with tempfile.TemporaryDirectory(prefix="ufm_jax_demo_") as tmp:
     examples_dir, out_dir = pathlib.Path(tmp, "examples"), pathlib.Path(tmp, "out")
     examples_dir.mkdir()
     out_dir.mkdir()
-    analyser = Analyser(model, params, out_dir, max_side=args.max_side)
+    analyser = Analyser(model, params, out_dir, max_side=max_side)
     pair = example_pair(examples_dir)
-    if max(EXAMPLE_SIZE) <= args.max_side:
+    if max(EXAMPLE_SIZE) <= max_side:
       from ufm_jax.data import io
       t0 = time.perf_counter()
       analyser(io.read_image(pair[0]), io.read_image(pair[1]))  # compiles before the first visitor
@@ -217,12 +192,11 @@ def main(args) -> int:
     else:
       pair = None
     app = build_app(analyser, [pair] if pair else None)
-    if not is_loopback(args.host):
-      print(f"warning: binding {args.host}: the demo is reachable from other machines", flush=True)
-    if args.share:
+    if not is_loopback(host):
+      print(f"warning: binding {host}: the demo is reachable from other machines", flush=True)
+    if share:
       print("warning: --share makes the demo reachable by anyone with the public link", flush=True)
     app.queue(default_concurrency_limit=1).launch(
-        server_name=args.host, server_port=args.port, share=args.share,
-        max_file_size=args.max_file_size, allowed_paths=[str(examples_dir), str(out_dir)],
-        show_error=True, ssr_mode=False, inbrowser=False)
-  return 0
+        server_name=host, server_port=port, share=share, max_file_size=max_file_size,
+        allowed_paths=[str(examples_dir), str(out_dir)], show_error=True, ssr_mode=False,
+        inbrowser=False)

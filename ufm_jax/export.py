@@ -211,11 +211,8 @@ def _sidecar(fmt, model, size, batch, dtype, outputs, shapes, checkpoint, platfo
   import jax
 
   import ufm_jax
-  try:
-    from ufm_jax.convert import CLASS_NAMES
-    class_name = CLASS_NAMES.get(type(model), type(model).__name__)
-  except ImportError:
-    class_name = type(model).__name__
+  from ufm_jax.official import config as official_config
+  class_name = official_config.CLASS_NAMES.get(type(model), type(model).__name__)
   h, w = size
   b = batch if batch == "dynamic" else int(batch)
   return {

@@ -507,6 +507,42 @@ def write_png_depth16(path: str | os.PathLike, depth: np.ndarray, scale: float) 
       raise OSError(f"{path}: cv2.imwrite failed")
 
 
+# ------------------------------------------------------------------------------------------------
+# safetensors (released model weights)
+
+
+def read_safetensors(path) -> dict[str, np.ndarray]:
+  """All tensors of a .safetensors file (numpy); a damaged file's error names it and, when its
+  header promises more bytes than it has, the expected and actual sizes."""
+  from safetensors.numpy import load_file
+  path = pathlib.Path(path)
+  try:
+    return load_file(str(path))
+  except Exception as e:  # safetensors raises its own error types
+    raise ValueError(f"{path}: cannot read safetensors ({e}){_truncation_hint(path)}") from e
+
+
+def _truncation_hint(path: pathlib.Path) -> str:
+  """'; the file looks truncated: ...' when its header promises more bytes than it has."""
+  size = path.stat().st_size
+  try:
+    with open(path, "rb") as f:
+      n = int.from_bytes(f.read(8), "little")
+      header = json.loads(f.read(n)) if 0 < n <= size - 8 else None
+  except (OSError, ValueError):
+    header = None
+  if header is None:
+    return ""
+  ends = [int(v["data_offsets"][1]) for k, v in header.items()
+          if k != "__metadata__" and isinstance(v, dict) and "data_offsets" in v]
+  expected = 8 + n + max(ends, default=0)
+  if size < expected:
+    return (f"; the file looks truncated: its header describes {expected:,} bytes, the file has "
+            f"{size:,} (an interrupted download?)")
+  return ""
+
+
+
 def check_dir(path: str | os.PathLike, layout: str) -> str:
   """Returns `path` if it is a directory, else raises naming it and the layout expected there."""
   path = os.fspath(path)
