@@ -114,54 +114,52 @@ def _jax2onnx():
   return jax2onnx
 
 
-def _module_path(obj) -> str | None:
-  """'UFM/encoder/blocks_0' for a bound Flax module, else None."""
-  scope = getattr(obj, "scope", None)
-  if scope is None or not hasattr(scope, "path"):
-    return None
-  return "/".join((type(obj).__name__,) + tuple(scope.path))
+def _equations(jaxpr, scope: str = ""):
+  """(equation, its name stack) for every equation of a jaxpr and of its sub-jaxprs (jit, scan,
+  cond, ...); a sub-jaxpr's name stacks continue its parent equation's."""
+  for eqn in jaxpr.eqns:
+    where = "/".join(p for p in (scope, str(eqn.source_info.name_stack)) if p)
+    yield eqn, where
+    for value in eqn.params.values():
+      for sub in value if isinstance(value, (list, tuple)) else (value,):
+        inner = getattr(sub, "jaxpr", sub)   # ClosedJaxpr -> Jaxpr
+        if hasattr(inner, "eqns"):
+          yield from _equations(inner, where)
 
 
-def _library_file(filename: str) -> bool:
-  return ("site-packages" in filename or "dist-packages" in filename
-          or filename == os.path.abspath(__file__) or filename.startswith("<"))
+def onnx_failure(exc: BaseException, fn, specs) -> str | None:
+  """'primitive X in model part Y' for a jax2onnx conversion failure, else None.
 
+  The op is the primitive the converter's message names, else the jax2onnx plugin module the
+  error came from (`plugins/.../svd.py`: plugins are named after their op); the model part is
+  the Flax module path of that primitive's first equation in `jax.make_jaxpr(fn)(*specs)`.
+  Public APIs only (the message, traceback file names, the jaxpr)."""
+  import re
+  import traceback
 
-def onnx_failure(exc: BaseException) -> str | None:
-  """'primitive X in model part Y (file:line)' for a jax2onnx conversion failure, else None.
+  import jax
 
-  Lowering failures: jax2onnx lowers one jaxpr equation at a time with the equation in a local
-  named `eqn`; the innermost such frame failed, and Flax put the module path in its name stack.
-  Tracing failures (jax2onnx swaps some jnp/flax functions for its own while tracing): the
-  innermost jax2onnx plugin names the op, the innermost frame of our code the model part.
-  """
-  from jax._src import source_info_util
-
-  eqns, plugin, user = [], None, None
-  tb = exc.__traceback__
-  while tb is not None:
-    frame = tb.tb_frame
-    e = frame.f_locals.get("eqn")
-    if e is not None and hasattr(e, "primitive") and hasattr(e, "source_info"):
-      eqns.append(e)
-    name = frame.f_code.co_filename.replace(os.sep, "/")
-    if "/jax2onnx/plugins/" in name:
-      plugin = name.split("/jax2onnx/plugins/", 1)[1].removesuffix(".py").replace("/", ".")
-    elif not _library_file(frame.f_code.co_filename):
-      user = (frame, tb.tb_lineno)
-    tb = tb.tb_next
-  if eqns:
-    part = next((str(e.source_info.name_stack) for e in reversed(eqns)
-                 if str(e.source_info.name_stack)), "") or "(top level)"
-    where = source_info_util.summarize(eqns[-1].source_info)
-    return (f"primitive {eqns[-1].primitive.name!r} in model part {part}"
-            + (f" ({where})" if where else ""))
-  if plugin is None or user is None:
-    return None
-  frame, line = user
-  part = _module_path(frame.f_locals.get("self")) or frame.f_code.co_name
-  return (f"op {plugin!r} in model part {part} "
-          f"({frame.f_code.co_filename}:{line} in {frame.f_code.co_name})")
+  m = re.search(r"primitive '([^']+)'", str(exc))
+  if m is not None:
+    name = m.group(1)
+  else:
+    plugins = [f.filename.replace(os.sep, "/").split("/jax2onnx/plugins/", 1)[1]
+               for f in traceback.extract_tb(exc.__traceback__)
+               if "/jax2onnx/plugins/" in f.filename.replace(os.sep, "/")]
+    if not plugins:
+      return None
+    name = plugins[-1].rsplit("/", 1)[-1].removesuffix(".py")
+  import flax.linen as nn
+  try:
+    with nn.override_named_call(True):   # Flax module paths in the equations' name stacks
+      jaxpr = jax.make_jaxpr(fn)(*specs).jaxpr
+  except Exception:  # noqa: BLE001 - the op's name alone is still worth saying
+    return f"op {name!r}"
+  parts = [where for e, where in _equations(jaxpr) if e.primitive.name == name]
+  if not parts:
+    return f"op {name!r}"
+  part = next((p for p in parts if p), "(top level)")
+  return f"primitive {name!r} in model part {part}"
 
 
 def write_onnx(fn, specs, input_names, output_names, path) -> None:
@@ -178,7 +176,7 @@ def write_onnx(fn, specs, input_names, output_names, path) -> None:
                        output_names=list(output_names), model_name=path.stem,
                        return_mode="file", output_path=str(tmp / path.name))
     except Exception as e:  # noqa: BLE001 - any converter failure: say where, keep the cause
-      what = onnx_failure(e)
+      what = onnx_failure(e, fn, specs)
       if what is None:
         raise
       raise ExportError(f"ONNX export: jax2onnx cannot convert {what}: "
