@@ -98,13 +98,13 @@ def synthetic_task(path) -> dict:
 
 def load_model(args):
   """(model, params, description) following the --checkpoint / --snapshot rules above."""
-  from ufm_jax import cli
+  from ufm_jax import model_io
   if args.snapshot:
-    return (*cli.load_model(args.snapshot, snapshot=True), os.path.abspath(args.snapshot))
+    return (*model_io.load_model(args.snapshot, snapshot=True), os.path.abspath(args.snapshot))
   if args.checkpoint:
-    return (*cli.load_model(args.checkpoint), os.path.abspath(args.checkpoint))
+    return (*model_io.load_model(args.checkpoint), os.path.abspath(args.checkpoint))
   if os.path.isdir(DEFAULT_WORKDIR):
-    return (*cli.load_model(DEFAULT_WORKDIR), os.path.abspath(DEFAULT_WORKDIR))
+    return (*model_io.load_model(DEFAULT_WORKDIR), os.path.abspath(DEFAULT_WORKDIR))
   return (*random_model(), f"random-init:{RANDOM_MODEL}")
 
 

@@ -25,7 +25,6 @@ from ufm_jax.evaluators.dense import DenseMetrics
 from ufm_jax.evaluators.flow import FlowMetrics
 from ufm_jax.evaluators.pose import PoseMetrics
 
-_WB = "<scene>/... as written by the widebase readers"
 BENCHES: dict[str, Bench] = {b.name: b for b in (
     Bench("synthetic", "dense", (Split("synthetic", "synthetic", (("split", "test"),)),),
           data_subdir="", layout="none (generated on the fly)", tool="ufm_jax.data.synthetic"),
