@@ -8,7 +8,8 @@ DINOv2 (`model_init`: the HF facebook/dinov2-large folder or its model.safetenso
 dinov2_vitl14_pretrain.pth with the torch extra), the 12-dataset quota mixture, the official
 training shapes (H in {420, 364, 308, 280, 168} x 560) and augmentation, 48 epochs, AdamW
 (0.9, 0.95), weight decay 0.05, cosine decay with 10% linear warmup, peak lr 1e-4 (transformer
-+ heads) and 5e-6 (encoder), symmetrized batches of 96 pairs (48 unique). Arg `data=of|wb|both` selects the Table 4 data ablation (same number of epochs).
++ heads) and 5e-6 (encoder), symmetrized batches of 96 pairs (48 unique). Arg `data=of|wb|both`
+selects the Table 4 data ablation (same number of epochs).
 """
 
 import ml_collections
