@@ -41,7 +41,8 @@ def test_official_shapes_are_drawn_uniformly_per_batch():
 
 
 def test_training_shapes_from_aspect_ratios():
-  assert augment.training_shapes(560) == ((182, 560), (280, 560), (308, 560), (420, 560), (560, 560))
+  assert augment.training_shapes(560) == ((182, 560), (280, 560), (308, 560), (420, 560),
+                                          (560, 560))
   with pytest.raises(ValueError, match="multiple of the patch"):
     augment.training_shapes(500)
   with pytest.raises(ValueError, match="multiples of 14"):
@@ -125,7 +126,8 @@ def test_grayscale_blur_low_light_rates(monkeypatch):
   for the datasets that enable it (static ones grey the image first)."""
   calls = collections.Counter()
   sigmas = []
-  monkeypatch.setattr(augment, "color_jitter", lambda im, p, fast=False: calls.update(["jitter"]) or im)
+  monkeypatch.setattr(augment, "color_jitter",
+                      lambda im, p, fast=False: calls.update(["jitter"]) or im)
   monkeypatch.setattr(augment, "grayscale", lambda im: calls.update(["grey"]) or im)
   monkeypatch.setattr(augment, "gaussian_blur",
                       lambda im, s, k: calls.update(["blur"]) or sigmas.append(s) or im)
@@ -163,7 +165,8 @@ def test_identical_view_rate(monkeypatch):
 
 
 def test_config_keys():
-  cfg = augment.AugmentConfig.from_dict({"no_crop_datasets": ["habitat", "x"], "expansion": [1, 1.1]})
+  cfg = augment.AugmentConfig.from_dict({"no_crop_datasets": ["habitat", "x"],
+                                         "expansion": [1, 1.1]})
   assert cfg.no_crop_datasets == ("habitat", "x") and cfg.expansion == (1.0, 1.1)
   with pytest.raises(KeyError, match="unknown input.augment keys.*zoom"):
     augment.AugmentConfig.from_dict({"zoom": (1, 2)})
@@ -192,7 +195,8 @@ def test_color_jitter_is_torchvision_pil_path():
       else:
         hh, ss, vv = ref.convert("HSV").split()
         hue = (np.asarray(hh).astype(np.int64) + int(np.int32(h * 255))) % 256
-        ref = Image.merge("HSV", (Image.fromarray(hue.astype(np.uint8), "L"), ss, vv)).convert("RGB")
+        hh = Image.fromarray(hue.astype(np.uint8), "L")
+        ref = Image.merge("HSV", (hh, ss, vv)).convert("RGB")
     np.testing.assert_array_equal(augment.color_jitter(img, params), np.asarray(ref))
     fast = augment.color_jitter(img, params, fast=True)   # OpenCV's HSV: rounding differs
     assert np.abs(fast.astype(int) - np.asarray(ref)).mean() < 3
@@ -337,7 +341,8 @@ def test_rotating_a_portrait_view_rotates_its_labels():
 
 
 def test_static_crop_pair_keeps_the_pair_of_boxes_sharing_most_matches(monkeypatch):
-  points = (np.array([[5, 5], [6, 5], [30, 20], [31, 21]]), np.array([[50, 5], [51, 5], [2, 2], [3, 3]]))
+  points = (np.array([[5, 5], [6, 5], [30, 20], [31, 21]]),
+            np.array([[50, 5], [51, 5], [2, 2], [3, 3]]))
   monkeypatch.setattr(augment, "crop_correspondences", lambda v0, v1, n, rng: points)
   boxes = {0: np.array([[0, 0, 20, 15], [25, 15, 45, 30.]]),
            1: np.array([[0, 0, 20, 15], [40, 0, 60, 15.]])}

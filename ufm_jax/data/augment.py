@@ -383,8 +383,9 @@ def rotate_to_landscape(v: StaticView) -> StaticView:
   K2 = np.array([[K[1, 1], 0.0, K[1, 2]], [0.0, K[0, 0], w - 1 - K[0, 2]], [0.0, 0.0, 1.0]])
   rz = np.eye(4)
   rz[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
-  return StaticView(np.ascontiguousarray(np.rot90(v.image)), np.ascontiguousarray(np.rot90(v.depth)),
-                    K2, np.asarray(v.cam2world, np.float64) @ rz)
+  return StaticView(np.ascontiguousarray(np.rot90(v.image)),
+                    np.ascontiguousarray(np.rot90(v.depth)), K2,
+                    np.asarray(v.cam2world, np.float64) @ rz)
 
 
 def resize_cover_center_crop(v: StaticView, out_hw, landscape: bool = True) -> StaticView:
