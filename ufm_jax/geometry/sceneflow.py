@@ -15,6 +15,9 @@ d + d_change (so the depth change of the formula is f B / (d + d_change) - f B /
 
 Conventions: pixel (u, v) = (column, row), pixel centres at integer coordinates, a location is in
 view when -0.5 <= u < W - 0.5 and -0.5 <= v < H - 0.5.
+
+The training labels follow the official preprocess instead (`official_sceneflow_covisibility`:
+z-depths, zero-padded lookups, a temperature term); this rule is the supplementary's.
 """
 
 from __future__ import annotations
@@ -91,8 +94,7 @@ _BLOCK_PIXELS = 1 << 15
 
 def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_change: np.ndarray,
                            disparity1: np.ndarray, tau_d: float, tau_r: float,
-                           K: np.ndarray | None = None, baseline: float = SCENEFLOW_BASELINE,
-                           official_temperature: float | None = None):
+                           K: np.ndarray | None = None, baseline: float = SCENEFLOW_BASELINE):
   """Covisibility of source pixels from optical flow, disparity and disparity change.
 
   Args:
@@ -104,17 +106,11 @@ def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_c
     K: [3, 3] intrinsics shared by both frames (default: `sceneflow_intrinsics`).
     baseline: stereo baseline; depth = K[0, 0] * baseline / disparity.
 
-    official_temperature: not None -> the official preprocess's rule instead
-      (`official_sceneflow_covisibility`) with this temperature.
-
   Returns dict of [H, W] arrays: covisibility (bool), fov_mask (bool, F1: lands in view in front of
   the camera), valid (bool, V1: source depth valid), covis_valid (bool, V_covis =
   (V1 & ~F1) | (F1 & V_other)), error (float32 range error, inf outside F1), depth0 and depth1
   (float32 z-depth, 0 where invalid).
   """
-  if official_temperature is not None:
-    return official_sceneflow_covisibility(flow, disparity0, disparity_change, disparity1,
-                                           (tau_d, official_temperature, tau_r), K, baseline)
   flow = np.asarray(flow, np.float32)
   h, w = flow.shape[:2]
   for name, a in (("disparity0", disparity0), ("disparity_change", disparity_change),
