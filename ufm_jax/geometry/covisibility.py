@@ -340,3 +340,116 @@ def correspondence_from_depth(depth0, K0, cam2world0, depth1, K1, cam2world1,
   xyz = lambda r0, r1: _source_in_target(depth0[r0:r1], valid0[r0:r1], K0, rel,
                                          np.arange(r0, r1) if rows is None else rows[r0:r1], cols)
   return _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search, rows, cols)
+
+
+# ----------------------------------------------------------------- the official training labels
+# UFM's training code labels static pairs with `flow_occlusion_post_processing`
+# (uniflowmatch/datasets/base/flow_postprocessing.py:544-714 on the train branch, d8c421e). Its
+# rule differs from the paper's one above in four ways, all reproduced here:
+#   * threshold abs + rel * r - ln(0.5) * temp (r: distance of the point to the other camera
+#     centre), with per-dataset `covisible_rendering_parameters` = (abs, temp, rel): :605-627;
+#   * the other view's range map is sampled bilinearly with ZERO padding (grid_sample,
+#     align_corners=False): holes (depth 0) and the image border pull their neighbours' samples
+#     towards 0, making them occluded: :444-485;
+#   * a source pixel without depth still projects (its point is its camera centre): it keeps
+#     that projection in the occlusion supervision mask and the flow; only the fov and
+#     covisibility masks are AND-ed with its own depth validity at the end: :696-714;
+#   * `opt_iters` has no effect (the optimised uv residual is added once, before the loop, and
+#     never re-read), so there is no sub-pixel search: :632-688.
+LN_HALF = float(np.log(0.5))
+
+
+class _ZeroPaddedRange:
+  """Target range map for zero-padded bilinear lookups (torch grid_sample, padding 'zeros',
+  align_corners=False) and zero-padded nearest lookups of its validity (half-to-even rounding,
+  as torch's nearest)."""
+
+  def __init__(self, depth1, K1):
+    depth1 = np.asarray(depth1)
+    self.h, self.w = h, w = depth1.shape
+    with np.errstate(invalid="ignore"):
+      valid = np.isfinite(depth1) & (depth1 > 0)
+    rng = np.where(valid, depth1, 0).astype(_F, copy=False) * _ray_norms32(h, w, _k_tuple(K1))
+    padded = np.zeros((h + 2, w + 2), _F)   # one ring of zeros: the padding
+    padded[1:-1, 1:-1] = rng
+    self.range = padded.ravel()
+    self.valid = valid.ravel()
+    self.wp = w + 2
+
+  def sample(self, u, v):
+    """Bilinear range at (u, v) in [-0.5, W - 0.5) x [-0.5, H - 0.5) (float64), taps outside the
+    image reading 0; and the validity of the nearest pixel."""
+    x = u + 1.0
+    y = v + 1.0
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = (x - x0).astype(_F)
+    fy = (y - y0).astype(_F)
+    i00 = (y0 * self.wp + x0).astype(np.intp)
+    a = self.range
+    c00, c01 = np.take(a, i00), np.take(a[1:], i00)
+    c10, c11 = np.take(a[self.wp:], i00), np.take(a[self.wp + 1:], i00)
+    gx = 1 - fx
+    value = (c00 * gx + c01 * fx) * (1 - fy) + (c10 * gx + c11 * fx) * fy
+    xn = np.clip(np.rint(u), 0, self.w - 1).astype(np.intp)
+    yn = np.clip(np.rint(v), 0, self.h - 1).astype(np.intp)
+    return value, np.take(self.valid, yn * self.w + xn)
+
+
+def official_labels(depth0, K0, cam2world0, depth1, K1, cam2world1, params, rows=None,
+                    cols=None) -> dict:
+  """Flow 0 -> 1 and masks of a static pair as the official training code makes them.
+
+  params: the dataset's `covisible_rendering_parameters` (absolute, temperature, relative), e.g.
+  (0.1, 0.1, 0.005) for every official static dataset (`thresholds.RENDERING_PARAMETERS`).
+  rows, cols: only these source pixels (the result there equals the full one's).
+  Returns dict in the sample-dict keys:
+    flow         float32 [H, W, 2], 0 where the point does not project into view 1 (fov_pre);
+    covisibility the official non_occluded_mask;
+    flow_valid   the official fov_mask: projects into view 1 and has its own depth;
+    covis_valid  the official occlusion_supervision_mask (V_covis on fov_pre, see above);
+  and fov_pre, valid (own depth > 0), valid_other, error (float32, inf outside fov_pre).
+  """
+  depth0 = _check_depth("depth0", depth0)
+  _check_depth("depth1", depth1)
+  rows, cols, depth0 = on_grid(rows, cols, depth0)
+  with np.errstate(invalid="ignore"):
+    valid0 = np.isfinite(depth0) & (depth0 > 0)
+  target = _ZeroPaddedRange(depth1, K1)
+  h1, w1 = target.h, target.w
+  fx, s, cx, fy, cy = _k_tuple(K1)
+  absolute, temperature, relative = (float(p) for p in params)
+  bias = _F(absolute) - _F(LN_HALF) * _F(temperature)
+  rel = camera.invert_pose(cam2world1) @ np.asarray(cam2world0, np.float64)
+  h0, w0 = valid0.shape
+  out = {k: np.zeros((h0, w0), bool) for k in ("fov_pre", "non_occluded", "valid_other")}
+  flow = np.zeros((h0, w0, 2), _F)
+  error = np.full((h0, w0), np.inf, _F)
+  grid_u = (np.arange(w0) if cols is None else cols).astype(np.float64)[None, :]
+  all_v = (np.arange(h0) if rows is None else rows).astype(np.float64)
+  step = max(1, _BLOCK_PIXELS // max(w0, 1))
+  for r0 in range(0, h0, step):
+    r1 = min(h0, r0 + step)
+    grid_v = all_v[r0:r1, None]
+    X, Y, Z = _source_in_target(depth0[r0:r1], valid0[r0:r1], K0, rel,
+                                all_v[r0:r1].astype(np.intp), cols if cols is not None else None)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+      u = fx * X / Z + s * (Y / Z) + cx
+      v = fy * Y / Z + cy
+      fov = (Z > 0) & (u >= -0.5) & (u < w1 - 0.5) & (v >= -0.5) & (v < h1 - 0.5)
+    u = np.where(fov, u, grid_u)
+    v = np.where(fov, v, grid_v)
+    expected = np.sqrt(X * X + Y * Y + Z * Z).astype(_F)
+    sampled, nearest_valid = target.sample(u, v)
+    err = np.abs(sampled - expected)
+    covisible = fov & (err < bias + _F(relative) * expected)
+    out["fov_pre"][r0:r1] = fov
+    out["non_occluded"][r0:r1] = covisible
+    out["valid_other"][r0:r1] = fov & nearest_valid
+    error[r0:r1] = np.where(fov, err, _F(np.inf))
+    flow[r0:r1, :, 0] = u - grid_u
+    flow[r0:r1, :, 1] = v - grid_v
+  fov = out["fov_pre"]
+  return dict(flow=flow, covisibility=out["non_occluded"] & valid0, flow_valid=fov & valid0,
+              covis_valid=(valid0 & ~fov) | out["valid_other"], fov_pre=fov, valid=valid0,
+              valid_other=out["valid_other"], error=error)
