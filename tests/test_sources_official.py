@@ -124,7 +124,7 @@ def _check_labels(sample, labels, image0, image1, flow_valid=None):
   assert sample["flow"].dtype == np.float32 and sample["flow"].shape[-1] == 2
   np.testing.assert_array_equal(sample["covisibility"], labels["non_occluded_mask"])
   np.testing.assert_array_equal(sample["covis_valid"], labels["occlusion_supervision_mask"])
-  np.testing.assert_array_equal(sample["meta"]["fov_mask"], labels["fov_mask"])
+  np.testing.assert_array_equal(sample["fov_mask"], labels["fov_mask"])
   want = np.isfinite(labels["flow"]).all(-1) if flow_valid is None else flow_valid
   np.testing.assert_array_equal(sample["flow_valid"], want)
 

@@ -7,8 +7,9 @@ per view: flow (2, H, W) or (H, W, 2), `fov_mask`, `non_occluded_mask` (= covisi
 `occlusion_supervision_mask` (where the covisibility BCE is evaluated). In our sample dict:
 covisibility = non_occluded_mask, covis_valid = occlusion_supervision_mask, flow_valid = finite
 flow (the official losses read the non-occluded mask, or for the 980 recipe every pixel whose
-target lies near the image, from the flow itself), and meta["fov_mask"] keeps the official fov
-mask for the official resize / crop (it AND-s the masks with it).
+target lies near the image, from the flow itself), and the extra key `fov_mask` keeps the
+official fov mask for the official resize / crop (`augment.official_no_aug` and the official
+augmentation AND it with the covisibility).
 
 Every reader raises ValueError naming the file (and key / index) for a damaged file and
 FileNotFoundError for a missing one, so the training pipeline skips, counts and logs the sample.
@@ -28,16 +29,7 @@ import numpy as np
 from ufm_jax.data import io
 from ufm_jax.data.sources import exr, posed
 
-# The official static datasets' per-sample covisibility rendering parameters
-# [absolute, temperature, relative] (blendedmvs.py, megadepth.py, scannetpp.py, habitat.py,
-# staticthings3d.py: `covisible_rendering_parameters`; kubric4d's pathway passes the same values).
-STATIC_RENDERING_PARAMETERS = (0.1, 0.1, 0.005)
-
 log = logging.getLogger(__name__)
-
-
-def rendering_parameters() -> np.ndarray:
-  return np.array(STATIC_RENDERING_PARAMETERS, np.float32)
 
 
 # ------------------------------------------------------------------------- DUSt3R-processed views
@@ -220,7 +212,7 @@ def precomputed_sample(dataset: str, image0, image1, flow, non_occluded, occlusi
   flow_valid = np.isfinite(flow).all(-1)
   return dict(image0=np.ascontiguousarray(image0), image1=np.ascontiguousarray(image1),
               flow=flow, covisibility=masks[0], flow_valid=flow_valid, covis_valid=masks[1],
-              meta=dict(dataset=dataset, fov_mask=masks[2], where=where, **meta))
+              fov_mask=masks[2], meta=dict(dataset=dataset, where=where, **meta))
 
 
 def rgb_u8(image, where: str) -> np.ndarray:
@@ -269,7 +261,11 @@ class OfficialPosed:
 
 
 def official_meta(source) -> dict:
-  return dict(layout="official", covisible_rendering_parameters=rendering_parameters(),
+  """meta of an official static sample: the dataset's covisibility rendering parameters
+  [absolute, temperature, relative] (geometry.RENDERING_PARAMETERS) and the refiner flag."""
+  from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
+  return dict(layout="official", covisible_rendering_parameters=np.array(
+      geometry.rendering_parameters(source.name), np.float32),
               suitable_for_refinement=bool(source.suitable_for_refinement))
 
 
