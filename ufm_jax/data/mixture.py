@@ -47,8 +47,6 @@ WIDE_BASELINE = ("blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habita
                  "kubric4d")
 # ... and the small-motion optical-flow sets: the Table 4 "OF" ablation and the 980 bootstrap.
 OPTICAL_FLOW = ("flyingthings", "flyingchairs", "spring", "monkaa", "hd1k")
-# Sub-pixel-accurate sets the refiner trains on (supplementary "Training the Refinement").
-REFINE = ("blendedmvs", "megadepth", "habitat", "scannetpp")
 
 DEFAULT_DATA_ROOT = os.environ.get("UFM_DATA_ROOT", "~/ufm_data")
 
