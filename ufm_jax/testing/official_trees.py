@@ -362,22 +362,29 @@ def write_flyingchairs(data_root, hw=(30, 40), n=3):
 
 # ------------------------------------------------------------------------------------ everything
 
-def write_official_root(data_root, hw=(36, 48)) -> dict[str, str]:
-  """Every dataset of the official 560 recipe in its official layout under `data_root`.
-  -> {mixture name: what was written}."""
-  plane = lambda: wide.PlaneScene(hw0=hw)   # noqa: E731
-  write_blendedmvs(data_root, plane())
-  write_megadepth(data_root, plane())
-  write_scannetpp(data_root, plane())
-  write_staticthings(data_root, plane())
-  write_habitat(data_root, plane())
-  write_kubric4d(data_root, wide.KubricScene(hw=hw, num_frames=4))
-  write_tawb(data_root, (hw[1], hw[1]))
-  write_sceneflow(data_root, "flyingthings", hw)
-  write_sceneflow(data_root, "monkaa", hw)
-  write_spring(data_root, hw)
-  write_hd1k(data_root, hw)
-  write_flyingchairs(data_root, hw)
+# Frame sizes (H, W) the official processed files have (preprocess outputs, native renders).
+NATIVE = {"flyingthings": (540, 960), "monkaa": (540, 960), "spring": (560, 926),
+          "hd1k": (560, 1330), "tartanair_v2": (640, 640), "flyingchairs": (384, 512)}
+
+
+def write_official_root(data_root, hw=(36, 48), sizes=None) -> dict[str, str]:
+  """Every dataset of the official 560 recipe in its official layout under `data_root`, at hw
+  (TA-WB square at hw[1]) or at `sizes[name]` (e.g. NATIVE). -> {mixture name: folder}."""
+  sizes = dict(sizes or {})
+  size = lambda name, default=hw: tuple(sizes.get(name, default))   # noqa: E731
+  plane = lambda name: wide.PlaneScene(hw0=size(name))   # noqa: E731
+  write_blendedmvs(data_root, plane("blendedmvs"))
+  write_megadepth(data_root, plane("megadepth"))
+  write_scannetpp(data_root, plane("scannetpp"))
+  write_staticthings(data_root, plane("staticthings"))
+  write_habitat(data_root, plane("habitat"))
+  write_kubric4d(data_root, wide.KubricScene(hw=size("kubric4d"), num_frames=4))
+  write_tawb(data_root, size("tartanair_v2", (hw[1], hw[1])))
+  write_sceneflow(data_root, "flyingthings", size("flyingthings"))
+  write_sceneflow(data_root, "monkaa", size("monkaa"))
+  write_spring(data_root, size("spring"))
+  write_hd1k(data_root, size("hd1k"))
+  write_flyingchairs(data_root, size("flyingchairs"))
   return {"blendedmvs": "blendedmvs_processed", "megadepth": "megadepth_processed",
           "scannetpp": "scannetpp_anymap_processed/train", "staticthings":
           "staticthings3d_processed", "habitat": "habitat_processed/replica_cad_baked_lighting",
