@@ -22,7 +22,8 @@ def test_ufm560_trains_on_an_official_data_root(tmp_path):
   root = tmp_path / "root_data_dir"
   official_trees.write_official_root(str(root), hw=(36, 48))
   env = dict(os.environ, PYTHONPATH=str(REPO), JAX_PLATFORMS="cpu",
-             JAX_COMPILATION_CACHE_DIR=str(XLA_CACHE), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+             JAX_COMPILATION_CACHE_DIR=str(XLA_CACHE),
+             JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
   env.pop("XLA_FLAGS", None)
   work = tmp_path / "work"
   r = subprocess.run(

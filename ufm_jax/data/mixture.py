@@ -242,22 +242,20 @@ def find_layout(name: str, data_root: str | None, root: str | None = None):
   present = [f for f in folders if os.path.isdir(f)]
   if not present:
     return None, folders, f"neither {' nor '.join(folders)} exists"
-  for folder in present:
-    tried = []
-    for layout in layouts:
-      missing = layout.missing(folder)
-      if not missing:
-        if root is not None:
-          why = f"{folder} (given as its root) holds the {layout.kind} layout"
-        else:
-          absent = [f for f in folders[:folders.index(folder)] if not os.path.isdir(f)]
-          why = (f"{folder} holds the {layout.kind} layout"
-                 + (f" ({', '.join(absent)} absent)" if absent else ""))
-        return layout, folder, why
-      tried.append(f"{layout.describe()}: missing {', '.join(missing)}")
-    raise LayoutError(f"dataset {name!r}: {folder} holds none of its layouts; "
-                      + " | ".join(tried))
-  raise AssertionError("unreachable")
+  folder = present[0]   # folders are in preference order: the official ones first
+  tried = []
+  for layout in layouts:
+    missing = layout.missing(folder)
+    if not missing:
+      if root is not None:
+        why = f"{folder} (given as its root) holds the {layout.kind} layout"
+      else:
+        absent = folders[:folders.index(folder)]
+        why = (f"{folder} holds the {layout.kind} layout"
+               + (f" ({', '.join(absent)} absent)" if absent else ""))
+      return layout, folder, why
+    tried.append(f"{layout.describe()}: missing {', '.join(missing)}")
+  raise LayoutError(f"dataset {name!r}: {folder} holds none of its layouts; " + " | ".join(tried))
 
 
 def mixture(names: Iterable[str] = ALL, quotas: Mapping[str, int] | None = None,

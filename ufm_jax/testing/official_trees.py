@@ -145,7 +145,8 @@ def write_staticthings(data_root, scene: wide.PlaneScene | None = None, letter="
     d = _mkdir(root, "TRAIN", letter, f"{seq:04d}", cams[cam])
     img = scene.image(i)
     _jpg(os.path.join(d, f"{idx:04d}_clean.jpg"), img)
-    _jpg(os.path.join(d, f"{idx:04d}_final.jpg"), np.clip(img.astype(int) - 40, 0, 255).astype(np.uint8))
+    _jpg(os.path.join(d, f"{idx:04d}_final.jpg"),
+         np.clip(img.astype(int) - 40, 0, 255).astype(np.uint8))
     exr.write_exr(os.path.join(d, f"{idx:04d}.exr"), scene.z_depth(i).astype(np.float32))
     _save_npz(os.path.join(d, f"{idx:04d}.npz"), intrinsics=scene.K[i].astype(np.float32),
               cam2world=scene.c2w[i].astype(np.float32))

@@ -22,6 +22,7 @@ import logging
 import os
 import re
 import zipfile
+import zlib
 from typing import Iterable, Mapping
 
 import numpy as np
@@ -86,13 +87,8 @@ def load_npz(path: str, keys: Iterable[str] | None = None, allow_pickle: bool = 
       return {k: z[k] for k in want}
   except KeyError as e:
     raise ValueError(e.args[0]) from None
-  except (zipfile.BadZipFile, EOFError, OSError, ValueError, zlib_error()) as e:
+  except (zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error) as e:
     raise ValueError(f"{path}: not a readable .npz ({type(e).__name__}: {e})") from None
-
-
-def zlib_error():
-  import zlib  # pylint: disable=g-import-not-at-top
-  return zlib.error
 
 
 # ---------------------------------------------------------------------------- distributed h5
@@ -184,20 +180,21 @@ def h5_ranges(folder: str) -> list[tuple[int, int, str]]:
 
 # ------------------------------------------------------------------------- precomputed labels
 
-def hwc_flow(flow, where: str) -> np.ndarray:
-  """(2, H, W) or (H, W, 2) float -> [H, W, 2] float32 (NaN kept)."""
+def hwc_flow(flow, where: str, layout: str = "chw") -> np.ndarray:
+  """Stored flow -> [H, W, 2] float32 (NaN kept). layout 'chw' = (2, H, W); 'auto' = the
+  official FlyingThings3D rule: (H, W, 2) when the last axis is 2, else (2, H, W)."""
   flow = np.asarray(flow)
-  if flow.ndim != 3 or 2 not in (flow.shape[0], flow.shape[-1]):
-    raise ValueError(f"{where}: flow must be (2, H, W) or (H, W, 2), got {flow.shape}")
-  if flow.shape[-1] != 2 or (flow.shape[0] == 2 and flow.shape[-1] == 2 and flow.shape[1] != 2):
-    flow = np.moveaxis(flow, 0, -1)
-  return np.ascontiguousarray(flow, np.float32)
+  hwc = layout == "auto" and flow.ndim == 3 and flow.shape[-1] == 2
+  if flow.ndim != 3 or (flow.shape[-1] if hwc else flow.shape[0]) != 2:
+    raise ValueError(f"{where}: flow must be (2, H, W){' or (H, W, 2)' if layout == 'auto' else ''}"
+                     f", got {flow.shape}")
+  return np.ascontiguousarray(flow if hwc else np.moveaxis(flow, 0, -1), np.float32)
 
 
 def precomputed_sample(dataset: str, image0, image1, flow, non_occluded, occlusion_supervision,
-                       fov, where: str, **meta) -> dict:
+                       fov, where: str, flow_layout: str = "chw", **meta) -> dict:
   """The sample dict of one direction of an official flow dataset (see module docstring)."""
-  flow = hwc_flow(flow, where)
+  flow = hwc_flow(flow, where, flow_layout)
   hw = flow.shape[:2]
   masks = []
   for name, m in (("non_occluded_mask", non_occluded), ("occlusion_supervision_mask",
@@ -216,7 +213,8 @@ def precomputed_sample(dataset: str, image0, image1, flow, non_occluded, occlusi
 
 
 def rgb_u8(image, where: str) -> np.ndarray:
-  """An (H, W, 3|4) uint8 array as stored -> (H, W, 3) uint8 (the official readers keep [..., :3])."""
+  """An (H, W, 3|4) uint8 array as stored -> (H, W, 3) uint8 (the official readers keep
+  [..., :3])."""
   a = np.asarray(image)
   if a.ndim != 3 or a.shape[2] < 3 or a.dtype != np.uint8:
     raise ValueError(f"{where}: expected an (H, W, 3) uint8 image, got {a.shape} {a.dtype}")
@@ -282,13 +280,15 @@ def load_npy(path: str, allow_pickle: bool = False) -> np.ndarray:
 LABELS = ("flow", "non_occluded_mask", "occlusion_supervision_mask", "fov_mask")
 
 
-def two_directions(dataset: str, image0, image1, label, where: str, **meta) -> list[dict]:
+def two_directions(dataset: str, image0, image1, label, where: str, flow_layout: str = "chw",
+                   **meta) -> list[dict]:
   """[forward, backward] sample dicts of a pair whose views carry precomputed labels;
   label(name, view) -> that view's array of LABELS (view 0 = forward)."""
   out = []
   for v, (x0, x1) in enumerate(((image0, image1), (image1, image0))):
     out.append(precomputed_sample(dataset, x0, x1, *(label(q, v) for q in LABELS), where=where,
-                                  direction=("forward", "backward")[v], layout="official", **meta))
+                                  flow_layout=flow_layout, direction=("forward", "backward")[v],
+                                  layout="official", **meta))
   return out
 
 

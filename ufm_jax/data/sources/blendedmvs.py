@@ -106,7 +106,8 @@ class BlendedMVSProcessed(_official.OfficialPosed, posed.PosedPairSource):
 
   def _official_pairs(self):
     arr = _official.load_npy(self.pairs_path)
-    missing = [f for f in ("seq_high", "seq_low", "img1", "img2") if f not in (arr.dtype.names or ())]
+    names = arr.dtype.names or ()
+    missing = [f for f in ("seq_high", "seq_low", "img1", "img2") if f not in names]
     if missing:
       raise ValueError(f"{self.pairs_path}: pair array lacks fields {missing} (has "
                        f"{arr.dtype.names})")

@@ -267,7 +267,7 @@ class SceneFlowProcessed(_official.PrecomputedPairs):
     img1 = _official.rgb_u8(self.frames.read(b, (key,))[key], where)
     f = self.flow.read(i, [f"{cam}_view{v}_{q}" for v in (0, 1) for q in _official.LABELS])
     return _official.two_directions(
-        self.dataset, img0, img1, lambda q, v: f[f"{cam}_view{v}_{q}"], where,
+        self.dataset, img0, img1, lambda q, v: f[f"{cam}_view{v}_{q}"], where, flow_layout="auto",
         scene=f"{label}_{cam}_{dpass}", camera=cam, dstype=dpass, pair_index=i,
         suitable_for_refinement=self.dataset == "flyingthings")
 

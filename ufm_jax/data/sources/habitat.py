@@ -102,13 +102,15 @@ class HabitatProcessed(_official.OfficialPosed, posed.PosedPairSource):
   has_backward = False
   static_scene = True
 
-  def __init__(self, root, split="train", pairs=None, thresholds=None, size=35000, views=(2, 3, 4, 5)):
+  def __init__(self, root, split="train", pairs=None, thresholds=None, size=35000,
+               views=(2, 3, 4, 5)):
     super().__init__(root, split, pairs, thresholds)
     self.size, self.views = size, tuple(views)
 
   def _official_pairs(self):
-    path = posed.require_file(os.path.join(self.root, f"Habitat_{self.size}_scenes_{self.split}.txt"),
-                              "the official Habitat scene list (`<dir>/<key>` per line)")
+    path = posed.require_file(
+        os.path.join(self.root, f"Habitat_{self.size}_scenes_{self.split}.txt"),
+        "the official Habitat scene list (`<dir>/<key>` per line)")
     with open(path) as f:
       keys = [l.strip() for l in f if l.strip()]
     for line in keys:

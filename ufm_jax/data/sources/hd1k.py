@@ -112,12 +112,12 @@ class HD1KProcessed(_official.PrecomputedPairs):
       raise ValueError(f"{path}: flow {flow.shape} does not match valid {valid.shape}")
     flow[:, ~valid] = INVALID_FLOW
     none = np.zeros_like(valid)
-    labels = {0: (flow, valid, none, valid),
-              1: (np.full_like(flow, INVALID_FLOW), none, none, none)}
+    labels = {"flow": (flow, np.full_like(flow, INVALID_FLOW)), "non_occluded_mask": (valid, none),
+              "occlusion_supervision_mask": (none, none), "fov_mask": (valid, none)}
     img0, img1 = (_official.rgb_u8(z[k], path) for k in ("img0", "img1"))
     fwd, bwd = _official.two_directions(
-        "hd1k", img0, img1, lambda q, v: labels[v][_official.LABELS.index(q)], path,
-        scene=os.path.basename(path)[:-4], split="train", suitable_for_refinement=False)
+        "hd1k", img0, img1, lambda q, v: labels[q][v], path, scene=os.path.basename(path)[:-4],
+        split="train", suitable_for_refinement=False)
     fwd["flow_valid"] = valid.copy()
     bwd["flow_valid"] = none.copy()
     return [fwd, bwd]

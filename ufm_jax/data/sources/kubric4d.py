@@ -354,6 +354,7 @@ class Kubric4DProcessed(Kubric4D):
   instances_*_scene[v, k - 1, t] of the view that sees it (id 0 = static background)."""
 
   name = "kubric4d"
+  suitable_for_refinement = False
 
   def __init__(self, root, split="train", pairs=None, thresholds=None):
     posed.PosedPairSource.__init__(self, root, split, pairs, thresholds)
@@ -416,6 +417,7 @@ class Kubric4DProcessed(Kubric4D):
     return posed.View(image, depth, K, c2w), seg, (m, v), t
 
   def _pair(self, scene, f0, f1, backward: bool) -> "KubricPair":
+    from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
     v0, seg0, m0, t0 = self._view(scene, f0)
     v1, seg1, m1, t1 = self._view(scene, f1, with_segmentation=backward)
     for v, seg, f in ((v0, seg0, f0), (v1, seg1, f1)):
@@ -425,20 +427,13 @@ class Kubric4DProcessed(Kubric4D):
                          f"{v.depth.shape}")
     # The official takes each view's object poses from its own view's metadata row.
     p0, p1 = _npz_object_poses(*m0, t0), _npz_object_poses(*m1, t1)
-    return KubricPair(v0, v1, tuple(self.thresholds or geometry_thresholds(self.name)), self.name,
-                      scene, (f0, f1), (t0, t1), seg0, seg1, (p0, p1), (p1, p0))
+    return KubricPair(v0, v1, tuple(self.thresholds or geometry.covis_thresholds(self.name)),
+                      self.name, scene, (f0, f1), (t0, t1), seg0, seg1, (p0, p1), (p1, p0))
 
   def __getitem__(self, i):
     sample = super().__getitem__(i)
     sample["meta"].update(_official.official_meta(self))
     return sample
-
-  suitable_for_refinement = False
-
-
-def geometry_thresholds(name):
-  from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
-  return geometry.covis_thresholds(name)
 
 
 def _npz_object_poses(m: dict, view: int, t: int) -> dict:
