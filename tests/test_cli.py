@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from ufm_jax import cli
+from ufm_jax import cli, model_io
 from ufm_jax.data.io import read_flo, read_image, write_image
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -120,8 +120,8 @@ def test_load_train_workdir(tmp_path):
     checkpoint.save(manager, step, state, force=True)
   manager.wait_until_finished()
   (tmp_path / "config.json").write_text(json.dumps({"model_name": "tiny", "model": {}}))
-  assert cli.is_workdir(tmp_path)
-  loaded_model, loaded = cli.load_model(tmp_path)
+  assert model_io.what_is(tmp_path) == model_io.WORKDIR
+  loaded_model, loaded = model_io.load_model(tmp_path)
   assert loaded_model.config == model.config
   for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params)):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b) + 2, rtol=0, atol=1e-6)  # latest step

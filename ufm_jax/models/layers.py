@@ -1,7 +1,7 @@
 """Transformer building blocks shared by the DINOv2 encoder and the info-sharing transformer.
 
 Submodule and parameter names follow the PyTorch modules (timm / DINOv2 / UniCeption), so the
-weight conversion in `ufm_jax.convert` is a mechanical rename: `qkv`, `proj`, `fc1`, `fc2`,
+weight conversion in `ufm_jax.official` is a mechanical rename: `qkv`, `proj`, `fc1`, `fc2`,
 `norm1`, `norm2`, `ls1.gamma`, `ls2.gamma`, `q_norm`, `k_norm`, `w12`, `w3`.
 """
 

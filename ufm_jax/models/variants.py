@@ -28,25 +28,9 @@ def dinov2_small(**kw) -> dinov2.DinoV2Config:
   return dinov2.dinov2_config("small", **kw)
 
 
-def dinov2_base(**kw) -> dinov2.DinoV2Config:
-  """ViT-B/14: 768 wide, 12 blocks, 12 heads (86M)."""
-  return dinov2.dinov2_config("base", **kw)
-
-
 def dinov2_large(**kw) -> dinov2.DinoV2Config:
   """ViT-L/14: 1024 wide, 24 blocks, 16 heads (304M) - the UFM encoder."""
   return dinov2.dinov2_config("large", **kw)
-
-
-def dinov2_giant(**kw) -> dinov2.DinoV2Config:
-  """ViT-g/14: 1536 wide, 40 blocks, 24 heads, SwiGLU FFN (1.1B)."""
-  return dinov2.dinov2_config("giant", **kw)
-
-
-def with_registers(cfg: dinov2.DinoV2Config, n: int = 4) -> dinov2.DinoV2Config:
-  """The hub's *_reg variant: 4 register tokens, antialiased position interpolation, no offset."""
-  return dataclasses.replace(cfg, num_register_tokens=n, interpolate_antialias=True,
-                             interpolate_offset=0.0)
 
 
 def ufm_base(**kw) -> ufm.UFMConfig:
