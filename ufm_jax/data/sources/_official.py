@@ -17,7 +17,6 @@ FileNotFoundError for a missing one, so the training pipeline skips, counts and 
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import re
@@ -94,21 +93,19 @@ def load_npz(path: str, keys: Iterable[str] | None = None, allow_pickle: bool = 
 # ---------------------------------------------------------------------------- distributed h5
 
 class H5Index:
-  """The official `DistributedH5Reader` (uniflowmatch/datasets/utils/distributed_h5.py): every
-  .json file of `folder` maps dataset index -> [file name, index in file] or {file_name,
-  file_index} (later files update earlier ones, in listing order); json files that are not such
-  a dict, or hold `forward_match_errors` (TA-WB's match_errors.json), are not index maps."""
+  """The official `DistributedH5Reader` (uniflowmatch/datasets/utils/distributed_h5.py): the
+  .json files of `folder` map dataset index -> [file name, index in file] or {file_name,
+  file_index} (`tawb.read_index_maps`: json files that are not such a dict, or hold
+  `forward_match_errors` like TA-WB's match_errors.json, are not index maps), or `entries`."""
 
   def __init__(self, folder: str, entries: Mapping[int, tuple[str, int]] | None = None):
     self.folder = folder
     if entries is None:
-      entries = {}
-      for name in sorted(os.listdir(folder)):
-        if name.endswith(".json"):
-          entries.update(read_index_json(os.path.join(folder, name)))
+      from ufm_jax.data.sources import tawb  # pylint: disable=g-import-not-at-top
+      entries = tawb.read_index_maps(folder)
     self.entries = dict(entries)
     if not self.entries:
-      raise FileNotFoundError(f"{folder}: no index .json mapping sample index -> (h5 file, index)")
+      raise FileNotFoundError(f"{folder}: no entries mapping sample index -> (h5 file, index)")
     self.keys = sorted(self.entries)
 
   def __len__(self):
@@ -123,27 +120,6 @@ class H5Index:
   def read(self, index: int, keys: Iterable[str]) -> dict:
     path, pos = self.location(index)
     return read_h5_row(path, pos, keys)
-
-
-def read_index_json(path: str) -> dict[int, tuple[str, int]]:
-  try:
-    with open(path) as f:
-      m = json.load(f)
-  except (OSError, ValueError) as e:
-    raise ValueError(f"{path}: not a readable index json ({e})") from None
-  if not isinstance(m, dict) or "forward_match_errors" in m:
-    return {}
-  out = {}
-  for k, v in m.items():
-    try:
-      if isinstance(v, list):
-        out[int(k)] = (str(v[0]), int(v[1]))
-      else:
-        out[int(k)] = (str(v["file_name"]), int(v["file_index"]))
-    except (ValueError, KeyError, IndexError, TypeError) as e:
-      raise ValueError(f"{path}: entry {k!r} is not [file, index] or {{file_name, file_index}} "
-                       f"({e})") from None
-  return out
 
 
 def read_h5_row(path: str, pos: int, keys: Iterable[str]) -> dict:
