@@ -110,11 +110,16 @@ def _input_block(args, longest_side, workers):
 
 def _measured(block, args, longest_side, workers):
   """`block` with the benchmark's batch, shape, worker and read settings."""
+  from ufm_jax.data import augment  # pylint: disable=g-import-not-at-top
   block.batch_size = args.batch_size
   block.longest_side = longest_side
+  official = {560: augment.SHAPES_560, 980: augment.SHAPES_980}.get(longest_side)
+  # The recipes' shapes at 560 and 980 (input.shapes), else W = longest_side with aspect_ratios.
+  block.shapes = official if official and not args.config else block.get("shapes", ())
   block.num_workers = workers
   block.read_threads = args.read_threads
   block.keep_heap = args.keep_heap
+  block.augment = {**dict(block.get("augment", {})), **json.loads(args.augment)}
   if not workers:
     # Synchronous: each timed batch is made inside the timed window. With read threads a
     # prefetch buffer fills during the warm-up and the CPU time of those rows goes uncounted.
@@ -175,6 +180,9 @@ def main(argv=None):
                  help="with --table1: which on-disk layouts to measure (raw: the datasets' own "
                       "releases; official: the official processed layouts, weighted by the "
                       "official 560 recipe's samples per epoch)")
+  p.add_argument("--augment", default="{}",
+                 help="JSON of input.augment keys (ufm_jax.data.augment.AugmentConfig), e.g. "
+                      "'{\"fast_image_ops\": false}'")
   args = p.parse_args(argv)
   if args.table1:
     return table1(args)
@@ -211,7 +219,8 @@ def table1(args):
   print(f"host CPU ms per training row, workers=0, longest side {side}, batch {args.batch_size}, "
         f"{'symmetrized' if args.symmetrize else 'one direction'}; one-pair trees at "
         f"{3 * side // 4}x{side}{' (flow sets at native sizes)' if args.native else ''}")
-  out = {"load_avg_1m": None, "longest_side": side, "native": args.native}
+  out = {"load_avg_1m": None, "longest_side": side, "native": args.native,
+         "augment": json.loads(args.augment)}
   if "raw" in layouts:
     with tempfile.TemporaryDirectory() as root:
       options = _table1_trees(root, side, args.native)

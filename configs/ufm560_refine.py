@@ -18,7 +18,7 @@ Smoke run on a fresh machine (tiny refine model, embedded synthetic pairs, rando
 import ml_collections
 
 from ufm_jax import config_lib
-from ufm_jax.data import mixture, pipeline
+from ufm_jax.data import augment, mixture, pipeline
 
 # Top-level parameter collections of UFM-Refine that train (ufm_jax.refine_training.TRAINABLE).
 REFINER = ("unet_feature", "classification_head", "conv1", "conv2", "classification_bias")
@@ -29,8 +29,13 @@ def get_config(arg=None):
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.num_epochs = 30
   if arg.data == "refine":
-    c.input = pipeline.input_config(mixture.recipe("refine560"), batch_size=96,
-                                    longest_side=560)
+    # configs/dataset/static_pinhole.yaml: the 560_many_ar shapes (square included) and
+    # Habitat's `cropping` yaml (crop augmentation and low light, unlike the 560 recipe).
+    c.input = pipeline.input_config(
+        mixture.recipe("refine560"), batch_size=96, longest_side=560,
+        shapes=augment.SHAPES_560_SQUARE,
+        augment={"no_crop_datasets": (), "low_light_datasets": ("flyingchairs", "habitat"),
+                 "fast_image_ops": True})
   elif arg.data == "synthetic":
     c.input = pipeline.input_config(mixture.synthetic_mixture(num_pairs=10_000, size=(56, 56)),
                                     batch_size=2, longest_side=56, aspect_ratios=(1.0,),

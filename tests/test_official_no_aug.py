@@ -48,7 +48,8 @@ def _labels(image0, image1, flow, covis, supervision, fov):
 
 
 def _tartanair(folder, spec, s):
-  root = folder / "tartanair_assembled" / spec["constructor"]["ROOT"].replace("<tree>/", "") / "train"
+  tree = spec["constructor"]["ROOT"].replace("<tree>/", "")
+  root = folder / "tartanair_assembled" / tree / "train"
   index = {}
   for name in sorted(os.listdir(root)):
     if name.startswith("shard_") and name.endswith(".json"):
@@ -91,8 +92,9 @@ def _flyingthings(folder, spec, s):
       h5py.File(next((root / "flow" / "train").glob("*.h5"))) as f:
     ims = [q["frame_cleanpass_left"][a], q["frame_cleanpass_left"][b]]
     i = s["dataset_index"]
-    return [_labels(i0, i1, f[f"left_view{v}_flow"][i], f[f"left_view{v}_non_occluded_mask"][i],
-                    f[f"left_view{v}_occlusion_supervision_mask"][i], f[f"left_view{v}_fov_mask"][i])
+    g = lambda v, k: f[f"left_view{v}_{k}"][i]
+    return [_labels(i0, i1, g(v, "flow"), g(v, "non_occluded_mask"),
+                    g(v, "occlusion_supervision_mask"), g(v, "fov_mask"))
             for v, (i0, i1) in enumerate((ims, ims[::-1]))]
 
 

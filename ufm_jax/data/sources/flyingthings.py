@@ -14,8 +14,9 @@ real ground truth). With `directions="both"` the source enumerates them interlea
 2k+1 its backward pair) so batches can be symmetrised by adjacent indices.
 
 Labels: flow_valid = |u|, |v| < 1000 (RAFT); NaN/Inf flow (no marker in this dense format) makes the
-sample corrupt (ValueError). Covisibility follows the supplementary scene-flow rule (`ufm_jax.geometry.sceneflow`): flow + disparity change, depth = 1050 / disparity,
-thresholds of Table S1 (tau_d = 0.01, tau_r = 0.001). meta holds K (shared by both frames) and the
+sample corrupt (ValueError). Covisibility follows the official preprocess
+(`ufm_jax.geometry.sceneflow.official_sceneflow_covisibility`): flow + disparity change,
+depth = 1050 / disparity, z-depths compared with tau = 0.01 + 0.001 z - ln(0.5) 0.01. meta holds K (shared by both frames) and the
 depth maps; camera poses (camera_data.txt) are not read, their convention is not documented here.
 """
 
@@ -36,12 +37,10 @@ MAX_FLOW = 1000.0
 _DIRS = {"forward": ("into_future", "Future"), "backward": ("into_past", "Past")}
 
 
-def _thresholds(name: str) -> tuple[float, float]:
-  try:  # one table for every dataset once the geometry package provides it
-    from ufm_jax.geometry import COVIS_THRESHOLDS
-    return tuple(COVIS_THRESHOLDS[name])
-  except (ImportError, KeyError):
-    return sceneflow.SCENEFLOW_THRESHOLDS[name]
+def _thresholds(name: str) -> tuple[float, float, float]:
+  """(absolute, temperature, relative) of the official preprocess (geometry.RENDERING_PARAMETERS)."""
+  from ufm_jax.geometry import rendering_parameters
+  return rendering_parameters(name)
 
 
 class SceneFlowSource(BidirectionalPairs):
@@ -135,8 +134,8 @@ class SceneFlowSource(BidirectionalPairs):
     io.require_finite(flow, flow_path)  # dense PFM: NaN/Inf is no marker but a damaged file
     flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)
     K = sceneflow.sceneflow_intrinsics(h, w)
-    geo = sceneflow.sceneflow_covisibility(sceneflow.fill_invalid(flow, flow_valid, np.nan), disp0,
-                                           change, disp1, *self.tau, K=K)
+    geo = sceneflow.official_sceneflow_covisibility(
+        sceneflow.fill_invalid(flow, flow_valid, np.nan), disp0, change, disp1, self.tau, K=K)
     flow = sceneflow.fill_invalid(flow, flow_valid)
     return dict(image0=image0, image1=image1, flow=flow,
                 covisibility=geo["covisibility"] & flow_valid, flow_valid=flow_valid,

@@ -17,8 +17,11 @@ Layout under root (the GCD download, see data/kubric4d/README.md):
   scn{%05d}/frames_p0_v{v}/segmentation_{t:05d}.png  object id per pixel (palette or grey PNG),
                                                    0 = static background
 Conventions: K = |camera.K| * (W, H) is in Kubric's corner-origin frame (pixel i centred at
-i + 0.5), so the OpenCV principal point is that minus 0.5; the camera pose's y and z columns are
-negated for OpenCV axes; range is converted to z-depth with the same K.
+i + 0.5), so the OpenCV principal point is that minus 0.5 (`principal_point_shift=True`). The
+official training code means to subtract it but subtracts it from a copy it then discards
+(uniflowmatch/datasets/kubric4d.py:55-60), so its labels use the corner-origin value: the default
+here (`principal_point_shift=False`) for its training labels. The camera pose's y and z columns
+are negated for OpenCV axes; range is converted to z-depth with the same K.
 Scene = `scn{%05d}`, frame = `{view}/{time}`. Split: scenes 0-2799 train, 2800-2899 val, the rest
 test. Pairs: `<root>/pairs_<split>.txt` written by `python data/kubric4d/sample_pairs.py`
 (the supplementary sampler, `sample_scene_pairs` below).
@@ -133,7 +136,9 @@ def write_index_png(path: str, ids: np.ndarray, palette: np.ndarray) -> None:
   os.replace(tmp, path)
 
 
-def read_metadata(path: str) -> dict:
+def read_metadata(path: str, principal_point_shift: bool = True) -> dict:
+  """Kubric metadata json -> K (OpenCV, see the module docstring for `principal_point_shift`),
+  cam2world per frame, object poses, frame count, (H, W)."""
   posed.require_file(path, "a Kubric metadata json (scn*_p0_v*.json)")
   try:
     with open(path) as f:
@@ -150,8 +155,9 @@ def read_metadata(path: str) -> dict:
   K = Kn.copy()
   K[0] *= W
   K[1] *= H
-  K[0, 2] -= 0.5  # corner-origin -> pixel centres at integers
-  K[1, 2] -= 0.5
+  if principal_point_shift:
+    K[0, 2] -= 0.5  # corner-origin -> pixel centres at integers
+    K[1, 2] -= 0.5
   c2w = np.tile(np.eye(4), (len(pos), 1, 1))
   for t in range(len(pos)):
     c2w[t, :3, :3] = posed.qvec_to_rotmat(quat[t]) @ np.diag([1.0, -1.0, -1.0])
@@ -219,6 +225,14 @@ class Kubric4D(posed.PosedPairSource):
   name = "kubric4d"
   has_backward = True
   static_scene = False  # objects move: backward labels come from `backward`
+  pathway = "kubric"    # the official Kubric pathway of ufm_jax.data.augment
+
+  def __init__(self, root, split="train", pairs=None, thresholds=None,
+               principal_point_shift: bool = False):
+    """principal_point_shift: False (official quirk): K's principal point as Kubric writes it
+    (corner origin), half a pixel off the pixel-centre convention; True: shifted by -0.5."""
+    super().__init__(root, split, pairs, thresholds)
+    self.principal_point_shift = bool(principal_point_shift)
 
   def scenes(self):
     lo, hi = SPLITS.get(self.split, (0, 10 ** 9))
@@ -239,7 +253,8 @@ class Kubric4D(posed.PosedPairSource):
 
   @functools.lru_cache(maxsize=256)
   def metadata(self, scene, view):
-    return read_metadata(os.path.join(self.root, scene, f"{scene}_p0_v{view}.json"))
+    return read_metadata(os.path.join(self.root, scene, f"{scene}_p0_v{view}.json"),
+                         self.principal_point_shift)
 
   def _view(self, scene, frame, with_segmentation=True):
     v, t = (int(x) for x in frame.split("/"))
@@ -325,6 +340,18 @@ class KubricPair(posed.PosedPair):
         a.depth, a.K, a.cam2world, seg, pa, b.depth, b.K, b.cam2world, pb, *self.thresholds,
         rows=rows, cols=cols)
     return geometry.labels_from_correspondence(corr)
+
+  def training_labels(self, backward: bool, params, rows=None, cols=None) -> dict:
+    """The four label arrays by the official Kubric pathway's rule (`official_labels` on the
+    rigid-object motion, params = (absolute, temperature, relative); officially the function
+    arguments (0.1, 0.1, 0.005), flow_postprocessing.py:308-314)."""
+    from ufm_jax import geometry
+    a, b, seg, (pa, pb) = ((self.v1, self.v0, self.seg1, self.poses_backward) if backward else
+                           (self.v0, self.v1, self.seg0, self.poses_forward))
+    out = geometry.correspondence_from_rigid_objects(
+        a.depth, a.K, a.cam2world, seg, pa, b.depth, b.K, b.cam2world, pb, *self.thresholds,
+        rows=rows, cols=cols, official_params=params)
+    return {k: out[k] for k in ("flow", "covisibility", "flow_valid", "covis_valid")}
 
   def sample(self, backward: bool) -> dict:
     """The full-size sample dict of one direction."""
