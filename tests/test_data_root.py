@@ -23,8 +23,7 @@ def official_root(tmp_path_factory):
 
 
 def _block(datasets, root, **kw):
-  kw = {"batch_size": 4, "longest_side": 28, "num_workers": 0, "augment": {"color_prob": 0.0},
-        **kw}
+  kw = {"batch_size": 4, "longest_side": 28, "num_workers": 0, **kw}
   return pipeline.input_config(datasets, data_root=str(root), **kw)
 
 
