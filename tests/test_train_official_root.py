@@ -30,7 +30,7 @@ def test_ufm560_trains_on_an_official_data_root(tmp_path):
       [sys.executable, str(REPO / "train.py"), "--config=configs/ufm560.py:model=tiny",
        f"--workdir={work}", f"--config.input.data_root={root}", "--config.total_steps=3",
        "--config.input.batch_size=4", "--config.input.num_workers=0",
-       "--config.input.longest_side=56", "--config.input.aspect_ratios=(1.0,)",
+       "--config.input.shapes=((42, 56),)",
        "--config.log_training_steps=1", "--verbosity=0"],
       env=env, capture_output=True, text=True, timeout=900, cwd=REPO)
   assert r.returncode == 0, r.stderr[-3000:]
