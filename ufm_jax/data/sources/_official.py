@@ -49,7 +49,7 @@ def find_pairs_file(root: str, name: str, given: str | None = None) -> str:
                           "README.md")
 
 
-def processed_view(stem: str, keys, image_ext: str = ".jpg") -> posed.View:
+def processed_view(stem: str, keys) -> posed.View:
   """A DUSt3R-processed view: `<stem>.jpg`, `<stem>.exr` (z-depth), `<stem>.npz` with K under
   keys[0][0] and the camera-to-world pose as keys[1] = (4x4,) or (R, t); float32 like the
   official readers (`np.float32(...)`, a float32 eye(4) filled with R and t)."""
@@ -64,7 +64,7 @@ def processed_view(stem: str, keys, image_ext: str = ".jpg") -> posed.View:
   if K.shape != (3, 3) or pose.shape != (4, 4):
     raise ValueError(f"{stem}.npz: expected 3x3 intrinsics and a 4x4 pose, got {K.shape}, "
                      f"{pose.shape}")
-  image = io.read_image(stem + image_ext)
+  image = io.read_image(stem + ".jpg")
   depth = posed.sanitize_depth(exr.read_exr(stem + ".exr"))
   return posed.check_view(posed.View(image, depth, K.astype(np.float64), pose.astype(np.float64)),
                           stem)
@@ -88,6 +88,15 @@ def load_npz(path: str, keys: Iterable[str] | None = None, allow_pickle: bool = 
     raise ValueError(e.args[0]) from None
   except (zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error) as e:
     raise ValueError(f"{path}: not a readable .npz ({type(e).__name__}: {e})") from None
+
+
+def load_npy(path: str, allow_pickle: bool = False) -> np.ndarray:
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f"{path}: file not found")
+  try:
+    return np.load(path, allow_pickle=allow_pickle)
+  except (OSError, ValueError, EOFError) as e:
+    raise ValueError(f"{path}: not a readable .npy ({type(e).__name__}: {e})") from None
 
 
 # ---------------------------------------------------------------------------- distributed h5
@@ -197,6 +206,41 @@ def rgb_u8(image, where: str) -> np.ndarray:
   return np.ascontiguousarray(a[..., :3])
 
 
+# The per-view label arrays of the official flow datasets, in `precomputed_sample`'s order.
+LABELS = ("flow", "non_occluded_mask", "occlusion_supervision_mask", "fov_mask")
+
+
+def two_directions(dataset: str, image0, image1, label, where: str, flow_layout: str = "chw",
+                   **meta) -> list[dict]:
+  """[forward, backward] sample dicts of a pair whose views carry precomputed labels;
+  label(name, view) -> that view's array of LABELS (view 0 = forward)."""
+  out = []
+  for v, (x0, x1) in enumerate(((image0, image1), (image1, image0))):
+    out.append(precomputed_sample(dataset, x0, x1, *(label(q, v) for q in LABELS), where=where,
+                                  flow_layout=flow_layout, direction=("forward", "backward")[v],
+                                  layout="official", **meta))
+  return out
+
+
+class PrecomputedPairs:
+  """Mixin of the official flow datasets: `_views(i)` -> [forward, backward] from one read."""
+
+  has_backward = True
+  static_scene = False
+
+  def __getitem__(self, index):
+    return self._views(index)[0]
+
+  def backward(self, index):
+    return self._views(index)[1]
+
+  def both(self, index):
+    fwd, bwd = self._views(index)
+    return fwd, bwd
+
+
+# --------------------------------------------------------------------- official static readers
+
 class OfficialPosed:
   """Mixin of the official static (depth + pose) readers, before posed.PosedPairSource.
 
@@ -241,45 +285,3 @@ def official_meta(source) -> dict:
   return dict(layout="official", covisible_rendering_parameters=np.array(
       geometry.rendering_parameters(source.name), np.float32),
               suitable_for_refinement=bool(source.suitable_for_refinement))
-
-
-def load_npy(path: str, allow_pickle: bool = False) -> np.ndarray:
-  if not os.path.isfile(path):
-    raise FileNotFoundError(f"{path}: file not found")
-  try:
-    return np.load(path, allow_pickle=allow_pickle)
-  except (OSError, ValueError, EOFError) as e:
-    raise ValueError(f"{path}: not a readable .npy ({type(e).__name__}: {e})") from None
-
-
-# The per-view label arrays of the official flow datasets, in `precomputed_sample`'s order.
-LABELS = ("flow", "non_occluded_mask", "occlusion_supervision_mask", "fov_mask")
-
-
-def two_directions(dataset: str, image0, image1, label, where: str, flow_layout: str = "chw",
-                   **meta) -> list[dict]:
-  """[forward, backward] sample dicts of a pair whose views carry precomputed labels;
-  label(name, view) -> that view's array of LABELS (view 0 = forward)."""
-  out = []
-  for v, (x0, x1) in enumerate(((image0, image1), (image1, image0))):
-    out.append(precomputed_sample(dataset, x0, x1, *(label(q, v) for q in LABELS), where=where,
-                                  flow_layout=flow_layout, direction=("forward", "backward")[v],
-                                  layout="official", **meta))
-  return out
-
-
-class PrecomputedPairs:
-  """Mixin of the official flow datasets: `_views(i)` -> [forward, backward] from one read."""
-
-  has_backward = True
-  static_scene = False
-
-  def __getitem__(self, index):
-    return self._views(index)[0]
-
-  def backward(self, index):
-    return self._views(index)[1]
-
-  def both(self, index):
-    fwd, bwd = self._views(index)
-    return fwd, bwd
