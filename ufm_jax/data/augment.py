@@ -286,14 +286,24 @@ def flow_crop_labels(labels: Mapping[str, Any], crop: FlowCrop, view: int, mask_
   (h, w), (rh, rw) = crop.hw, crop.resized_hw
   (top, left), (otop, oleft) = ((crop.crop0, crop.crop1) if view == 0 else
                                 (crop.crop1, crop.crop0))
-  flow = np.asarray(labels["flow"], np.float32).take(rows, 0).take(cols, 1)
-  flow = flow * np.array([np.float32(rw / w), np.float32(rh / h)], np.float32)
+  oh, ow = len(rows), len(cols)
+  # Rows gathered as contiguous copies, columns as 8-byte (u, v) items; the scale and shift per
+  # interleaved (u, v) column (numpy is slow broadcasting over a trailing axis of 2).
+  flow = np.ascontiguousarray(labels["flow"], np.float32).take(rows, 0)
+  flow = flow.view(np.complex64)[..., 0].take(cols, 1).view(np.float32)
+  flow *= np.tile(np.float32([rw / w, rh / h]), ow)
   if (top, left) != (otop, oleft):
-    flow += np.array([left - oleft, top - otop], np.float32)
-  out = {"flow": flow}
+    flow += np.tile(np.float32([left - oleft, top - otop]), ow)
+  flow = flow.reshape(oh, ow, 2)
+  # The masks packed as bits of one uint8 plane: one gather for all.
   masks = [k for k in ("covisibility", "flow_valid", "covis_valid", "fov_mask") if k in labels]
-  for k in masks:
-    out[k] = np.asarray(labels[k], bool).take(rows, 0).take(cols, 1)
+  packed = np.zeros(np.shape(labels[masks[0]]), np.uint8)
+  for bit, k in enumerate(masks):
+    packed |= np.asarray(labels[k], bool).view(np.uint8) << bit
+  packed = packed.take(rows, 0).take(cols, 1)
+  out = {"flow": flow}
+  for bit, k in enumerate(masks):
+    out[k] = (packed & (1 << bit)) != 0
   inside = _in_crop(flow)
   before = out["covisibility"]
   out["covisibility"] = before & inside
