@@ -5,11 +5,12 @@ r"""UFM-560: the paper's recipe (sec. "Training Details", Table 1).
 
 Full UFM-Base (ViT-L/14 DINOv2 + 12 x 768 fusion + DPT heads), encoder initialised from pretrained
 DINOv2 (`model_init`: the HF facebook/dinov2-large folder or its model.safetensors, or the original
-dinov2_vitl14_pretrain.pth with the torch extra), the 12-dataset quota mixture, the official
-training shapes (H in {420, 364, 308, 280, 168} x 560) and augmentation, 48 epochs, AdamW
-(0.9, 0.95), weight decay 0.05, cosine decay with 10% linear warmup, peak lr 1e-4 (transformer
-+ heads) and 5e-6 (encoder), symmetrized batches of 96 pairs (48 unique). Arg `data=of|wb|both`
-selects the Table 4 data ablation (same number of epochs).
+dinov2_vitl14_pretrain.pth with the torch extra), the 12 datasets with the samples per epoch of
+the official recipe (`mixture.RECIPES['ufm560']`: old_setting_100k.yaml), the official training
+shapes (H in {420, 364, 308, 280, 168} x 560) and augmentation, 48 epochs, AdamW (0.9, 0.95),
+weight decay 0.05, cosine decay with 10% linear warmup, peak lr 1e-4 (transformer + heads) and
+5e-6 (encoder), symmetrized batches of 96 pairs (48 unique). Arg `data=of|wb|both` selects the
+Table 4 data ablation (same number of epochs).
 """
 
 import ml_collections
@@ -28,7 +29,7 @@ def get_config(arg=None):
   # The official shapes and augmentation (ufm_jax.data.augment, docs/recipe.md); the one
   # deviation, fast_image_ops (OpenCV's bicubic and HSV for PIL's), keeps the host CPU per row
   # within budget (docs/host_input.md).
-  c.input = pipeline.input_config(mixture.mixture(names[arg.data]), batch_size=96,
+  c.input = pipeline.input_config(mixture.recipe("ufm560", names[arg.data]), batch_size=96,
                                   longest_side=560, shapes=augment.SHAPES_560,
                                   augment={"fast_image_ops": True})
   c.model_name = arg.model

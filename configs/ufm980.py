@@ -5,8 +5,9 @@ r"""UFM-980: bootstrapped from UFM-560 (sec. "Training Details").
 
 Parameters from a 560 checkpoint (`model_init`: a training workdir, a converted checkpoint or the
 official UFM-Base snapshot), a fresh optimizer, 10x lower learning rates (1e-5 / 5e-7), the
-optical-flow datasets only, flow supervised on all pixels with ground truth (not only covisible
-ones: `loss_kwargs.flow_pixels="all"`), H in {644, 560, 490, 308} x 980, 15 epochs.
+optical-flow datasets only (the official recipe's samples per epoch, `mixture.RECIPES['ufm980']`),
+flow supervised on all pixels with ground truth (not only covisible ones:
+`loss_kwargs.flow_pixels="all"`), H in {644, 560, 490, 308} x 980, 15 epochs.
 """
 
 import ml_collections
@@ -20,7 +21,7 @@ def get_config(arg=None):
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.num_epochs = 15
   # The official shapes (980_many_opticalflow_ar) and augmentation, as ufm560.py.
-  c.input = pipeline.input_config(mixture.mixture(mixture.OPTICAL_FLOW), batch_size=96,
+  c.input = pipeline.input_config(mixture.recipe("ufm980"), batch_size=96,
                                   longest_side=980, shapes=augment.SHAPES_980,
                                   augment={"fast_image_ops": True})
   # Optical-flow benchmarks evaluate every pixel with valid flow, not just covisible ones.

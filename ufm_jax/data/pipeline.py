@@ -539,7 +539,17 @@ def _open_sources(datasets: Mapping[str, Mapping[str, Any]], split: str | None,
                      "expected quota, root, options")
     if quota <= 0:
       continue
-    if root is not None:
+    reader = name
+    if name in mixture.LAYOUTS:
+      # The official layout first, else the raw one (mixture.find_layout); LayoutError stops here.
+      layout, found, why = mixture.find_layout(name, data_root, root)
+      if layout is None:
+        dropped.append(f"{name} ({why})")
+        continue
+      log.info("dataset %s: %s layout at %s, read by %r (%s)", name, layout.kind, found,
+               layout.source, why)
+      reader, root = layout.source, found
+    elif root is not None:
       root = os.path.expanduser(str(root))
       if data_root is not None and not os.path.isabs(root):
         root = os.path.join(os.path.expanduser(str(data_root)), root)
@@ -549,7 +559,7 @@ def _open_sources(datasets: Mapping[str, Mapping[str, Any]], split: str | None,
     if split is not None:
       options.setdefault("split", split)
     try:
-      source = get_source(name, root, **options)
+      source = get_source(reader, root, **options)
     except FileNotFoundError as e:
       dropped.append(f"{name} ({e})")
       continue

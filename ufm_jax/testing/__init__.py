@@ -3,8 +3,9 @@ the public fixtures do not cover, random parameters for them, official-style sna
 random weights in official namings, the skip-or-fail rule of optional extras. Submodules:
 `wide_trees` (tiny trees in the real on-disk formats of the wide-baseline and benchmark datasets),
 `bench_trees` (the optical-flow benchmarks' layouts and the official benchmark branch's),
-`train_support` (a stand-in model, data and config for the training-machinery tests);
-`training_fixtures()` locates the official training-code fixtures."""
+`official_trees` (the official processed training layouts), `train_support` (a stand-in model,
+data and config for the training-machinery tests); `training_fixtures()` locates the official
+training-code fixtures."""
 
 from __future__ import annotations
 
