@@ -161,6 +161,17 @@ def test_a_changed_model_is_exported_with_the_new_kwargs(refine_bn, tmp_path):
   assert back.config == cfg
 
 
+def test_several_inference_resolutions(refine_bn, tmp_path):
+  """inference_resolution may list several (W, H): predict picks the closest aspect per pair."""
+  snap = _with_config(refine_bn, tmp_path / "snap",
+                      lambda cj: cj.update(inference_resolution=[[140, 98], [98, 140]]))
+  model, _ = ufm_jax.load_official(snap)
+  assert model.config.inference_resolution == ((98, 140), (140, 98))
+  from ufm_jax.official import config as official_config
+  assert official_config.official_config_dict(model.config)["inference_resolution"] == [
+      [140, 98], [98, 140]]
+
+
 def test_random_view_rows_warn_and_use_row_one(tmp_path):
   """use_rand_idx_pe_for_non_reference_views with more than two rows: the official forward is
   random; the loader warns and view 2 gets row 1, as with the option off."""

@@ -38,7 +38,8 @@ class UFMConfig:
   covisibility_head: Optional[dpt.DPTConfig] = dpt.DPTConfig(output_dim=1)
   flow_adaptor: dpt.FlowAdaptorConfig = dpt.FlowAdaptorConfig()
   detach_uncertainty_head: bool = True
-  inference_resolution: Tuple[int, int] = (420, 560)  # (H, W), used by ufm_jax.predict
+  # (H, W) used by ufm_jax.predict, or several: predict picks the closest aspect ratio per pair.
+  inference_resolution: Tuple[int, int] = (420, 560)
   # Compute dtype of encoder + info sharing: "float32", "bfloat16" (heads stay float32, as the
   # official autocast does), or "float64" (everything; needs jax_enable_x64, for testing).
   dtype: str = "float32"

@@ -268,7 +268,10 @@ def ufm_config_from_official(cj: dict, shapes: dict, keys=BASE_KEYS) -> ufm.UFMC
                "uncertainty_adaptors_kwargs.non_occluded_mask.kwargs")
     covisibility = dpt_config_from_official(cj["uncertainty_head_kwargs"],
                                             "uncertainty_head_kwargs", encoder.patch_size)
-  w, h = cj.get("inference_resolution") or (560, 420)  # official order is (W, H)
+  res = cj.get("inference_resolution") or (560, 420)  # official order is (W, H)
+  # one (W, H) or a list of them (UniFlowMatchModelsBase picks the closest aspect per pair)
+  res = (int(res[1]), int(res[0])) if isinstance(res[0], int) else tuple(
+      (int(h), int(w)) for w, h in res)
   return ufm.UFMConfig(
       encoder=encoder,
       info_sharing=info_sharing_config_from_official(cj.get("info_sharing_kwargs", {}), shapes),
@@ -277,7 +280,7 @@ def ufm_config_from_official(cj: dict, shapes: dict, keys=BASE_KEYS) -> ufm.UFMC
       covisibility_head=covisibility,
       flow_adaptor=flow_adaptor_from_official(cj["adaptors_kwargs"]),
       detach_uncertainty_head=bool(cj.get("detach_uncertainty_head", True)),
-      inference_resolution=(int(h), int(w)))
+      inference_resolution=res)
 
 
 def refine_config_from_official(cj: dict, shapes: dict, base: ufm.UFMConfig
@@ -358,6 +361,13 @@ OFFICIAL_DEFAULTS = {
 }
 
 
+def _official_resolution(res) -> list:
+  """(H, W), or a tuple of them, in the official (W, H) order."""
+  if isinstance(res[0], int):
+    return [res[1], res[0]]
+  return [[w, h] for h, w in res]
+
+
 def _new_info_sharing_kwargs(s: info_sharing.InfoSharingConfig) -> dict:
   """The UniCeption 0.1.6 info-sharing kwargs that differ from their defaults there (older
   official code does not know them, so they are written only when they matter)."""
@@ -406,7 +416,7 @@ def official_config_dict(cfg: ufm.UFMConfig) -> dict:
       "detach_uncertainty_head": cfg.detach_uncertainty_head,
       "encoder_kwargs": enc, "encoder_str": "dinov2",
       "feature_head_kwargs": head(cfg.flow_head), "head_type": "dpt",
-      "inference_resolution": [cfg.inference_resolution[1], cfg.inference_resolution[0]],
+      "inference_resolution": _official_resolution(cfg.inference_resolution),
       "info_sharing_and_head_structure": "dual+single",
       "info_sharing_kwargs": {
           "depth": s.depth, "dim": s.dim, "indices": list(s.indices),
@@ -553,9 +563,11 @@ def official_spec(cj: dict, state: Dict[str, np.ndarray], where: str = "config.j
       for w in caught:   # name the file (the builders know only the config's contents)
         warnings.warn(str(w.message).replace("config.json:", f"{where}:", 1), w.category,
                       stacklevel=2)
-      # save_official writes this text back while it still describes the model
-      config = dataclasses.replace(spec.model.config, official_kwargs=json.dumps(cj))
-      return dataclasses.replace(spec, model=spec.model.clone(config=config))
+      if hasattr(spec.model.config, "official_kwargs"):
+        # save_official writes this text back while it still describes the model
+        config = dataclasses.replace(spec.model.config, official_kwargs=json.dumps(cj))
+        spec = dataclasses.replace(spec, model=spec.model.clone(config=config))
+      return spec
   raise ValueError(f"{where}: no supported UFM model class matches this config (keys: "
                    f"{sorted(cj)})")
 
