@@ -91,7 +91,8 @@ _BLOCK_PIXELS = 1 << 15
 
 def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_change: np.ndarray,
                            disparity1: np.ndarray, tau_d: float, tau_r: float,
-                           K: np.ndarray | None = None, baseline: float = SCENEFLOW_BASELINE):
+                           K: np.ndarray | None = None, baseline: float = SCENEFLOW_BASELINE,
+                           official_temperature: float | None = None):
   """Covisibility of source pixels from optical flow, disparity and disparity change.
 
   Args:
@@ -103,11 +104,17 @@ def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_c
     K: [3, 3] intrinsics shared by both frames (default: `sceneflow_intrinsics`).
     baseline: stereo baseline; depth = K[0, 0] * baseline / disparity.
 
+    official_temperature: not None -> the official preprocess's rule instead
+      (`official_sceneflow_covisibility`) with this temperature.
+
   Returns dict of [H, W] arrays: covisibility (bool), fov_mask (bool, F1: lands in view in front of
   the camera), valid (bool, V1: source depth valid), covis_valid (bool, V_covis =
   (V1 & ~F1) | (F1 & V_other)), error (float32 range error, inf outside F1), depth0 and depth1
   (float32 z-depth, 0 where invalid).
   """
+  if official_temperature is not None:
+    return official_sceneflow_covisibility(flow, disparity0, disparity_change, disparity1,
+                                           (tau_d, official_temperature, tau_r), K, baseline)
   flow = np.asarray(flow, np.float32)
   h, w = flow.shape[:2]
   for name, a in (("disparity0", disparity0), ("disparity_change", disparity_change),
@@ -157,3 +164,52 @@ def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_c
   return dict(covisibility=covisible, fov_mask=fov, valid=valid0, covis_valid=covis_valid,
               error=error.astype(np.float32, copy=False), depth0=depth0.astype(np.float32, copy=False),
               depth1=depth1.astype(np.float32, copy=False))
+
+
+def official_sceneflow_covisibility(flow, disparity0, disparity_change, disparity1, params,
+                                   K=None, baseline: float = SCENEFLOW_BASELINE) -> dict:
+  """The official preprocess's scene-flow labels (preprocess_flyingthings.py:385-433, 485-604;
+  preprocess_monkaa.py the same), params = (absolute, temperature, relative), officially
+  (0.01, 0.01, 0.001). Unlike the supplementary's rule above: z-depths are compared, not ranges;
+  the target is in view iff 0 <= x + u < W and 0 <= y + v < H (no half-pixel margin, no in-front
+  test); the target depth is sampled bilinearly with zero padding (holes and the border pull
+  samples towards 0); the threshold has the temperature term. Its `opt_iters=1` has no effect
+  (the uv residual is never re-read). The official forward direction reads the backward
+  direction's projections for its supervision mask (the loop variables of :583-597); with valid
+  depth everywhere, as in FlyingThings3D and Monkaa, that gives the mask computed here.
+  Returns the dict of `sceneflow_covisibility`, error on z-depth."""
+  flow = np.asarray(flow, np.float32)
+  h, w = flow.shape[:2]
+  for name, a in (("disparity0", disparity0), ("disparity_change", disparity_change),
+                  ("disparity1", disparity1)):
+    if np.shape(a) != (h, w):
+      raise ValueError(f"sceneflow_covisibility: {name} has shape {np.shape(a)}, expected {(h, w)}")
+  K = sceneflow_intrinsics(h, w) if K is None else np.asarray(K, np.float64)
+  fb = np.float32(K[0, 0] * baseline)
+  d0 = np.asarray(disparity0, np.float32)
+  d1 = np.asarray(disparity1, np.float32)
+  with np.errstate(invalid="ignore", divide="ignore"):
+    valid0 = np.isfinite(d0) & (d0 > 0)
+    valid1 = np.isfinite(d1) & (d1 > 0)
+    depth0 = np.where(valid0, fb / d0, np.float32(0))
+    depth1 = np.where(valid1, fb / d1, np.float32(0))
+    expected = fb / (d0 + np.asarray(disparity_change, np.float32))   # z of the moved point
+  expected = np.where(np.isfinite(expected), expected, np.float32(np.inf)).astype(np.float32)
+  absolute, temperature, relative = (np.float32(p) for p in params)
+  bias = absolute - np.float32(np.log(0.5)) * temperature
+  from ufm_jax.geometry.covisibility import _ZeroPaddedRange  # pylint: disable=g-import-not-at-top
+  target = _ZeroPaddedRange(depth1)
+  u = np.arange(w, dtype=np.float32)[None, :] + flow[..., 0]
+  v = np.arange(h, dtype=np.float32)[:, None] + flow[..., 1]
+  with np.errstate(invalid="ignore"):
+    view = valid0 & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+  us = np.where(view, u, 0).astype(np.float64)
+  vs = np.where(view, v, 0).astype(np.float64)
+  observed, other_valid = target.sample(us, vs)
+  with np.errstate(invalid="ignore"):
+    err = np.where(view, np.abs(observed - expected), np.float32(np.inf)).astype(np.float32)
+    covisible = view & (err < bias + relative * expected)
+  other_valid &= view
+  return dict(covisibility=covisible, fov_mask=view, valid=valid0,
+              covis_valid=(valid0 & ~view) | other_valid, error=err, depth0=depth0,
+              depth1=depth1)
