@@ -137,15 +137,17 @@ def compile_step(ts, batch, hw, hlo_out=None) -> dict:
 
 def describe(config, ts, mesh, devices, batch, hw) -> dict:
   """Prints the run's shape and the parameter/optimizer bytes; returns them."""
+  import jax
   p_bytes = _tree_bytes(ts.abstract_params)
   p_dev = _per_device_bytes(ts.abstract_params, ts.param_sh)
   opt_dev = _per_device_bytes(ts.abstract_state.opt_state, ts.state_sh.opt_state)
   state_dev = _per_device_bytes(ts.abstract_state, ts.state_sh)
-  n_params = sum(int(x.size) for x in __import__("jax").tree.leaves(ts.abstract_params))
+  n_params = sum(int(x.size) for x in jax.tree.leaves(ts.abstract_params))
   print(f"config {config.get('model_name', config.get('model_fn'))}: {n_params / 1e6:.1f}M params, "
         f"global batch {batch} at {hw[0]}x{hw[1]}, mesh {dict(mesh.shape)} on {len(devices)} "
         f"{devices[0].device_kind} devices, dtype {config.model.get('dtype', 'float32')}, "
-        f"remat {config.model.get('remat', False)}, scan_blocks {config.model.get('scan_blocks', False)}, "
+        f"remat {config.model.get('remat', False)}, "
+        f"scan_blocks {config.model.get('scan_blocks', False)}, "
         f"fsdp_gather {config.get('fsdp_gather', 'layer')}")
   print(f"  params {_gib(p_bytes)} total, {_gib(p_dev)} per device; optimizer state "
         f"{_gib(opt_dev)} per device (train state {_gib(state_dev)})")
@@ -202,7 +204,8 @@ def recipe_shapes(config):
 
 
 def _quantum(config) -> int:
-  """Rows per chip come in multiples of this: a symmetrized pair's (a, b), (b, a) rows on one chip."""
+  """Rows per chip come in multiples of this: a symmetrized pair's (a, b), (b, a) rows stay on
+  one chip."""
   return 2 if config.get("apply_kwargs", {}).get("symmetrized") else 1
 
 
