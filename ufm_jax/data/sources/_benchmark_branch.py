@@ -8,8 +8,9 @@
     `CenterCropManipulation` (uniflowmatch/datasets/base/base_optical_flow_dataset.py:64-106,
     uniflowmatch/datasets/utils/flow_manipulation.py:224-347, 366-502);
   * `BranchPosedPairs`: a dense bench over posed views listed in an AnyMap pair table
-    (uniflowmatch/datasets/{eth3d,dtu}.py), labelled by
-    ufm_jax.geometry.benchmark_labels.branch_static_labels.
+    (uniflowmatch/datasets/{eth3d,dtu}.py), labelled by the training code's rule
+    (`flow_occlusion_post_processing`, the same on both branches): ufm_jax.geometry.official_labels
+    with the bench's geometry.thresholds.BENCHMARK_RENDERING_PARAMETERS.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import cv2
 import numpy as np
 
 from ufm_jax.data import io
-from ufm_jax.geometry import benchmark_labels
+from ufm_jax import geometry
 
 BENCH_SIZE = (420, 560)  # (H, W): `resolution=(560, 420)` (W, H) of every wide-baseline bench
 _F = np.float32
@@ -142,10 +143,11 @@ class BranchPosedPairs:
   """A wide-baseline dense bench of the benchmark branch over posed views.
 
   Pairs: every `stride`-th row of the pair table. Both views go through `crop_resize_view`, then
-  `branch_static_labels` gives flow (0 -> 1), covisibility (the branch's `covisible_mask`),
+  `geometry.official_labels` gives flow (0 -> 1), covisibility (the branch's `covisible_mask`),
   flow_valid (its `valid_mask`: in view and valid source depth) and covis_valid (its
-  `occlusion_supervision_mask`). Subclasses set name, pairs_file, stride, thresholds (a, T, r of
-  benchmark_labels.BRANCH_THRESHOLDS) and implement `load_view`.
+  `occlusion_supervision_mask`). Subclasses set name, pairs_file, stride, thresholds ((absolute,
+  temperature, relative) of geometry.thresholds.BENCHMARK_RENDERING_PARAMETERS) and implement
+  `load_view`.
   """
 
   name = "branch"
@@ -193,12 +195,12 @@ class BranchPosedPairs:
       image, depth, K = crop_resize_view(image, depth, K, self.size, f"{self.name}:{scene}/{f}")
       views.append((image, depth, K, np.linalg.inv(np.asarray(w2c, _F))))
     (im0, d0, K0, c2w0), (im1, d1, K1, c2w1) = views
-    lab = benchmark_labels.branch_static_labels(d0, K0, c2w0, d1, K1, c2w1, self.thresholds)
+    lab = geometry.official_labels(d0, K0, c2w0, d1, K1, c2w1, self.thresholds)
     meta = dict(dataset=self.name, scene=scene, frame0=f0, frame1=f1, K0=K0, K1=K1,
                 cam2world0=c2w0, cam2world1=c2w1, depth0=d0, depth1=d1,
                 gt_relpath=f"{scene}/{f0}_{f1}.flo")
-    return dict(image0=im0, image1=im1, flow=lab["flow"], covisibility=lab["non_occluded"],
-                flow_valid=lab["fov_mask"], covis_valid=lab["occlusion_supervision"], meta=meta)
+    return dict(image0=im0, image1=im1, flow=lab["flow"], covisibility=lab["covisibility"],
+                flow_valid=lab["flow_valid"], covis_valid=lab["covis_valid"], meta=meta)
 
 
 def load_npy(path: str, what: str, shape=None) -> np.ndarray:

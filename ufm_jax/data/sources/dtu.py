@@ -33,7 +33,7 @@ import numpy as np
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
 from ufm_jax.data.sources import _benchmark_branch, posed
-from ufm_jax.geometry.benchmark_labels import BRANCH_THRESHOLDS
+from ufm_jax.geometry.thresholds import BENCHMARK_RENDERING_PARAMETERS
 
 EVAL_SCANS = (1, 4, 9, 10, 11, 12, 13, 15, 23, 24, 29, 32, 33, 34, 48, 49, 62, 75, 77, 110, 114,
               118)
@@ -94,7 +94,7 @@ class DTUOfficial(_benchmark_branch.BranchPosedPairs):
   name = "dtu_official"
   pairs_file = "dtu_valid_pairs.npz"
   stride = 50
-  thresholds = BRANCH_THRESHOLDS["dtu"]
+  thresholds = BENCHMARK_RENDERING_PARAMETERS["dtu"]
 
   def load_view(self, scene, view):
     d = os.path.join(self.root, scene)

@@ -29,8 +29,8 @@ import numpy as np
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
 from ufm_jax.data.sources import _benchmark_branch, posed
-from ufm_jax.geometry.benchmark_labels import BRANCH_THRESHOLDS
 from ufm_jax.data.sources.scannetpp import WaiScenes, wai_view
+from ufm_jax.geometry.thresholds import BENCHMARK_RENDERING_PARAMETERS
 
 
 @register("eth3d")
@@ -66,7 +66,7 @@ class ETH3DOfficial(_benchmark_branch.BranchPosedPairs):
   name = "eth3d_official"
   pairs_file = "eth3d_valid_pairs.npz"
   stride = 3
-  thresholds = BRANCH_THRESHOLDS["eth3d"]
+  thresholds = BENCHMARK_RENDERING_PARAMETERS["eth3d"]
 
   def load_view(self, scene, view):
     d = os.path.join(self.root, scene)
