@@ -75,7 +75,8 @@ def test_covisible_iff_depth_error_below_tau():
   # The branch's rule on the same data with DTU constants in mm: tau 20.318 + 0.01 d.
   lab = geometry.official_labels(d0 * 1000, K, np.eye(4), d1 * 1000, K, np.eye(4),
                                  BENCH_PARAMS["dtu"])
-  np.testing.assert_array_equal(lab["covisibility"], delta * 1000 * ray < 12 + 10 * D * ray + 12 * LN2)
+  np.testing.assert_array_equal(lab["covisibility"],
+                                delta * 1000 * ray < 12 + 10 * D * ray + 12 * LN2)
 
 
 def test_labels_match_the_plane_homography():

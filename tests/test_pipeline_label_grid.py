@@ -7,7 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ufm_jax.data import augment, backward_labels, get_source, load_pair, pipeline, register
+from ufm_jax.data import (augment, backward_labels, get_source, load_pair, official_ops, pipeline,
+                          register)
 from ufm_jax.testing import wide_trees
 
 STATIC = ("blendedmvs", "megadepth", "scannetpp", "habitat", "staticthings")
@@ -125,9 +126,9 @@ def test_habitat_is_not_crop_augmented_by_default(tmp_path):
   writer(str(tmp_path))
   src = get_source("habitat", str(tmp_path), **kwargs)
   pair = src.lazy_pair(0)
-  views = [augment.StaticView(v.image, v.depth, v.K, v.cam2world) for v in (pair.v0, pair.v1)]
-  want = augment.static_pair(*views, backward_labels.label_parameters(src, "habitat"), (42, 56), None,
-                             augment.AugmentConfig(enabled=False))
+  views = [official_ops.StaticView(v.image, v.depth, v.K, v.cam2world) for v in (pair.v0, pair.v1)]
+  params = backward_labels.label_parameters(src, "habitat")
+  want = augment.static_pair(*views, params, (42, 56), None, augment.AugmentConfig(enabled=False))
   _, batches = _batches(tmp_path, "habitat", kwargs, n=1, augment_keys=NO_COLOR)
   b = batches[0]
   for r in range(2):

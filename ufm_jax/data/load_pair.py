@@ -26,6 +26,7 @@ import grain
 import numpy as np
 
 from ufm_jax.data import augment as augment_lib
+from ufm_jax.data import official_ops
 from ufm_jax.data.backward_labels import (GEOMETRY_META, geometry_backward, geometry_possible,
                                           label_parameters, unsupervised_backward)
 from ufm_jax.data.sampling_plan import MixtureLayout
@@ -159,7 +160,7 @@ class LoadPair:
       if np.shape(depth) != image.shape[:2]:
         raise ValueError(f"{where}: view {k} image is {image.shape[:2]} but its depth is "
                          f"{np.shape(depth)}")
-      out.append(augment_lib.StaticView(image, np.asarray(depth, np.float32),
+      out.append(official_ops.StaticView(image, np.asarray(depth, np.float32),
                                         np.asarray(K, np.float64), np.asarray(c2w, np.float64)))
     return out
 
