@@ -245,6 +245,13 @@ def test_tawb_official_reads_the_data_split(official_root, tmp_path):
   bench_trees.write_tawb_data(str(tmp_path), bad)
   with pytest.raises(ValueError, match=r"part_000.h5.*flow_fwd is \(48, 64, 2\)"):
     get_source("tawb_official", str(tmp_path))[0]
+  # NaN flow where the stored labels say covisible (even outside fov) is refused, not scored.
+  bad = tawb_samples(1)
+  bad[0]["flow_fwd"][:, 5, 7] = np.nan
+  bad[0]["fov_mask_fwd"][5, 7] = False
+  bench_trees.write_tawb_data(str(tmp_path / "nan"), bad)
+  with pytest.raises(ValueError, match=r"part_000.h5 sample 0: non-finite flow .* at 1 of"):
+    get_source("tawb_official", str(tmp_path / "nan"))[0]
 
 
 def test_sintel_official_covisibility_is_not_occluded_only(tmp_path):
