@@ -157,15 +157,3 @@ class BranchPosedPairs:
     return dict(image0=im0, image1=im1, flow=lab["flow"], covisibility=lab["covisibility"],
                 flow_valid=lab["flow_valid"], covis_valid=lab["covis_valid"], meta=meta)
 
-
-def load_npy(path: str, what: str, shape=None) -> np.ndarray:
-  """A .npy array, with its path in every error."""
-  if not os.path.isfile(path):
-    raise FileNotFoundError(f"{path}: missing file (expected {what})")
-  try:
-    arr = np.load(path, allow_pickle=False)
-  except ValueError as e:
-    raise ValueError(f"{path}: not a .npy array ({e})") from None
-  if shape is not None and arr.size != int(np.prod(shape)):
-    raise ValueError(f"{path}: expected {what} of shape {shape}, got {arr.shape}")
-  return arr.reshape(shape) if shape is not None else arr
