@@ -106,18 +106,18 @@ def write_tawb_data(root, samples, split="data", per_shard=2):
   and a statistics JSON the reader must skip. `samples`: dicts with img0, img1 [H, W, 3] uint8,
   flow_fwd [2, H, W], non_occluded_fwd, fov_mask_fwd, occlusion_supervision_mask_fwd [H, W]
   (the backward keys are filled with the forward ones when absent)."""
-  import h5py
   import json
+
+  from ufm_jax.testing import official_trees
   d = os.path.join(root, split)
   os.makedirs(d, exist_ok=True)
   index = {}
   for k in range(0, len(samples), per_shard):
     chunk = samples[k:k + per_shard]
     name = f"part_{k // per_shard:03d}.h5"
-    with h5py.File(os.path.join(d, name), "w") as f:
-      for key in TAWB_KEYS:
-        fwd = key.replace("_bwd", "_fwd")
-        f.create_dataset(key, data=np.stack([s.get(key, s.get(fwd)) for s in chunk]))
+    official_trees.write_h5(os.path.join(d, name), **{
+        key: np.stack([s.get(key, s.get(key.replace("_bwd", "_fwd"))) for s in chunk])
+        for key in TAWB_KEYS})
     index.update({str(k + j): [name, j] for j in range(len(chunk))})
   with open(os.path.join(d, "index_map.json"), "w") as f:
     json.dump(index, f)
