@@ -448,10 +448,6 @@ def two_view_flow(h=48, w=64):
   return flow, K, R, t
 
 
-def _quat_from_R(R):
-  return rotmat_to_qvec(R)
-
-
 def _axis_rot(axis, ang):
   axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
   K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
