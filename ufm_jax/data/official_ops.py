@@ -24,6 +24,10 @@ import cv2
 import numpy as np
 from PIL import Image
 
+from ufm_jax import inference
+# torch's legacy 'nearest' index, shared with the model's input and output resizing.
+from ufm_jax.inference import nearest_index
+
 
 # ----------------------------------------------------------------------------------- resampling
 
@@ -50,17 +54,6 @@ def resize_bilinear_aa(image: np.ndarray, size_hw, box_hw=None) -> np.ndarray:
     plane = Image.fromarray(np.ascontiguousarray(image[..., c], np.float32), "F")
     out[..., c] = np.asarray(plane.resize((ow, oh), Image.BILINEAR, box=box))
   return trunc_u8(out)
-
-
-def nearest_index(in_size: int, out_size: int) -> np.ndarray:
-  """Source index of each output index of torch's legacy 'nearest' resize (float32 arithmetic)."""
-  if in_size == out_size:
-    return np.arange(out_size)
-  if out_size == 2 * in_size:
-    return np.arange(out_size) >> 1
-  scale = np.float32(in_size) / np.float32(out_size)
-  idx = np.floor(np.arange(out_size, dtype=np.float32) * scale).astype(np.int64)
-  return np.minimum(idx, in_size - 1)
 
 
 def resize_short_axis_size(hw, min_hw) -> tuple[int, int]:
@@ -103,8 +96,6 @@ def flow_crop_images(image0, image1, crop: FlowCrop, exact: bool = False):
   (`resize_bilinear_aa`), faster; its weights round differently from torch's, so a few pixels
   are one grey level off. exact=True (the benchmarks): torch's weights to the last bit
   (`ufm_jax.inference.resize_bilinear_aa`) on the whole image, then the crop."""
-  if exact:
-    from ufm_jax import inference  # pylint: disable=g-import-not-at-top
   out = []
   for image, (top, left) in ((image0, crop.crop0), (image1, crop.crop1)):
     if exact:
