@@ -4,7 +4,6 @@ checked against values derived in the test from the definitions (docs/benchmarks
 import math
 import os
 
-import cv2
 import numpy as np
 import pytest
 
@@ -163,17 +162,9 @@ def test_resize_short_center_crop_crops_wide_inputs():
 @pytest.fixture(scope="module")
 def official_root(tmp_path_factory):
   """An official dataset_root: eth3d_processed/, dtu_processed/, anymap_data_pairs/, TA-WB/."""
-  root = str(tmp_path_factory.mktemp("official"))
   scene = wide_trees.PlaneScene(hw0=(420, 560))
-  rows = [bench_trees.write_eth3d_processed(os.path.join(root, "eth3d_processed"), scene,
-                                            views=(f"DSC_{2 * k}", f"DSC_{2 * k + 1}")) + (0.5,)
-          for k in range(4)]
-  bench_trees.write_anymap_pairs(os.path.join(root, "anymap_data_pairs", "eth3d_valid_pairs.npz"),
-                                 rows)
-  scan = bench_trees.write_dtu_processed(os.path.join(root, "dtu_processed"), scene)
-  bench_trees.write_anymap_pairs(os.path.join(root, "anymap_data_pairs", "dtu_valid_pairs.npz"),
-                                 [scan + (float(k),) for k in range(51)], object_array=False)
-  bench_trees.write_tawb_data(os.path.join(root, "TA-WB"), tawb_samples())
+  root = bench_trees.write_official_bench_root(str(tmp_path_factory.mktemp("official")), scene,
+                                               tawb_samples(), flow_benches=False)
   return root, scene
 
 
