@@ -89,7 +89,7 @@ def test_infer_cli_on_fixture_snapshot(io, reference_dir, pair_files, tmp_path):
 
 @pytest.mark.slow
 def test_convert_then_infer_from_converted_checkpoint(io, reference_dir, pair_files, tmp_path, capsys):
-  """`convert` delegates to ufm_jax.convert; `infer --checkpoint` then reads the orbax checkpoint."""
+  """`convert` writes our checkpoint (ufm_jax.model_io); `infer --checkpoint` then reads it."""
   ckpt = tmp_path / "ckpt"
   assert cli.main(["convert", str(reference_dir / "base"), str(ckpt)]) == 0
   assert cli.main(["infer", *map(str, pair_files), "--checkpoint", str(ckpt), "--out",

@@ -25,7 +25,9 @@ as `ufm-jax`).
 
 `--checkpoint` takes a converted checkpoint (`python -m ufm_jax convert`), a train.py workdir
 (latest step) or, with `--snapshot` (or when the folder holds config.json + model.safetensors),
-an official snapshot.
+an official snapshot: a folder or a Hugging Face model ID such as infinity1096/UFM-Base (the
+standard Hugging Face cache; HF_HUB_OFFLINE=1 reads only the cache; `--revision` picks a
+branch, tag or commit).
 """
 
 from __future__ import annotations
@@ -99,7 +101,7 @@ def _infer_many(args) -> int:
     pairs = sequence.list_pairs(args.pairs)
   else:
     pairs = sequence.video_frames(args.source, args.stride)
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   counts = sequence.run(model, params, pairs, args.out, batch=args.batch, save=save,
                         overwrite=args.overwrite)
   print(f"{args.out}: {counts['done']} pairs written, {counts['skipped']} already there, "
@@ -118,7 +120,7 @@ def _infer_main(args) -> int:
   for p in (args.source, args.target):
     if not os.path.isfile(p):
       raise FileNotFoundError(f"image not found: {p}")
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   written = run_infer(model, params, args.source, args.target, args.out, args.bidirectional)
   for p in written:
     print(p)
@@ -143,9 +145,13 @@ def _batch_arg(text: str):
 
 def _add_checkpoint_args(p) -> None:
   p.add_argument("--checkpoint", required=True,
-                 help="converted checkpoint, train.py workdir or HF snapshot folder")
+                 help="converted checkpoint, train.py workdir or HF snapshot folder; with "
+                      "--snapshot also a Hugging Face model ID (infinity1096/UFM-Base)")
   p.add_argument("--snapshot", action="store_true",
-                 help="--checkpoint is an official Hugging Face snapshot (config.json + safetensors)")
+                 help="--checkpoint is an official Hugging Face snapshot (config.json + safetensors): "
+                      "a folder or a model ID, read through the Hugging Face cache")
+  p.add_argument("--revision", default=None,
+                 help="with a model ID: the Hub branch, tag or commit (default: main)")
 
 
 def _add_infer_parser(sub) -> None:
@@ -186,11 +192,12 @@ def _add_export_parser(sub) -> None:
 
 def _export_main(args) -> int:
   from ufm_jax import export
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   outputs = [k.strip() for k in args.outputs.split(",") if k.strip()]
   written = export.export(model, params, args.size, args.out, fmt=args.format, batch=args.batch,
                           dtype=args.dtype, outputs=outputs,
-                          checkpoint=pathlib.Path(args.checkpoint).absolute())
+                          checkpoint=(pathlib.Path(args.checkpoint).absolute()
+                                      if os.path.exists(args.checkpoint) else args.checkpoint))
   for p in written:
     print(p)
   return 0
@@ -216,7 +223,7 @@ def _match_main(args) -> int:
   from ufm_jax import matching
   from ufm_jax.data import io
   source, target = io.read_image(args.source), io.read_image(args.target)
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   m = matching.match(model, params, source, target, num=args.num,
                      min_covisibility=args.min_covisibility, bidirectional=args.bidirectional,
                      max_fb_error_px=args.max_fb_error, seed=args.seed)
@@ -257,14 +264,14 @@ def _demo_main(args) -> int:
     return 2
   if args.max_side < 14:
     raise ValueError(f"--max-side {args.max_side}: must be at least the 14 px patch size")
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   demo.serve(model, params, host=args.host, port=args.port, share=args.share,
              max_side=args.max_side, max_file_size=args.max_file_size)
   return 0
 
 
 def _convert_main(args) -> int:
-  print(model_io.convert_snapshot(args.snapshot_dir, args.out_dir))
+  print(model_io.convert_snapshot(args.snapshot_dir, args.out_dir, revision=args.revision))
   return 0
 
 
@@ -272,8 +279,11 @@ def _add_convert_parser(sub) -> None:
   p = sub.add_parser("convert", help="official HF snapshot -> orbax checkpoint (ufm_jax.model_io)",
                      description="Converts an official Hugging Face snapshot into an orbax "
                      "checkpoint that ufm_jax.load reads back.")
-  p.add_argument("snapshot_dir", help="Hugging Face snapshot (config.json + model.safetensors)")
+  p.add_argument("snapshot_dir", help="Hugging Face snapshot (config.json + model.safetensors): "
+                 "a folder or a model ID (infinity1096/UFM-Base)")
   p.add_argument("out_dir", help="new folder for the orbax params + model_config.json")
+  p.add_argument("--revision", default=None,
+                 help="with a model ID: the Hub branch, tag or commit (default: main)")
   p.set_defaults(func=_convert_main)
 
 

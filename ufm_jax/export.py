@@ -58,6 +58,7 @@ def _prepare(model, params, size, dtype, outputs, attention_impl=None):
   import jax
   import jax.numpy as jnp
 
+  from ufm_jax.models import ufm
   if dtype not in DTYPES:
     raise ExportError(f"--dtype {dtype!r}; expected one of {', '.join(DTYPES)}")
   cfg = model.config
@@ -71,14 +72,14 @@ def _prepare(model, params, size, dtype, outputs, attention_impl=None):
                       f"{patch} (e.g. {max(patch, h // patch * patch)}x{max(patch, w // patch * patch)})")
   outputs = tuple(outputs)
   spec = jax.ShapeDtypeStruct((1, h, w, 3), jnp.uint8)
-  available = jax.eval_shape(lambda s, t: model.apply({"params": params}, s, t), spec, spec)
+  available = jax.eval_shape(lambda s, t: model.apply(ufm.variables(params), s, t), spec, spec)
   missing = [k for k in outputs if k not in available]
   if missing or not outputs:
     raise ExportError(f"outputs {missing or list(outputs)} not produced by {type(model).__name__}; "
                       f"it returns {', '.join(sorted(available))}")
 
   def forward(source, target):
-    out = model.apply({"params": params}, source, target)
+    out = model.apply(ufm.variables(params), source, target)
     return {k: out[k] for k in outputs}
 
   return forward, model, outputs
@@ -238,6 +239,7 @@ def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32
   import jax.numpy as jnp
 
   from ufm_jax.data import io
+  from ufm_jax.models import ufm
   if fmt not in FORMATS:
     raise ExportError(f"--format {fmt!r}; expected one of {', '.join(FORMATS)}")
   out = pathlib.Path(out)
@@ -254,7 +256,7 @@ def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32
     written = [out] + ([out.with_name(out.name + ".data")] if out.with_name(out.name + ".data")
                        .exists() else [])
   spec = jax.ShapeDtypeStruct((1,) + size + (3,), jnp.uint8)
-  avals = jax.eval_shape(lambda s, t: model.apply({"params": params}, s, t), spec, spec)
+  avals = jax.eval_shape(lambda s, t: model.apply(ufm.variables(params), s, t), spec, spec)
   shapes = {}
   for k in outputs:
     shapes[k], shapes[k + ":dtype"] = tuple(avals[k].shape), str(avals[k].dtype)

@@ -50,12 +50,18 @@ def what_is(path: str | os.PathLike) -> str | None:
   return None
 
 
-def load_model(path: str | os.PathLike, snapshot: bool = False):
+def load_model(path: str | os.PathLike, snapshot: bool = False, revision: str | None = None):
   """(model, params) from an official snapshot, a train.py workdir (its latest step) or a
-  converted checkpoint; `snapshot=True` insists on a snapshot."""
+  converted checkpoint; `snapshot=True` insists on a snapshot, which may then also be a Hugging
+  Face model ID (infinity1096/UFM-Base, at `revision`; `ufm_jax.official.snapshot_folder`)."""
   p = pathlib.Path(path)
+  if snapshot and not p.exists():
+    from ufm_jax.official import snapshot as official_snapshot
+    return official_snapshot.load_official(str(path), revision)
   if not p.is_dir():
-    raise FileNotFoundError(f"checkpoint directory not found: {p}")
+    hint = (" (a Hugging Face model ID needs --snapshot)"
+            if official_hub_id(str(path)) else "")
+    raise FileNotFoundError(f"checkpoint directory not found: {p}{hint}")
   kind = what_is(p)
   if snapshot and kind != SNAPSHOT:
     raise FileNotFoundError(f"{p} is not a Hugging Face snapshot: expected config.json and "
@@ -69,6 +75,12 @@ def load_model(path: str | os.PathLike, snapshot: bool = False):
     raise ValueError(f"{p} holds DINOv2 weights, an encoder only: start a training run from them "
                      f"with model_init=dinov2:{p}")
   return load(p)
+
+
+def official_hub_id(name: str) -> bool:
+  """Whether `name` is spelled like a Hugging Face model ID (owner/name)."""
+  from ufm_jax.official import snapshot as official_snapshot
+  return bool(official_snapshot.HUB_ID.fullmatch(name))
 
 
 def load_workdir(path: str | os.PathLike, step: int | None = None):
@@ -122,12 +134,12 @@ def save(out_dir, model, params, class_name: str | None = None):
 
 
 def load(ckpt_dir):
-  """(model, params) from a folder written by `save` / `python -m ufm_jax convert`."""
+  """(model, params) from a folder written by `save` / `python -m ufm_jax convert` (params: the
+  parameter tree, or the variables with "batch_stats" for a BatchNorm U-Net)."""
   import jax
   import jax.numpy as jnp
   import numpy as np
   import orbax.checkpoint as ocp
-  from flax import traverse_util
 
   from ufm_jax.official import keymap
   from ufm_jax.official import snapshot as official_snapshot
@@ -146,8 +158,8 @@ def load(ckpt_dir):
   model = build(from_dict(meta["config"]))
   # Saved as numpy arrays: orbax restores them as numpy without a target tree.
   params = keymap.unfreeze(ocp.PyTreeCheckpointer().restore(d / PARAMS_DIR))
-  got = {k: tuple(np.shape(v)) for k, v in traverse_util.flatten_dict(params).items()}
-  want = official_snapshot.expected_param_shapes(model)
+  got = {k: tuple(np.shape(v)) for k, v in keymap.flat_variables(params).items()}
+  want = official_snapshot.expected_variable_shapes(model)
   if got != want:
     bad = sorted(set(got) ^ set(want)) + sorted(k for k in set(got) & set(want)
                                                  if got[k] != want[k])
@@ -157,13 +169,14 @@ def load(ckpt_dir):
   return model, params
 
 
-def convert_snapshot(snapshot_dir, out_dir) -> str:
-  """Official snapshot -> our checkpoint (`save`); returns a one-line summary."""
+def convert_snapshot(snapshot_dir, out_dir, revision: str | None = None) -> str:
+  """Official snapshot (folder or Hub ID) -> our checkpoint (`save`); returns a one-line
+  summary."""
   import jax
   import numpy as np
 
   from ufm_jax.official import snapshot as official_snapshot
-  model, params = official_snapshot.load_official(snapshot_dir)
+  model, params = official_snapshot.load_official(snapshot_dir, revision)
   save(out_dir, model, params)
   n = sum(int(np.prod(v.shape)) for v in jax.tree.leaves(params))
   return f"wrote {out_dir} ({type(model).__name__}, {n:,} parameters)"

@@ -48,6 +48,9 @@ class DinoV2Config:
   # Which block outputs to return: a tuple of indices or an int (the last n blocks).
   indices: Union[Tuple[int, ...], int] = (23,)
   norm_intermediate: bool = True
+  # False: UniCeption replaces the hub model's final norm by an identity (no `norm` params), so
+  # the returned maps are raw block outputs whatever norm_intermediate says.
+  norm_returned_features: bool = True
 
   def take_indices(self) -> Tuple[int, ...]:
     if isinstance(self.indices, int):
@@ -237,7 +240,8 @@ class DinoV2(nn.Module):
     x = constrain(x)
 
     take = cfg.take_indices()
-    norm = layers.layer_norm("norm")  # float32 out, as torch autocast runs LayerNorm
+    # float32 out, as torch autocast runs LayerNorm
+    norm = layers.layer_norm("norm") if cfg.norm_returned_features else layers.identity
     kw = dict(num_heads=cfg.num_heads, mlp_ratio=cfg.mlp_ratio, qkv_bias=True, qk_norm=False,
               init_values=cfg.init_values, ffn=cfg.ffn, dtype=self.dtype,
               attention_impl=self.attention_impl)
@@ -273,6 +277,8 @@ class DinoV2(nn.Module):
     if self.is_initializing() and not self.scan:
       for i in range(max(take) + 1, cfg.depth):
         block(**kw, name=f"blocks_{i}")(x)
+    if self.is_initializing() and not cfg.norm_intermediate:
+      norm(x)  # the hub model's final norm exists (unused) unless norm_returned_features=False
     return result
 
 

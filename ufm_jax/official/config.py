@@ -8,7 +8,9 @@ official code would build something else.
 """
 
 import dataclasses
+import json
 import re
+import warnings
 from typing import Any, Callable, Dict, List, Tuple
 
 import numpy as np
@@ -39,8 +41,69 @@ def _kw(d: dict, key: str, where: str, default=None, required=True):
   return default
 
 
+def check_keys(d: dict, known, where: str) -> None:
+  """Refuses a config.json section with a key the loader does not know: an option it ignored
+  could change the model's outputs without any error."""
+  unknown = sorted(set(d) - set(known))
+  if unknown:
+    names = ", ".join(f"{where}.{k}" if where else k for k in unknown)
+    raise ValueError(f"config.json: {names}: not an option "
+                     f"this loader knows (known: {', '.join(sorted(known))}); refusing to load a "
+                     "model whose structure it may not reproduce")
+
+
+def _require(d: dict, key: str, ok, want: str, where: str) -> None:
+  if key in d and not ok(d[key]):
+    raise ValueError(f"config.json: {where}.{key}={d[key]!r} is not supported (expected {want})")
+
+
+# Constructor kwargs of the official classes (UFM main 3732a50, UniCeption ee7fa0b) per section.
+# Dropout rates, checkpointing and checkpoint paths are known but do not change the inference
+# forward (from_pretrained loads model.safetensors over whatever a path would have loaded).
+ENCODER_KEYS = ("name", "data_norm_type", "patch_size", "size", "with_registers",
+                "norm_returned_features", "pretrained_checkpoint_path", "torch_hub_force_reload",
+                "gradient_checkpointing", "keep_first_n_layers", "use_pytorch_sdpa",
+                "disable_torch_compile_for_pe", "indices", "norm_intermediate",
+                "intermediates_only")
+INFO_SHARING_KEYS = ("name", "input_embed_dim", "size", "depth", "dim", "num_heads", "mlp_ratio",
+                     "qkv_bias", "qk_norm", "proj_drop", "attn_drop", "init_values", "drop_path",
+                     "custom_positional_encoding", "pretrained_checkpoint_path",
+                     "gradient_checkpointing", "indices", "norm_intermediate",
+                     "intermediates_only", "max_num_views", "max_num_views_for_pe", "num_views",
+                     "distinguish_ref_and_non_ref_views", "use_pe_for_non_reference_views",
+                     "use_rand_idx_pe_for_non_reference_views", "use_scalable_softmax",
+                     "use_entropy_scaling", "base_token_count_for_entropy_scaling",
+                     "entropy_scaling_growth_factor")
+DPT_FEATURE_KEYS = ("patch_size", "main_tasks", "hooks", "input_feature_dims", "layer_dims",
+                    "feature_dim", "use_bn", "output_width_ratio", "pretrained_checkpoint_path",
+                    "checkpoint_gradient", "nonlinearity")
+DPT_PROCESSOR_KEYS = ("input_feature_dim", "output_dim", "hidden_dims",
+                      "pretrained_checkpoint_path", "checkpoint_gradient", "nonlinearity")
+FLOW_ADAPTOR_KEYS = ("name", "flow_mean", "flow_std", "base_shape", "scale_strategy",
+                     "output_normalized_coordinate")
+CLASSIFICATION_HEAD_KEYS = ("input_feature_dim", "patch_size", "output_dim", "mlp_ratio", "bias",
+                            "drop", "pretrained_checkpoint_path")
+BASE_KEYS = ("encoder_str", "encoder_kwargs", "info_sharing_and_head_structure",
+             "info_sharing_str", "info_sharing_kwargs", "encoder_skip_connection",
+             "info_sharing_skip_connection", "head_type", "feature_head_kwargs",
+             "adaptors_kwargs", "detach_uncertainty_head", "uncertainty_head_type",
+             "uncertainty_head_kwargs", "uncertainty_adaptors_kwargs",
+             "pretrained_backbone_checkpoint_path", "pretrained_checkpoint_path",
+             "inference_resolution")
+REFINE_KEYS = BASE_KEYS + ("temperature", "use_unet_feature", "use_unet_batchnorm",
+                           "classification_head_type", "classification_head_kwargs",
+                           "feature_combine_method", "refinement_range")
+# UniCeption ee7fa0b's values for info-sharing kwargs a config.json leaves out.
+MAX_NUM_VIEWS_DEFAULT = 1000
+USE_RAND_IDX_DEFAULT = True
+
+
 def encoder_config_from_official(enc: dict, shapes: dict, prefix: str = "encoder.model.",
                                  ) -> dinov2.DinoV2Config:
+  check_keys(enc, ENCODER_KEYS, "encoder_kwargs")
+  _require(enc, "data_norm_type", lambda v: v == "dinov2", "'dinov2'", "encoder_kwargs")
+  _require(enc, "intermediates_only", lambda v: not v, "false (UFM uses the final output too)",
+           "encoder_kwargs")
   size = _kw(enc, "size", "encoder_kwargs")
   if size not in dinov2.SIZES:
     raise ValueError(f"config.json: encoder_kwargs.size={size!r}; expected one of "
@@ -79,16 +142,27 @@ def encoder_config_from_official(enc: dict, shapes: dict, prefix: str = "encoder
       num_register_tokens=n_reg, init_values=1.0 if ls else None,
       # facebookresearch/dinov2 hubconf: *_reg models use antialias=True, offset 0.0.
       interpolate_antialias=bool(n_reg), interpolate_offset=0.0 if n_reg else 0.1,
-      indices=indices, norm_intermediate=bool(enc.get("norm_intermediate", True)))
+      indices=indices, norm_intermediate=bool(enc.get("norm_intermediate", True)),
+      norm_returned_features=bool(enc.get("norm_returned_features", True)))
 
 
-def info_sharing_config_from_official(kw: dict, shapes: dict,
-                                      prefix: str = "info_sharing.") -> info_sharing.InfoSharingConfig:
+def _view_count(kw: dict) -> int:
+  """The view-embedding table's rows: max_num_views (UniCeption < 0.1.6, renamed by UFM main) or
+  max_num_views_for_pe or num_views, else UniCeption ee7fa0b's default."""
+  given = {k: kw[k] for k in ("max_num_views", "max_num_views_for_pe", "num_views") if k in kw}
+  if len(set(given.values())) > 1:
+    raise ValueError(f"config.json: info_sharing_kwargs gives different view counts {given}")
+  return int(next(iter(given.values()), MAX_NUM_VIEWS_DEFAULT))
+
+
+def info_sharing_config_from_official(kw: dict, shapes: dict, prefix: str = "info_sharing."
+                                      ) -> info_sharing.InfoSharingConfig:
+  check_keys(kw, INFO_SHARING_KEYS, "info_sharing_kwargs")
   if kw.get("custom_positional_encoding") is not None:
     raise ValueError("config.json: info_sharing custom_positional_encoding (RoPE) is not supported")
-  views = kw.get("max_num_views", kw.get("max_num_views_for_pe", kw.get("num_views", 2)))
-  if kw.get("use_rand_idx_pe_for_non_reference_views") and views > 2:
-    raise ValueError("config.json: random view-index embeddings are not supported")
+  _require(kw, "intermediates_only", lambda v: not v, "false (UFM uses the final output too)",
+           "info_sharing_kwargs")
+  views = _view_count(kw)
   depth = _kw(kw, "depth", "info_sharing_kwargs", 12, required=False)
   indices = kw.get("indices")
   if indices is None:
@@ -96,23 +170,55 @@ def info_sharing_config_from_official(kw: dict, shapes: dict,
   elif isinstance(indices, int):
     indices = tuple(range(depth - indices, depth))
   dim = _kw(kw, "dim", "info_sharing_kwargs", 768, required=False)
-  return info_sharing.InfoSharingConfig(
+  cfg = info_sharing.InfoSharingConfig(
       input_embed_dim=_kw(kw, "input_embed_dim", "info_sharing_kwargs"), dim=dim, depth=depth,
       num_heads=_kw(kw, "num_heads", "info_sharing_kwargs", 12, required=False),
       mlp_ratio=float(kw.get("mlp_ratio", 4.0)), qkv_bias=bool(kw.get("qkv_bias", True)),
       qk_norm=bool(kw.get("qk_norm", False)), init_values=kw.get("init_values"),
       indices=tuple(indices), norm_intermediate=bool(kw.get("norm_intermediate", True)),
-      max_num_views=views)
+      max_num_views=views,
+      distinguish_ref_and_non_ref_views=bool(kw.get("distinguish_ref_and_non_ref_views", True)),
+      use_pe_for_non_reference_views=bool(kw.get("use_pe_for_non_reference_views", True)),
+      use_rand_idx_pe_for_non_reference_views=bool(kw.get(
+          "use_rand_idx_pe_for_non_reference_views", USE_RAND_IDX_DEFAULT)),
+      use_scalable_softmax=bool(kw.get("use_scalable_softmax", False)),
+      use_entropy_scaling=bool(kw.get("use_entropy_scaling", False)),
+      base_token_count_for_entropy_scaling=int(kw.get("base_token_count_for_entropy_scaling",
+                                                      444)),
+      entropy_scaling_growth_factor=float(kw.get("entropy_scaling_growth_factor", 1.4)))
+  if random_view_rows(cfg):
+    warnings.warn(
+        "config.json: info_sharing_kwargs.use_rand_idx_pe_for_non_reference_views is "
+        f"{'true' if 'use_rand_idx_pe_for_non_reference_views' in kw else 'left out (default true)'}"
+        f" with a {views}-row view table: the official forward draws view 2's embedding row at "
+        f"random from rows 1..{views - 1} on every call, eval included, so its outputs change "
+        "from run to run (by pixels). ufm_jax always uses row 1, the row of the fixed-index "
+        "setting (README: 'Snapshots with random view embeddings').", stacklevel=3)
+  return cfg
 
 
-def dpt_config_from_official(kw: dict, where: str) -> dpt.DPTConfig:
+def random_view_rows(cfg: info_sharing.InfoSharingConfig) -> bool:
+  """Whether the official forward of this configuration draws view 2's embedding row at random
+  (more than one candidate row), which ufm_jax replaces by row 1."""
+  return (cfg.use_rand_idx_pe_for_non_reference_views and cfg.distinguish_ref_and_non_ref_views
+          and cfg.use_pe_for_non_reference_views and cfg.max_num_views > 2)
+
+
+def dpt_config_from_official(kw: dict, where: str, patch_size: int) -> dpt.DPTConfig:
+  check_keys(kw, ("dpt_feature", "dpt_processor"), where)
   feat, proc = kw.get("dpt_feature"), kw.get("dpt_processor")
   if feat is None or proc is None:
     raise ValueError(f"config.json: {where} needs dpt_feature and dpt_processor")
+  check_keys(feat, DPT_FEATURE_KEYS, f"{where}.dpt_feature")
+  check_keys(proc, DPT_PROCESSOR_KEYS, f"{where}.dpt_processor")
   if feat.get("use_bn", False):
     raise ValueError(f"config.json: {where}.dpt_feature.use_bn=True is not supported")
   if feat.get("output_width_ratio", 1) != 1:
     raise ValueError(f"config.json: {where}.dpt_feature.output_width_ratio != 1 is not supported")
+  for sub, name in ((feat, "dpt_feature"), (proc, "dpt_processor")):
+    _require(sub, "nonlinearity", lambda v: v == "relu", "'relu'", f"{where}.{name}")
+  _require(feat, "patch_size", lambda v: v in (patch_size, [patch_size, patch_size]),
+           f"the encoder patch size {patch_size}", f"{where}.dpt_feature")
   dims = feat.get("input_feature_dims", 768)
   dims = (dims,) * 4 if isinstance(dims, int) else tuple(dims)
   if proc.get("input_feature_dim", feat.get("feature_dim", 256)) != feat.get("feature_dim", 256):
@@ -129,7 +235,9 @@ def flow_adaptor_from_official(adaptors: dict) -> dpt.FlowAdaptorConfig:
   if set(adaptors) != {"flow"} or adaptors["flow"].get("class") != "FlowAdaptor":
     raise ValueError(f"config.json: adaptors_kwargs {adaptors}; only a single FlowAdaptor named "
                      "'flow' is supported")
+  check_keys(adaptors["flow"], ("class", "kwargs"), "adaptors_kwargs.flow")
   kw = adaptors["flow"]["kwargs"]
+  check_keys(kw, FLOW_ADAPTOR_KEYS, "adaptors_kwargs.flow.kwargs")
   return dpt.FlowAdaptorConfig(
       flow_mean=tuple(float(v) for v in kw["flow_mean"]),
       flow_std=tuple(float(v) for v in kw["flow_std"]),
@@ -138,27 +246,41 @@ def flow_adaptor_from_official(adaptors: dict) -> dpt.FlowAdaptorConfig:
       output_normalized_coordinate=bool(kw.get("output_normalized_coordinate", False)))
 
 
-def ufm_config_from_official(cj: dict, shapes: dict) -> ufm.UFMConfig:
-  """UFMConfig from an official config.json (+ weight shapes for what it cannot say)."""
+def ufm_config_from_official(cj: dict, shapes: dict, keys=BASE_KEYS) -> ufm.UFMConfig:
+  """UFMConfig from an official config.json (+ weight shapes for what it cannot say).
+  `keys`: the top-level keys of the class's constructor (anything else is refused)."""
+  check_keys(cj, keys, "")
   for key, want in (("encoder_str", "dinov2"), ("info_sharing_str", "global_attention"),
                     ("head_type", "dpt"), ("uncertainty_head_type", "dpt"),
                     ("info_sharing_and_head_structure", "dual+single")):
     if cj.get(key, want) != want:
       raise ValueError(f"config.json: {key}={cj[key]!r} is not supported (expected {want!r})")
-  unc = cj.get("uncertainty_adaptors_kwargs", {})
-  if set(unc) != {"non_occluded_mask"} or unc["non_occluded_mask"].get("class") != "MaskAdaptor":
-    raise ValueError(f"config.json: uncertainty_adaptors_kwargs {unc}; only a MaskAdaptor "
-                     "'non_occluded_mask' is supported")
-  w, h = cj.get("inference_resolution") or (560, 420)  # official order is (W, H)
+  encoder = encoder_config_from_official(cj["encoder_kwargs"], shapes)
+  covisibility = None
+  if cj.get("uncertainty_head_kwargs"):  # the refinement class may have none
+    unc = cj.get("uncertainty_adaptors_kwargs", {})
+    if set(unc) != {"non_occluded_mask"} or unc["non_occluded_mask"].get("class") != "MaskAdaptor":
+      raise ValueError(f"config.json: uncertainty_adaptors_kwargs {unc}; only a MaskAdaptor "
+                       "'non_occluded_mask' is supported")
+    check_keys(unc["non_occluded_mask"], ("class", "kwargs"),
+               "uncertainty_adaptors_kwargs.non_occluded_mask")
+    check_keys(unc["non_occluded_mask"].get("kwargs", {}), ("name",),
+               "uncertainty_adaptors_kwargs.non_occluded_mask.kwargs")
+    covisibility = dpt_config_from_official(cj["uncertainty_head_kwargs"],
+                                            "uncertainty_head_kwargs", encoder.patch_size)
+  res = cj.get("inference_resolution") or (560, 420)  # official order is (W, H)
+  # one (W, H) or a list of them (UniFlowMatchModelsBase picks the closest aspect per pair)
+  res = (int(res[1]), int(res[0])) if isinstance(res[0], int) else tuple(
+      (int(h), int(w)) for w, h in res)
   return ufm.UFMConfig(
-      encoder=encoder_config_from_official(cj["encoder_kwargs"], shapes),
+      encoder=encoder,
       info_sharing=info_sharing_config_from_official(cj.get("info_sharing_kwargs", {}), shapes),
-      flow_head=dpt_config_from_official(cj["feature_head_kwargs"], "feature_head_kwargs"),
-      covisibility_head=dpt_config_from_official(cj["uncertainty_head_kwargs"],
-                                                 "uncertainty_head_kwargs"),
+      flow_head=dpt_config_from_official(cj["feature_head_kwargs"], "feature_head_kwargs",
+                                         encoder.patch_size),
+      covisibility_head=covisibility,
       flow_adaptor=flow_adaptor_from_official(cj["adaptors_kwargs"]),
       detach_uncertainty_head=bool(cj.get("detach_uncertainty_head", True)),
-      inference_resolution=(int(h), int(w)))
+      inference_resolution=res)
 
 
 def refine_config_from_official(cj: dict, shapes: dict, base: ufm.UFMConfig
@@ -170,6 +292,8 @@ def refine_config_from_official(cj: dict, shapes: dict, base: ufm.UFMConfig
   head = cj.get("classification_head_kwargs")
   if not head or "output_dim" not in head:
     raise ValueError("config.json: classification_head_kwargs.output_dim is missing")
+  check_keys(head, CLASSIFICATION_HEAD_KEYS, "classification_head_kwargs")
+  _require(head, "bias", bool, "true (the patch MLP's biases)", "classification_head_kwargs")
   for key in ("refinement_range", "temperature"):
     if key not in cj:
       raise ValueError(f"config.json: {key} is missing (a UniFlowMatchClassificationRefinement "
@@ -186,7 +310,11 @@ def refine_config_from_official(cj: dict, shapes: dict, base: ufm.UFMConfig
     raise ValueError(f"config.json: classification_head_kwargs.input_feature_dim={in_dim} but "
                      f"encoder ({base.encoder.embed_dim}) + info sharing ({base.info_sharing.dim}) "
                      f"= {want}")
-  use_unet = bool(cj.get("use_unet_feature", True))
+  method = cj.get("feature_combine_method", "conv")
+  if method not in ("conv", "modulate"):
+    raise ValueError(f"config.json: feature_combine_method={method!r} is not supported (expected "
+                     "'conv' or 'modulate')")
+  use_unet = bool(cj.get("use_unet_feature", False))   # the official default
   widths = refine.unet_widths(shapes) if use_unet else ()
   if use_unet and not widths:
     raise ValueError("config.json: use_unet_feature=True but model.safetensors has no "
@@ -195,18 +323,22 @@ def refine_config_from_official(cj: dict, shapes: dict, base: ufm.UFMConfig
   return refine.UFMRefineConfig(
       **fields, unet_features=widths, refine_feature_dim=int(head["output_dim"]),
       refine_mlp_ratio=float(head.get("mlp_ratio", 4.0)), use_unet_feature=use_unet,
-      feature_combine_method=cj.get("feature_combine_method", "conv"),
+      feature_combine_method=method,
+      use_unet_batchnorm=use_unet and bool(cj.get("use_unet_batchnorm", False)),
       refinement_range=int(cj["refinement_range"]), temperature=float(cj["temperature"]))
 
 
 def ufm_buffers(cfg: ufm.UFMConfig) -> Dict[str, np.ndarray]:
+  """The persistent buffers of the official module (torch name -> value) cfg implies."""
   fa = cfg.flow_adaptor
-  return {
-      "info_sharing.view_pos_table": info_sharing.sinusoid_table(
-          cfg.info_sharing.max_num_views, cfg.info_sharing.dim),
+  out = {
       "head1.1.adaptors.flow.flow_mean": np.array(fa.flow_mean, np.float32).reshape(1, 2, 1, 1),
       "head1.1.adaptors.flow.flow_std": np.array(fa.flow_std, np.float32).reshape(1, 2, 1, 1),
   }
+  rows = info_sharing.view_table_rows(cfg.info_sharing)
+  if rows:
+    out["info_sharing.view_pos_table"] = info_sharing.sinusoid_table(rows, cfg.info_sharing.dim)
+  return out
 
 
 # Official constructor kwargs that the JAX config does not carry: an exported config.json gets
@@ -219,7 +351,6 @@ OFFICIAL_DEFAULTS = {
     "info_sharing_kwargs.proj_drop": 0.0,
     "info_sharing_kwargs.drop_path": 0.0,
     "info_sharing_kwargs.custom_positional_encoding": None,
-    "info_sharing_kwargs.use_rand_idx_pe_for_non_reference_views": False,
     "info_sharing_kwargs.pretrained_checkpoint_path": None,
     "feature_head_kwargs.dpt_feature.use_bn": False,
     "feature_head_kwargs.dpt_feature.output_width_ratio": 1,
@@ -228,6 +359,25 @@ OFFICIAL_DEFAULTS = {
     "pretrained_backbone_checkpoint_path": None,
     "pretrained_checkpoint_path": None,
 }
+
+
+def _official_resolution(res) -> list:
+  """(H, W), or a tuple of them, in the official (W, H) order."""
+  if isinstance(res[0], int):
+    return [res[1], res[0]]
+  return [[w, h] for h, w in res]
+
+
+def _new_info_sharing_kwargs(s: info_sharing.InfoSharingConfig) -> dict:
+  """The UniCeption 0.1.6 info-sharing kwargs that differ from their defaults there (older
+  official code does not know them, so they are written only when they matter)."""
+  new = {"distinguish_ref_and_non_ref_views": True, "use_pe_for_non_reference_views": True,
+         "use_scalable_softmax": False, "use_entropy_scaling": False}
+  out = {k: getattr(s, k) for k, default in new.items() if getattr(s, k) != default}
+  if s.use_entropy_scaling:
+    out["base_token_count_for_entropy_scaling"] = s.base_token_count_for_entropy_scaling
+    out["entropy_scaling_growth_factor"] = s.entropy_scaling_growth_factor
+  return out
 
 
 def official_config_dict(cfg: ufm.UFMConfig) -> dict:
@@ -255,6 +405,8 @@ def official_config_dict(cfg: ufm.UFMConfig) -> dict:
          "indices": e.indices if isinstance(e.indices, int) else list(e.indices)}
   if e.depth != full_depth:
     enc["keep_first_n_layers"] = e.depth
+  if not e.norm_returned_features:   # UniCeption >= 0.1.6 only: written when it matters
+    enc["norm_returned_features"] = False
   out = {
       "adaptors_kwargs": {"flow": {"class": "FlowAdaptor", "kwargs": {
           "base_shape": list(fa.base_shape), "flow_mean": list(fa.flow_mean),
@@ -264,25 +416,33 @@ def official_config_dict(cfg: ufm.UFMConfig) -> dict:
       "detach_uncertainty_head": cfg.detach_uncertainty_head,
       "encoder_kwargs": enc, "encoder_str": "dinov2",
       "feature_head_kwargs": head(cfg.flow_head), "head_type": "dpt",
-      "inference_resolution": [cfg.inference_resolution[1], cfg.inference_resolution[0]],
+      "inference_resolution": _official_resolution(cfg.inference_resolution),
       "info_sharing_and_head_structure": "dual+single",
       "info_sharing_kwargs": {
           "depth": s.depth, "dim": s.dim, "indices": list(s.indices),
           "init_values": s.init_values, "input_embed_dim": s.input_embed_dim,
           "max_num_views": s.max_num_views, "mlp_ratio": s.mlp_ratio, "name": "info_sharing",
           "norm_intermediate": s.norm_intermediate, "num_heads": s.num_heads,
-          "qk_norm": s.qk_norm, "qkv_bias": s.qkv_bias},
+          "qk_norm": s.qk_norm, "qkv_bias": s.qkv_bias,
+          "use_rand_idx_pe_for_non_reference_views": s.use_rand_idx_pe_for_non_reference_views,
+          **_new_info_sharing_kwargs(s)},
       "info_sharing_str": "global_attention",
       "uncertainty_adaptors_kwargs": {"non_occluded_mask": {
           "class": "MaskAdaptor", "kwargs": {"name": "non_occluded_mask"}}},
-      "uncertainty_head_kwargs": head(cfg.covisibility_head), "uncertainty_head_type": "dpt",
+      "uncertainty_head_kwargs": cfg.covisibility_head and head(cfg.covisibility_head),
+      "uncertainty_head_type": "dpt",
   }
+  if cfg.covisibility_head is None:   # the refinement class's defaults: no uncertainty head
+    out["uncertainty_head_kwargs"], out["uncertainty_adaptors_kwargs"] = {}, {}
   for dotted, value in OFFICIAL_DEFAULTS.items():
     *parents, leaf = dotted.split(".")
     d = out
     for k in parents:
-      d = d[k]
-    d[leaf] = value
+      d = d.get(k)
+      if d is None:
+        break
+    else:
+      d[leaf] = value
   for cls, extra, _ in OFFICIAL_CONFIG_EXTRAS:
     if isinstance(cfg, cls):
       out.update(extra(cfg))
@@ -331,6 +491,8 @@ def refine_config_to_official(cfg: refine.UFMRefineConfig) -> dict:
       "refinement_range": cfg.refinement_range,
       "temperature": float(cfg.temperature),
       "use_unet_feature": cfg.use_unet_feature,
+      # UFM main >= 3732a50 only: written when it matters
+      **({"use_unet_batchnorm": True} if cfg.use_unet_batchnorm else {}),
   }
 
 
@@ -348,7 +510,7 @@ def _is_base(cj: dict) -> bool:
 
 
 def _build_base(cj: dict, shapes: dict) -> OfficialSpec:
-  cfg = ufm_config_from_official(cj, shapes)
+  cfg = ufm_config_from_official(cj, shapes, BASE_KEYS)
   return OfficialSpec(ufm.UFM(cfg), ufm_buffers(cfg), "UniFlowMatchConfidence")
 
 
@@ -357,7 +519,7 @@ def _is_refine(cj: dict) -> bool:
 
 
 def _build_refine(cj: dict, shapes: dict) -> OfficialSpec:
-  cfg = refine_config_from_official(cj, shapes, ufm_config_from_official(cj, shapes))
+  cfg = refine_config_from_official(cj, shapes, ufm_config_from_official(cj, shapes, REFINE_KEYS))
   return OfficialSpec(refine.UFMRefine(cfg), ufm_buffers(cfg),
                       "UniFlowMatchClassificationRefinement")
 
@@ -395,7 +557,17 @@ def official_spec(cj: dict, state: Dict[str, np.ndarray], where: str = "config.j
   shapes = {k: tuple(v.shape) for k, v in state.items()}
   for detect, build in OFFICIAL_CLASSES:
     if detect(cj):
-      return build(cj, shapes)
+      with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        spec = build(cj, shapes)
+      for w in caught:   # name the file (the builders know only the config's contents)
+        warnings.warn(str(w.message).replace("config.json:", f"{where}:", 1), w.category,
+                      stacklevel=2)
+      if hasattr(spec.model.config, "official_kwargs"):
+        # save_official writes this text back while it still describes the model
+        config = dataclasses.replace(spec.model.config, official_kwargs=json.dumps(cj))
+        spec = dataclasses.replace(spec, model=spec.model.clone(config=config))
+      return spec
   raise ValueError(f"{where}: no supported UFM model class matches this config (keys: "
                    f"{sorted(cj)})")
 

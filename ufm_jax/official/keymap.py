@@ -10,13 +10,14 @@ One rule each:
   4. layouts: Linear [out, in] -> [in, out]; Conv OIHW -> HWIO; ConvTranspose [in, out, kh, kw]
      -> [kh, kw, in, out].
 Buffers (view_pos_table, flow_mean/flow_std) are not parameters: `params_from_state_dict` checks
-them against the values the config implies. No model code is imported here, so the model modules
+them against the values the config implies. BatchNorm running statistics go to the
+"batch_stats" collection under the same rules. No model code is imported here, so the model modules
 map their own released weights with it (`ufm_jax.models.dinov2.load`).
 """
 
 import functools
 import re
-from typing import Dict, List, Tuple
+from typing import Any, Dict, List, Tuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -119,11 +120,30 @@ def unfreeze(tree):
   return {k: unfreeze(v) for k, v in tree.items()} if hasattr(tree, "items") else tree
 
 
+# BatchNorm statistics: torch buffers, Flax variables of the "batch_stats" collection.
+BATCH_STATS = ("running_mean", "running_var", "num_batches_tracked")
+
+
+def variable_path(key: str, ndim: int) -> Tuple[str, ...]:
+  """(collection, *Flax path) of a torch state-dict entry."""
+  path = torch_key_to_path(key, ndim)
+  return ("batch_stats" if path[-1] in BATCH_STATS else "params",) + path
+
+
+def flat_variables(params) -> Dict[Tuple[str, ...], Any]:
+  """{(collection, *path): leaf} of a parameter tree or of a variables dict with "params"."""
+  tree = unfreeze(params)
+  if "params" not in tree:
+    tree = {"params": tree}
+  return traverse_util.flatten_dict(tree)
+
+
 def params_from_state_dict(state: Dict[str, np.ndarray], expected: Dict[Tuple[str, ...], tuple],
                            buffers: Dict[str, np.ndarray], source: str = "state dict",
                            as_jax: bool = True):
-  """Map a torch-named state dict onto a parameter tree with the `expected` {Flax path: shape};
-  raise listing every problem.
+  """Map a torch-named state dict onto the variables with the `expected` {(collection, *Flax
+  path): shape}; raise listing every problem. Returns the parameter tree, or the variables
+  {"params", "batch_stats"} when BatchNorm statistics are expected.
 
   as_jax=False returns numpy views of `state` (no copy), for checking an export."""
   flat: Dict[Tuple[str, ...], np.ndarray] = {}
@@ -136,7 +156,7 @@ def params_from_state_dict(state: Dict[str, np.ndarray], expected: Dict[Tuple[st
       if value.shape != want.shape or not np.allclose(value, want, rtol=0, atol=1e-6):
         bad_buffers.append(f"{key} {value.shape} (differs from the value implied by config.json)")
       continue
-    path = torch_key_to_path(key, value.ndim)
+    path = variable_path(key, value.ndim)
     arr = torch_to_flax_array(key, value)
     if path not in expected:
       unexpected.append(f"{key} {tuple(value.shape)}")
@@ -150,9 +170,9 @@ def params_from_state_dict(state: Dict[str, np.ndarray], expected: Dict[Tuple[st
                        f"{expected[path]} at {'/'.join(path)}")
       continue
     flat[path], origin[path] = arr, key
-  missing = [f"{path_to_torch_key(p)} (Flax {'/'.join(p)} {expected[p]})"
+  missing = [f"{path_to_torch_key(p[1:])} (Flax {'/'.join(p)} {expected[p]})"
              for p in sorted(expected) if p not in flat and not any(
-                 m.startswith(path_to_torch_key(p) + ":") for m in misshaped)]
+                 m.startswith(path_to_torch_key(p[1:]) + ":") for m in misshaped)]
   missing_buffers = [k for k in buffers if k not in state]
   if unexpected or misshaped or missing or bad_buffers or missing_buffers:
     lines = [f"{source} does not match the model built from its config:"]
@@ -162,15 +182,19 @@ def params_from_state_dict(state: Dict[str, np.ndarray], expected: Dict[Tuple[st
         lines.append(f"  {title} ({len(items)}):")
         lines.extend(f"    {s}" for s in items)
     raise ValueError("\n".join(lines))
-  return traverse_util.unflatten_dict({k: jnp.asarray(v) if as_jax else v for k, v in flat.items()})
+  tree = traverse_util.unflatten_dict({k: jnp.asarray(v) if as_jax else v for k, v in flat.items()})
+  return tree["params"] if set(tree) == {"params"} else tree
 
 
 def state_dict_from_params(params, buffers: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
-  """Flax params -> torch-named state dict (canonical, de-duplicated names) plus buffers."""
+  """Flax params (or variables with "batch_stats") -> torch-named state dict (canonical,
+  de-duplicated names) plus buffers; BatchNorm batch counts as int64, as torch keeps them."""
   out = {}
-  for path, v in traverse_util.flatten_dict(unfreeze(params)).items():
-    key = path_to_torch_key(path)
-    out[key] = np.ascontiguousarray(flax_to_torch_array(key, np.asarray(v)))
+  for path, v in flat_variables(params).items():
+    key = path_to_torch_key(path[1:])
+    v = np.asarray(v)
+    if path[-1] == "num_batches_tracked":
+      v = v.astype(np.int64)
+    out[key] = np.asarray(flax_to_torch_array(key, v), order="C")
   out.update({k: np.asarray(v) for k, v in buffers.items()})
   return out
-
