@@ -98,7 +98,7 @@ PENDING_DOCS = {"docs/recipe.md": "the recipe branch (#29)"}
 def test_doc_references_resolve():
   """Every `docs/<x>.md` and `data/<name>/README.md` a file names, every bare `<x>.md` and every
   relative Markdown link exists in the repository, every README section a file points to (the
-  README's name, then the heading in single quotes) is a heading there, and no file sends the
+  README's name, then the heading or bullet label in single quotes) is there, and no file sends the
   reader to a document outside the repository (a fresh clone has nothing beside it)."""
   files = _text_files()
   md_names = {p.name for p in files if p.suffix == ".md"}
@@ -117,7 +117,8 @@ def test_doc_references_resolve():
       if REPO not in target.parents or not target.is_file():
         bad.append(f"{rel}: {m.group(1)}")
     for m in re.finditer(r"README(?:\.md)?[,:]? '([^']+)'", text):   # a README section
-      if not re.search(rf"^#+ {re.escape(m.group(1))}\s*$", readme, re.MULTILINE):
+      label = re.escape(m.group(1))   # a heading, or a bullet's leading label
+      if not re.search(rf"^(#+ {label}\s*$|- {label}:)", readme, re.MULTILINE):
         bad.append(f"{rel}: README section {m.group(1)!r}")
     if p.suffix == ".md":
       for m in re.finditer(r"\]\(([^)\s#]+)(?:#[^)]*)?\)", text):
