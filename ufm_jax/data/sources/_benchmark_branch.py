@@ -20,8 +20,8 @@ import os
 
 import numpy as np
 
-from ufm_jax.data import io, official_ops
 from ufm_jax import geometry
+from ufm_jax.data import io, official_ops
 
 BENCH_SIZE = (420, 560)  # (H, W): `resolution=(560, 420)` (W, H) of every wide-baseline bench
 _F = np.float32
