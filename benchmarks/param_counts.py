@@ -1,4 +1,4 @@
-"""Parameter counts of the released model structures (README: 'Released models').
+"""Parameter counts of the released model structures (README: 'Using a released model').
 
   python benchmarks/param_counts.py
 

@@ -29,11 +29,10 @@ def reference_dir():
   UFM_FIXTURES; under CI=true they fail instead, so CI can never pass by skipping parity.
   """
   if not REFERENCE.is_dir():
-    msg = (f"official reference fixtures not found at {REFERENCE}: set UFM_FIXTURES to the folder "
-           "that holds ufm_reference/ (README: 'Reference fixtures')")
-    if os.environ.get("CI", "").lower() == "true":
-      pytest.fail(msg + " (CI=true: parity tests may not be skipped)")
-    pytest.skip(msg)
+    from ufm_jax import testing  # after the cache variables above: it imports jax
+    testing.skip_or_fail(f"official reference fixtures not found at {REFERENCE}: set UFM_FIXTURES "
+                         "to the folder that holds ufm_reference/ (README.md, 'Set up')",
+                         "CI=true: parity tests may not be skipped")
   return REFERENCE
 
 

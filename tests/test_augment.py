@@ -11,7 +11,7 @@ import pytest
 from PIL import Image, ImageEnhance
 
 from ufm_jax import geometry
-from ufm_jax.data import augment, get_source
+from ufm_jax.data import augment, get_source, official_ops
 
 # No colour change at all: factors 1, hue 0, no grayscale / blur / low light / identical views.
 NO_COLOR = dict(brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0, grayscale_prob=0.0,
@@ -102,7 +102,7 @@ def test_flow_expansion_and_shared_crop_offset():
   assert abs(ratios.mean() - 1.1) < 0.005 and np.percentile(ratios, 90) > 1.17
   assert abs(np.mean(tops) - np.mean(expect)) < 0.03 * np.mean(expect)
   # Without augmentation: ResizeShortAxis + CenterCrop.
-  c = augment.center_flow_crop(hw, out)
+  c = official_ops.center_flow_crop(hw, out)
   assert c.resized_hw == (420, 746) and c.crop0 == (0, (746 - 560) // 2)
 
 
@@ -156,8 +156,8 @@ def test_identical_view_rate(monkeypatch):
   monkeypatch.setattr(augment, "static_labels",
                       lambda a, b, p: same.append(a.image is b.image) or ({}, {}))
   rng = np.random.default_rng(4)
-  v0 = augment.StaticView(np.zeros((2, 2, 3), np.uint8), np.ones((2, 2)), np.eye(3), np.eye(4))
-  v1 = augment.StaticView(np.ones((2, 2, 3), np.uint8), np.ones((2, 2)), np.eye(3), np.eye(4))
+  v0 = official_ops.StaticView(np.zeros((2, 2, 3), np.uint8), np.ones((2, 2)), np.eye(3), np.eye(4))
+  v1 = official_ops.StaticView(np.ones((2, 2, 3), np.uint8), np.ones((2, 2)), np.eye(3), np.eye(4))
   n = 40000
   for _ in range(n):
     augment.static_pair(v0, v1, (0.1, 0.1, 0.005), (2, 2), rng, augment.AugmentConfig())
@@ -229,17 +229,17 @@ def test_antialiased_resize_and_nearest_index_match_torch():
     t = torch.from_numpy(img).permute(2, 0, 1)[None].float()
     ref = F.interpolate(t, size=(oh, ow), mode="bilinear", align_corners=False,
                         antialias=True).to(torch.uint8)[0].permute(1, 2, 0).numpy()
-    got = augment.resize_bilinear_aa(img, (oh, ow))
+    got = official_ops.resize_bilinear_aa(img, (oh, ow))
     err = np.abs(got.astype(int) - ref)
     assert err.max() <= 1 and (err > 0).mean() < 0.05, ((h, w), (oh, ow), (err > 0).mean())
     # A window: the same pixels up to float rounding of the source box (one grey level, rarely).
-    window = augment.resize_bilinear_aa(img, (oh, ow), (3, 5, oh - 7, ow - 9))
+    window = official_ops.resize_bilinear_aa(img, (oh, ow), (3, 5, oh - 7, ow - 9))
     diff = np.abs(window.astype(int) - got[3:oh - 4, 5:ow - 4])
     assert diff.max() <= 1 and (diff > 0).mean() < 0.01
     for n_in, n_out in ((h, oh), (w, ow), (30, 60), (30, 59)):
       ref = F.interpolate(torch.arange(n_in, dtype=torch.float32)[None, None], size=n_out,
                           mode="nearest")[0, 0].long().numpy()
-      np.testing.assert_array_equal(augment.nearest_index(n_in, n_out), ref)
+      np.testing.assert_array_equal(official_ops.nearest_index(n_in, n_out), ref)
 
 
 # ------------------------------------------------------------------- labels after the crop
@@ -252,7 +252,7 @@ def _static_scenes(n=3, size=(72, 96)):
   for i in range(n):
     s = src[i]
     m = s["meta"]
-    yield [augment.StaticView(s[f"image{k}"], m[f"depth{k}"], m[f"K{k}"], m[f"cam2world{k}"])
+    yield [official_ops.StaticView(s[f"image{k}"], m[f"depth{k}"], m[f"K{k}"], m[f"cam2world{k}"])
            for k in (0, 1)]
 
 
@@ -323,7 +323,7 @@ def test_rotating_a_portrait_view_rotates_its_labels():
   (v0, v1), = _static_scenes(1, (64, 48))
   params = (0.1, 0.1, 0.005)
   a = geometry.official_labels(v0.depth, v0.K, v0.cam2world, v1.depth, v1.K, v1.cam2world, params)
-  r = augment.rotate_to_landscape(v0)
+  r = official_ops.rotate_to_landscape(v0)
   assert r.depth.shape == (48, 64) and r.image.shape == (48, 64, 3)
   b = geometry.official_labels(r.depth, r.K, r.cam2world, v1.depth, v1.K, v1.cam2world, params)
   np.testing.assert_array_equal(b["covisibility"], np.rot90(a["covisibility"]))
@@ -352,7 +352,8 @@ def test_static_crop_pair_keeps_the_pair_of_boxes_sharing_most_matches(monkeypat
   picked = []
   monkeypatch.setattr(augment, "crop_view_affine",
                       lambda v, box, crop_hw, *a: picked.append(tuple(box)) or v)
-  v = augment.StaticView(np.zeros((40, 60, 3), np.uint8), np.ones((40, 60)), np.eye(3), np.eye(4))
+  v = official_ops.StaticView(np.zeros((40, 60, 3), np.uint8), np.ones((40, 60)), np.eye(3),
+                              np.eye(4))
   augment.static_crop_pair(v, v, (14, 28), np.random.default_rng(0), augment.AugmentConfig())
   # Shared matches: (box0 0, box1 1) holds 2, (box0 1, box1 0) holds 2; ties go to the first.
   assert picked == [tuple(boxes[0][0]), tuple(boxes[1][1])]
@@ -430,9 +431,9 @@ def test_kubric_crops_maximise_the_official_score(quirk):
     # Replay the draws: expansion, the two samples, then the candidates of view 0 and view 1.
     rng = np.random.default_rng(seed)
     e = rng.uniform(*cfg.expansion)
-    rh, rw = augment.resize_short_axis_size((60, 84), (int(out[0] * e), int(out[1] * e)))
+    rh, rw = official_ops.resize_short_axis_size((60, 84), (int(out[0] * e), int(out[1] * e)))
     assert crop.resized_hw == (rh, rw)
-    ri, ci = augment.nearest_index(60, rh), augment.nearest_index(84, rw)
+    ri, ci = official_ops.nearest_index(60, rh), official_ops.nearest_index(84, rw)
     matches = []
     for lab in (fwd, bwd):
       covis = lab["covisibility"][np.ix_(ri, ci)]
@@ -479,7 +480,7 @@ def test_no_crop_static_views_are_resized_to_cover_and_centre_cropped():
   """Habitat at 560 (no_crop_datasets) and the no-augmentation path: Lanczos to cover, centre
   crop through the intrinsics; a portrait view is turned to landscape."""
   (v0, v1), = _static_scenes(1, (72, 96))
-  out = augment.resize_cover_center_crop(v0, (28, 42))
+  out = official_ops.resize_cover_center_crop(v0, (28, 42))
   # Cover: scale max(42 / 96, 28 / 72) -> 42 x 31, crop rows round(1.5) = 2 (half to even).
   scale = max(42 / 96, 28 / 72) + 1e-8
   assert out.image.shape == (28, 42, 3)
@@ -488,5 +489,5 @@ def test_no_crop_static_views_are_resized_to_cover_and_centre_cropped():
                              - 0.5 - 2, rtol=1e-6)
   portrait = dataclasses.replace(v0, image=np.ascontiguousarray(v0.image[:, :40]),
                                  depth=np.ascontiguousarray(v0.depth[:, :40]))
-  turned = augment.resize_cover_center_crop(portrait, (28, 42))
+  turned = official_ops.resize_cover_center_crop(portrait, (28, 42))
   assert turned.image.shape == (28, 42, 3)

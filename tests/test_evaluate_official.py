@@ -6,7 +6,6 @@ the numbers are arbitrary: each reported figure is recomputed here from the file
 """
 
 import json
-import os
 
 import numpy as np
 import pytest
@@ -22,17 +21,8 @@ OFFICIAL_BENCHES = "sintel,kitti,eth3d,dtu,tawb"
 def write_official_root(root):
   """The branch's dataset_root: Sintel/, KITTI/, eth3d_processed/, dtu_processed/,
   anymap_data_pairs/, TA-WB/."""
-  bench_trees.write_sintel(os.path.join(root, "Sintel"))
-  bench_trees.write_kitti(os.path.join(root, "KITTI"))
-  scene = wide_trees.PlaneScene(hw0=(45, 60))
-  pair = bench_trees.write_eth3d_processed(os.path.join(root, "eth3d_processed"), scene)
-  bench_trees.write_anymap_pairs(os.path.join(root, "anymap_data_pairs", "eth3d_valid_pairs.npz"),
-                                 [pair + (0.5,)] * 4)
-  pair = bench_trees.write_dtu_processed(os.path.join(root, "dtu_processed"), scene)
-  bench_trees.write_anymap_pairs(os.path.join(root, "anymap_data_pairs", "dtu_valid_pairs.npz"),
-                                 [pair + (0.5,)] * 51)
   rng = np.random.default_rng(3)
-  bench_trees.write_tawb_data(os.path.join(root, "TA-WB"), [dict(
+  bench_trees.write_official_bench_root(root, wide_trees.PlaneScene(hw0=(45, 60)), [dict(
       img0=rng.integers(0, 256, (48, 64, 3), dtype=np.uint8),
       img1=rng.integers(0, 256, (48, 64, 3), dtype=np.uint8),
       flow_fwd=rng.normal(0, 4, (2, 48, 64)).astype(np.float32),

@@ -1,4 +1,4 @@
-"""Byte-level tests of the file decoders/encoders against the layouts in datasets.md section 1.
+"""Byte-level tests of the file decoders/encoders against the layouts their docstrings give.
 
 Files are produced here independently of ufm_jax (hand-packed bytes, a tiny pure-python PNG
 encoder/decoder), so a channel-order, endianness or row-order mistake in ufm_jax.data.io fails.

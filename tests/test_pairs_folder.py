@@ -155,7 +155,7 @@ def test_pipeline_skips_and_counts_an_all_nan_flow_file(tmp_path, caplog):
          "augment": {"enabled": False},
          "max_skip_fraction": 0.5, "skip_check_min_samples": 1}
   it = iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1))
-  with caplog.at_level(logging.WARNING, logger="ufm_jax.data.pipeline"):
+  with caplog.at_level(logging.WARNING, logger="ufm_jax.data.load_pair"):
     next(it)
   assert it.skipped >= 1 and it.attempted == 4 + it.skipped
   assert f"{bad}: no flow" in caplog.text

@@ -9,7 +9,7 @@ import logging
 import numpy as np
 import pytest
 
-from ufm_jax.data import pipeline, register
+from ufm_jax.data import pipeline, register, sampling_plan
 
 HW = (20, 30)
 
@@ -96,9 +96,9 @@ def assert_batches_equal(a, b):
 
 def test_draw_quota_with_and_without_replacement():
   rng = np.random.default_rng(0)
-  a = pipeline.draw_quota(50, 30, rng)
+  a = sampling_plan.draw_quota(50, 30, rng)
   assert len(a) == 30 and len(set(a.tolist())) == 30 and a.min() >= 0 and a.max() < 50
-  b = pipeline.draw_quota(7, 20, rng)   # 7 * 2 + 6
+  b = sampling_plan.draw_quota(7, 20, rng)   # 7 * 2 + 6
   counts = collections.Counter(b.tolist())
   assert len(b) == 20 and set(counts) == set(range(7))
   assert sorted(counts.values()) == [2] + [3] * 6
@@ -106,17 +106,17 @@ def test_draw_quota_with_and_without_replacement():
 
 def test_epoch_plan_counts_equal_quotas_and_depend_on_seed_epoch():
   names, sizes, quotas = ("a", "b", "c"), (50, 7, 100), (30, 20, 5)
-  ids, idx = pipeline.epoch_plan(names, sizes, quotas, seed=3, epoch=0)
+  ids, idx = sampling_plan.epoch_plan(names, sizes, quotas, seed=3, epoch=0)
   assert np.bincount(ids).tolist() == list(quotas)
   for d, size in enumerate(sizes):
     assert idx[ids == d].max() < size
-  same = pipeline.epoch_plan(names, sizes, quotas, seed=3, epoch=0)
+  same = sampling_plan.epoch_plan(names, sizes, quotas, seed=3, epoch=0)
   np.testing.assert_array_equal(ids, same[0])
   np.testing.assert_array_equal(idx, same[1])
-  other = pipeline.epoch_plan(names, sizes, quotas, seed=3, epoch=1)
+  other = sampling_plan.epoch_plan(names, sizes, quotas, seed=3, epoch=1)
   assert not np.array_equal(idx, other[1])
   # Dropping dataset "a" leaves the draws of "b" untouched (draws keyed by name).
-  ids2, idx2 = pipeline.epoch_plan(("b", "c"), (7, 100), (20, 5), seed=3, epoch=0)
+  ids2, idx2 = sampling_plan.epoch_plan(("b", "c"), (7, 100), (20, 5), seed=3, epoch=0)
   assert sorted(idx2[ids2 == 0].tolist()) == sorted(idx[ids == 1].tolist())
 
 
@@ -198,7 +198,7 @@ def test_sharding_disjoint_complete_and_same_shapes(tmp_path):
     assert len(per_host[p]) == 8
   items = [x for p in range(3) for b in per_host[p] for x in decode(b, True)]
   assert len(items) == len(set(items)) == 48   # disjoint; epoch draws without replacement here
-  ids, idx = pipeline.epoch_plan(("_tp_d0", "_tp_d1"), (50, 60), (20, 28), seed=4, epoch=0)
+  ids, idx = sampling_plan.epoch_plan(("_tp_d0", "_tp_d1"), (50, 60), (20, 28), seed=4, epoch=0)
   assert set(items) == {(int(d) + 1, int(i)) for d, i in zip(ids, idx)}   # complete
   for step in range(8):
     assert len({per_host[p][step]["image0"].shape for p in range(3)}) == 1
@@ -220,7 +220,7 @@ def test_corrupt_samples_skipped_counted_and_logged(tmp_path, caplog):
                     max_skip_fraction=0.5, batch_size=8)
   pipe = pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)
   it = iter(pipe)
-  with caplog.at_level(logging.WARNING, logger="ufm_jax.data.pipeline"):
+  with caplog.at_level(logging.WARNING, logger="ufm_jax.data.load_pair"):
     got = [x for b in it for x in decode(b, True)]
   assert len(got) == 20
   assert not {i for _, i in got} & {3, 7}   # never trained on
@@ -443,9 +443,9 @@ def test_keep_heap_serves_samples_from_memory_already_touched():
   code = """if True:
     import resource, sys
     import numpy as np
-    from ufm_jax.data import pipeline
+    from ufm_jax.data import input_block
     if sys.argv[1] == "1":
-      assert pipeline.keep_heap()
+      assert input_block.keep_heap()
     def sample():  # temporaries alive together, as in one sample's labelling
       arrays = [np.ones(n << 20, np.uint8) for n in (1, 3, 8, 2, 40, 5)]
       return sum(int(a[::4096].sum()) for a in arrays)

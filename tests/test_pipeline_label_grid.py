@@ -7,7 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ufm_jax.data import augment, get_source, pipeline, register
+from ufm_jax.data import (augment, backward_labels, get_source, load_pair, official_ops, pipeline,
+                          register)
 from ufm_jax.testing import wide_trees
 
 STATIC = ("blendedmvs", "megadepth", "scannetpp", "habitat", "staticthings")
@@ -32,7 +33,7 @@ def test_each_dataset_takes_its_official_pathway(tmp_path):
   for name, path in want.items():
     writer, kwargs = TREES[name]
     writer(str(tmp_path / name))
-    assert pipeline.pathway(get_source(name, str(tmp_path / name), **kwargs), name, cfg) == path
+    assert load_pair.pathway(get_source(name, str(tmp_path / name), **kwargs), name, cfg) == path
 
 
 @pytest.mark.parametrize("name", STATIC + ("kubric4d", "tartanair_v2"))
@@ -67,7 +68,7 @@ def _eager_tartanair(root, **kwargs):
   """TartanAir V2 without lazy_pair: full-size official labels in both directions (`both`)."""
   src = get_source("tartanair_v2", root, **kwargs)
   reader = type(src)
-  params = pipeline.label_parameters(src, "tartanair_v2")
+  params = backward_labels.label_parameters(src, "tartanair_v2")
 
   class Eager(reader):
     lazy_pair = None
@@ -112,7 +113,7 @@ def test_lazy_labels_equal_full_labels(tmp_path, monkeypatch, shapes, symmetrize
                       shapes=shapes)
   for a, b in zip(lazy, eager):
     assert b["flow_valid"].any() and b["covisibility"].any()
-    for k in pipeline._ARRAY_KEYS:
+    for k in load_pair.ARRAY_KEYS:
       x, y = np.ascontiguousarray(a[k]), np.ascontiguousarray(b[k])
       assert x.dtype == y.dtype and x.shape == y.shape, k
       assert np.array_equal(x.view(np.uint8), y.view(np.uint8)), k
@@ -125,9 +126,9 @@ def test_habitat_is_not_crop_augmented_by_default(tmp_path):
   writer(str(tmp_path))
   src = get_source("habitat", str(tmp_path), **kwargs)
   pair = src.lazy_pair(0)
-  views = [augment.StaticView(v.image, v.depth, v.K, v.cam2world) for v in (pair.v0, pair.v1)]
-  want = augment.static_pair(*views, pipeline.label_parameters(src, "habitat"), (42, 56), None,
-                             augment.AugmentConfig(enabled=False))
+  views = [official_ops.StaticView(v.image, v.depth, v.K, v.cam2world) for v in (pair.v0, pair.v1)]
+  params = backward_labels.label_parameters(src, "habitat")
+  want = augment.static_pair(*views, params, (42, 56), None, augment.AugmentConfig(enabled=False))
   _, batches = _batches(tmp_path, "habitat", kwargs, n=1, augment_keys=NO_COLOR)
   b = batches[0]
   for r in range(2):

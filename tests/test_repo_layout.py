@@ -82,3 +82,67 @@ def test_model_code_passes_no_bare_bool_positionally():
       if any(isinstance(a, ast.Constant) and isinstance(a.value, bool) for a in node.args):
         bad.append(f"{p.relative_to(REPO)}:{node.lineno}: {ast.unparse(node)[:80]}")
   assert not bad, bad
+
+
+def _text_files():
+  out = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"], cwd=REPO,
+                       capture_output=True, text=True, check=True).stdout.split()
+  return [REPO / f for f in out if f.endswith((".py", ".md")) and (REPO / f).is_file()]
+
+
+# Documents named before they land, with the branch that writes them; the test fails once one
+# exists, so that its entry goes.
+PENDING_DOCS = {"docs/recipe.md": "the recipe branch (#29)"}
+
+
+def test_doc_references_resolve():
+  """Every `docs/<x>.md` and `data/<name>/README.md` a file names, every bare `<x>.md` and every
+  relative Markdown link exists in the repository, every README section a file points to (the
+  README's name, then the heading or bullet label in single quotes) is there, and no file sends the
+  reader to a document outside the repository (a fresh clone has nothing beside it)."""
+  files = _text_files()
+  md_names = {p.name for p in files if p.suffix == ".md"}
+  readme = (REPO / "README.md").read_text()
+  bad = []
+  for p in files:
+    text, rel = p.read_text(), p.relative_to(REPO)
+    for m in re.finditer(r"(?<![\w/.~-])(docs/[\w./-]+\.md|data/[\w-]+/README\.md)", text):
+      if not (REPO / m.group(1)).is_file():
+        bad.append(f"{rel}: {m.group(1)}")
+    for m in re.finditer(r"(?<![\w/.-])([\w-]+\.md)\b", text):
+      if m.group(1) not in md_names:
+        bad.append(f"{rel}: {m.group(1)}")
+    for m in re.finditer(r"(?<![\w/.-])(\.\./[\w./-]+\.md)", text):
+      target = (p.parent / m.group(1)).resolve()
+      if REPO not in target.parents or not target.is_file():
+        bad.append(f"{rel}: {m.group(1)}")
+    for m in re.finditer(r"README(?:\.md)?[,:]? '([^']+)'", text):   # a README section
+      label = re.escape(m.group(1))   # a heading, or a bullet's leading label
+      if not re.search(rf"^(#+ {label}\s*$|- {label}:)", readme, re.MULTILINE):
+        bad.append(f"{rel}: README section {m.group(1)!r}")
+    if p.suffix == ".md":
+      for m in re.finditer(r"\]\(([^)\s#]+)(?:#[^)]*)?\)", text):
+        if not m.group(1).startswith(("http:", "https:", "mailto:")) and \
+            not (p.parent / m.group(1)).exists():
+          bad.append(f"{rel}: link {m.group(1)}")
+  landed = [d for d in PENDING_DOCS if (REPO / d).is_file()]
+  assert not landed, f"{landed} exist now: remove them from PENDING_DOCS"
+  bad = [b for b in bad if b.split(": ", 1)[1] not in PENDING_DOCS]
+  assert not bad, f"references to files that do not exist: {bad}"
+
+
+def test_datasets_doc_names_every_reader():
+  """docs/datasets.md tables every registered reader and both layouts' readers of every training
+  set (ufm_jax.data.mixture.LAYOUTS)."""
+  from ufm_jax import data
+  from ufm_jax.data import mixture, registry
+  doc = (REPO / "docs" / "datasets.md").read_text()
+  # The package's readers (tests register their own stand-ins in the same process).
+  factories = registry._REGISTRY  # pylint: disable=protected-access
+  readers = {n for n in data.available() if factories[n].__module__.startswith("ufm_jax.")}
+  readers |= {l.source for ls in mixture.LAYOUTS.values() for l in ls}
+  missing = sorted(r for r in readers if f"`{r}`" not in doc)
+  assert not missing, f"docs/datasets.md does not name the readers {missing}"
+  folders = [l.folders[0] for ls in mixture.LAYOUTS.values() for l in ls if l.kind == "official"]
+  missing = [f for f in folders if f"`{f.split('/')[0]}" not in doc]
+  assert not missing, f"docs/datasets.md does not name the official folders {missing}"

@@ -457,7 +457,7 @@ def test_kitti2015(tmp_path):
 # -- the training pipeline's view of these sources ------------------------------------------------
 
 def test_pipeline_interface(tmp_path):
-  from ufm_jax.data import pipeline
+  from ufm_jax.data import backward_labels, load_pair
   _chairs_tree(tmp_path / "chairs")
   _sceneflow_tree(tmp_path / "things", "TRAIN/A/0000", (6, 7, 8))
   _spring_tree(tmp_path / "spring")
@@ -466,14 +466,14 @@ def test_pipeline_interface(tmp_path):
           "flyingthings": data.get_source("flyingthings", tmp_path / "things"),
           "spring": data.get_source("spring", tmp_path / "spring", cameras=("left",)),
           "sintel_clean": data.get_source("sintel_clean", tmp_path / "sintel")}
-  modes = {n: pipeline.backward_mode(s, n) for n, s in srcs.items()}
+  modes = {n: backward_labels.backward_mode(s, n) for n, s in srcs.items()}
   assert modes == {"flyingchairs": "unsupervised", "flyingthings": "source", "spring": "source",
                    "sintel_clean": "unsupervised"}
   for name, src in srcs.items():
-    pipeline.check_sample(src[0], name)
+    load_pair.check_sample(src[0], name)
     if modes[name] == "source":
       for s in src.both(0):
-        pipeline.check_sample(s, name)
+        load_pair.check_sample(s, name)
 
 
 # -- Non-finite ground truth ----------------------------------------------------------------------

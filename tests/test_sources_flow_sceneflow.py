@@ -123,18 +123,24 @@ def test_shape_errors():
                                      np.ones((3, 2)), 0.01, 0.001)
 
 
-def test_invalid_target_neighbour_falls_back_to_nearest():
-  # The point lands at u = 2.25 next to an invalid target pixel (u = 3): blending the invalid
-  # value in would break the match; the nearest valid sample (u = 2) carries the right depth.
+def _lands_next_to_a_hole():
+  """1 x 6, z = 4 everywhere but a target hole at u = 3; source pixel 2 lands at u = 2.25.
+  -> (flow, disparity0, disparity change, disparity1, K)."""
   h, w = 1, 6
   K = np.array([[1e6, 0, 2.5], [0, 1e6, 0.0], [0, 0, 1]])
-  fb = K[0, 0]
-  disp0 = np.full((h, w), fb / 4.0)
-  disp1 = np.full((h, w), fb / 4.0)
+  disp0 = np.full((h, w), K[0, 0] / 4.0)
+  disp1 = disp0.copy()
   disp1[0, 3] = 0.0
   flow = np.zeros((h, w, 2), np.float32)
   flow[0, 2, 0] = 0.25
-  out = sceneflow.sceneflow_covisibility(flow, disp0, np.zeros((h, w)), disp1, 0.01, 0.0, K=K)
+  return flow, disp0, np.zeros((h, w)), disp1, K
+
+
+def test_invalid_target_neighbour_falls_back_to_nearest():
+  # The point lands at u = 2.25 next to an invalid target pixel (u = 3): blending the invalid
+  # value in would break the match; the nearest valid sample (u = 2) carries the right depth.
+  flow, disp0, change, disp1, K = _lands_next_to_a_hole()
+  out = sceneflow.sceneflow_covisibility(flow, disp0, change, disp1, 0.01, 0.0, K=K)
   assert out["covisibility"][0, 2] and out["covis_valid"][0, 2]
   assert not out["covisibility"][0, 3] and not out["covis_valid"][0, 3]
 
@@ -177,16 +183,8 @@ def test_official_compares_z_not_range_and_has_no_half_pixel_margin():
 
 def test_official_target_holes_pull_the_bilinear_sample_to_zero():
   # A point landing a quarter pixel from a hole (depth 0) is occluded: the zero is blended in.
-  h, w = 1, 6
-  K = np.array([[1e6, 0, 2.5], [0, 1e6, 0.0], [0, 0, 1]])
-  fb = K[0, 0]
-  disp0 = np.full((h, w), fb / 4.0)
-  disp1 = np.full((h, w), fb / 4.0)
-  disp1[0, 3] = 0.0
-  flow = np.zeros((h, w, 2), np.float32)
-  flow[0, 2, 0] = 0.25
-  out = sceneflow.official_sceneflow_covisibility(flow, disp0, np.zeros((h, w)), disp1, OFFICIAL,
-                                                  K=K)
+  flow, disp0, change, disp1, K = _lands_next_to_a_hole()
+  out = sceneflow.official_sceneflow_covisibility(flow, disp0, change, disp1, OFFICIAL, K=K)
   assert not out["covisibility"][0, 2] and out["covis_valid"][0, 2]   # nearest target valid
   assert not out["covisibility"][0, 3] and not out["covis_valid"][0, 3]
   np.testing.assert_allclose(out["error"][0, 2], 1.0, rtol=1e-5)      # 0.75 * 4 vs 4

@@ -113,7 +113,7 @@ def resize_bilinear(x: np.ndarray, size: tuple[int, int]) -> np.ndarray:
   return ((_f32(1) - ly) * top + ly * bot).astype(np.float32)
 
 
-def _nearest_indices(in_size: int, out_size: int) -> np.ndarray:
+def nearest_index(in_size: int, out_size: int) -> np.ndarray:
   """torch legacy 'nearest': floor(dst * float32(in / out)), with ATen's exact-ratio shortcuts."""
   dst = np.arange(out_size)
   if out_size == in_size:
@@ -127,7 +127,7 @@ def _nearest_indices(in_size: int, out_size: int) -> np.ndarray:
 def resize_nearest(x: np.ndarray, size: tuple[int, int]) -> np.ndarray:
   """[H, W, ...] -> [h, w, ...], torch legacy `nearest`."""
   x = np.asarray(x)
-  return x[_nearest_indices(x.shape[0], size[0])][:, _nearest_indices(x.shape[1], size[1])]
+  return x[nearest_index(x.shape[0], size[0])][:, nearest_index(x.shape[1], size[1])]
 
 
 # ----------------------------------------------------------------------------------------------

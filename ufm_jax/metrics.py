@@ -1,6 +1,6 @@
 """Benchmark metrics. Every formula is stated here; evaluators only decide masks and pooling.
 
-Conventions (see shared docs/datasets.md section 5):
+Conventions (the benchmark protocols that use them: docs/benchmarks.md):
   * EPE per pixel: e = sqrt((u - u_gt)^2 + (v - v_gt)^2), in pixels at GT resolution.
   * N-px outlier rate (the paper's "1px/2px/3px/5px" columns): 100 * mean(e > N), a STRICT
     inequality (a pixel with error exactly N is not an outlier), in percent.

@@ -32,7 +32,7 @@ import cv2
 import h5py
 import numpy as np
 
-from ufm_jax.data.sources import exr, posed, tawb
+from ufm_jax.data.sources import _official, exr, posed
 
 CONDITIONS = ("SummerNight", "WinterNight", "Autumn", "Spring", "Winter", "Day", "Night", "Fall",
               "Summer")
@@ -83,7 +83,7 @@ def prepare(download, out, split, progress=True):
     envs = {int(i): row[col] for i, row in zip(index, table["data"])}
   except (KeyError, ValueError) as e:
     raise ValueError(f"{meta_path}: expected a split-oriented table with column img1_env") from e
-  entries = tawb.read_index_maps(split_dir)
+  entries = _official.read_index_maps(split_dir)
   open_files, written = {}, 0
   try:
     for pair, (fname, idx) in tqdm.tqdm(sorted(entries.items()), desc=split, disable=not progress):

@@ -22,6 +22,9 @@ Gaussian blur 5 % and, for `low_light_datasets`, darkening 1 % (base_stereo_view
 361-374; base_optical_flow_dataset.py:29-30, 114-124). Static pairs become identical-view pairs
 with probability 0.005 (aug_monocular, base_stereo_view_dataset.py:387-389).
 
+The resize and crop operations themselves, shared with the benchmark readers, are in
+ufm_jax.data.official_ops.
+
 `official_no_aug` is the deterministic path (aug_crop=False, transform='imgnorm'). Every option
 that deviates from the official code, and every official quirk, is a named key of `AugmentConfig`
 (`config.input.augment`).
@@ -39,6 +42,10 @@ import numpy as np
 from PIL import Image, ImageEnhance
 
 from ufm_jax import geometry
+from ufm_jax.data.official_ops import (FlowCrop, StaticView, center_flow_crop, flow_crop_images,
+                                       flow_crop_labels, nearest_index, portrait_resolution,
+                                       resize_cover_center_crop, resize_short_axis_size,
+                                       rotate_to_landscape, trunc_u8)
 
 PATCH = 14
 # Width:height ratios between 3:1 and 1:1 (paper sec. 3.3); landscape, as in the paper.
@@ -171,76 +178,7 @@ class AugmentConfig:
     return cfg
 
 
-# ------------------------------------------------------------------ resampling (official ops)
-
-def _trunc_u8(x: np.ndarray) -> np.ndarray:
-  """float -> uint8 as torch's `.to(torch.uint8)` on values clamped to [0, 255]: truncation."""
-  return np.clip(x, 0, 255).astype(np.uint8)
-
-
-def resize_bilinear_aa(image: np.ndarray, size_hw, box_hw=None) -> np.ndarray:
-  """torch `F.interpolate(bilinear, align_corners=False, antialias=True)` of a uint8 image in
-  float, cast back with `.to(uint8)` (truncation): the official flow-set image resize.
-
-  box_hw = (top, left, h, w): only that window of the `size_hw` result (PIL's identical
-  antialiased bilinear, in float, on the source region of the window: the same pixels as resizing
-  all and cropping)."""
-  image = np.asarray(image)
-  H, W = image.shape[:2]
-  h, w = (int(s) for s in size_hw)
-  top, left, oh, ow = box_hw if box_hw is not None else (0, 0, h, w)
-  sy, sx = H / h, W / w
-  box = (left * sx, top * sy, min((left + ow) * sx, W), min((top + oh) * sy, H))
-  out = np.empty((oh, ow, 3), np.float32)
-  for c in range(3):
-    plane = Image.fromarray(np.ascontiguousarray(image[..., c], np.float32), "F")
-    out[..., c] = np.asarray(plane.resize((ow, oh), Image.BILINEAR, box=box))
-  return _trunc_u8(out)
-
-
-def nearest_index(in_size: int, out_size: int) -> np.ndarray:
-  """Source index of each output index of torch's legacy 'nearest' resize (float32 arithmetic)."""
-  if in_size == out_size:
-    return np.arange(out_size)
-  if out_size == 2 * in_size:
-    return np.arange(out_size) >> 1
-  scale = np.float32(in_size) / np.float32(out_size)
-  idx = np.floor(np.arange(out_size, dtype=np.float32) * scale).astype(np.int64)
-  return np.minimum(idx, in_size - 1)
-
-
-def resize_short_axis_size(hw, min_hw) -> tuple[int, int]:
-  """ResizeShortAxisManipulation(min_hw).output_shape (flow_manipulation.py:492-499)."""
-  H, W = hw
-  ratio = max(min_hw[0] / H + 1e-8, min_hw[1] / W + 1e-8)
-  return int(H * ratio), int(W * ratio)
-
-
 # -------------------------------------------------------------------------- the flow pathway
-
-@dataclasses.dataclass(frozen=True)
-class FlowCrop:
-  """Resize both views to `resized_hw` (from `hw`), then crop `out_hw` at (top, left) per view."""
-  hw: tuple[int, int]
-  resized_hw: tuple[int, int]
-  out_hw: tuple[int, int]
-  crop0: tuple[int, int]    # (top, left) in view 0
-  crop1: tuple[int, int]    # (top, left) in view 1
-
-  def source_grid(self, view: int) -> tuple[np.ndarray, np.ndarray]:
-    """(rows, cols) of the stored pixels the crop of `view` reads (nearest taps), sorted."""
-    (top, left) = self.crop0 if view == 0 else self.crop1
-    rows = nearest_index(self.hw[0], self.resized_hw[0])[top:top + self.out_hw[0]]
-    cols = nearest_index(self.hw[1], self.resized_hw[1])[left:left + self.out_hw[1]]
-    return rows, cols
-
-
-def center_flow_crop(hw, out_hw) -> FlowCrop:
-  """ResizeShortAxisManipulation(out_hw) + CenterCropManipulation(out_hw)."""
-  rh, rw = resize_short_axis_size(hw, out_hw)
-  c = ((rh - out_hw[0]) // 2, (rw - out_hw[1]) // 2)
-  return FlowCrop(tuple(hw), (rh, rw), tuple(out_hw), c, c)
-
 
 def random_flow_crop(hw, out_hw, rng, cfg: AugmentConfig) -> FlowCrop:
   """Short side x U(expansion), the same random offset in both views (RandomEqualCrop):
@@ -250,69 +188,6 @@ def random_flow_crop(hw, out_hw, rng, cfg: AugmentConfig) -> FlowCrop:
   top = int(rng.integers(0, rh - out_hw[0])) if rh > out_hw[0] else 0
   left = int(rng.integers(0, rw - out_hw[1])) if rw > out_hw[1] else 0
   return FlowCrop(tuple(hw), (rh, rw), tuple(out_hw), (top, left), (top, left))
-
-
-def flow_crop_images(image0, image1, crop: FlowCrop):
-  out = []
-  for image, (top, left) in ((image0, crop.crop0), (image1, crop.crop1)):
-    out.append(resize_bilinear_aa(image, crop.resized_hw, (top, left) + crop.out_hw))
-  return out
-
-
-def _in_crop(flow: np.ndarray) -> np.ndarray:
-  """x + u in [0, W), y + v in [0, H) (float32, integer pixel index; NaN flow passes, as the
-  official `fov_mask[(x < 0) | ...] = False`)."""
-  h, w = flow.shape[:2]
-  x = np.arange(w, dtype=np.float32)[None, :] + flow[..., 0]
-  y = np.arange(h, dtype=np.float32)[:, None] + flow[..., 1]
-  with np.errstate(invalid="ignore"):
-    return ~((x < 0) | (y < 0) | (x >= w) | (y >= h))
-
-
-def flow_crop_labels(labels: Mapping[str, Any], crop: FlowCrop, view: int, mask_rule: str,
-                     grid: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
-  """Labels of the pair whose source is `view`, resized (nearest) and cropped like its image.
-
-  mask_rule 'in_crop' (random crops, flow_manipulation.py:682-704, 841-863): covisibility and
-  covis_valid (and fov_mask) are AND-ed with "the match stays inside the other crop".
-  'center_forward' / 'center_backward' (CenterCropManipulation, :292-313): covisibility is, and
-  covis_valid / fov_mask are AND-ed with the covisibility from before that test (forward) or
-  after it (backward). flow_valid (where the flow is defined) is only resized and cropped.
-  grid: the labels hold only the stored pixels rows x cols (`FlowCrop.source_grid`).
-  """
-  rows, cols = crop.source_grid(view)
-  if grid is not None:
-    rows, cols = np.searchsorted(grid[0], rows), np.searchsorted(grid[1], cols)
-  (h, w), (rh, rw) = crop.hw, crop.resized_hw
-  (top, left), (otop, oleft) = ((crop.crop0, crop.crop1) if view == 0 else
-                                (crop.crop1, crop.crop0))
-  oh, ow = len(rows), len(cols)
-  # Rows gathered as contiguous copies, columns as 8-byte (u, v) items; the scale and shift per
-  # interleaved (u, v) column (numpy is slow broadcasting over a trailing axis of 2).
-  flow = np.ascontiguousarray(labels["flow"], np.float32).take(rows, 0)
-  flow = flow.view(np.complex64)[..., 0].take(cols, 1).view(np.float32)
-  flow *= np.tile(np.float32([rw / w, rh / h]), ow)
-  if (top, left) != (otop, oleft):
-    flow += np.tile(np.float32([left - oleft, top - otop]), ow)
-  flow = flow.reshape(oh, ow, 2)
-  # The masks packed as bits of one uint8 plane: one gather for all.
-  masks = [k for k in ("covisibility", "flow_valid", "covis_valid", "fov_mask") if k in labels]
-  packed = np.zeros(np.shape(labels[masks[0]]), np.uint8)
-  for bit, k in enumerate(masks):
-    packed |= np.asarray(labels[k], bool).view(np.uint8) << bit
-  packed = packed.take(rows, 0).take(cols, 1)
-  out = {"flow": flow}
-  for bit, k in enumerate(masks):
-    out[k] = (packed & (1 << bit)) != 0
-  inside = _in_crop(flow)
-  before = out["covisibility"]
-  out["covisibility"] = before & inside
-  extra = {"in_crop": inside, "center_forward": before,
-           "center_backward": out["covisibility"]}[mask_rule]
-  for k in ("covis_valid", "fov_mask"):
-    if k in out:
-      out[k] = out[k] & extra
-  return out
 
 
 def covisible_guided_crops(fwd: Mapping[str, Any], bwd: Mapping[str, Any], hw, out_hw, rng,
@@ -364,80 +239,6 @@ def covisible_guided_crops(fwd: Mapping[str, Any], bwd: Mapping[str, Any], hw, o
 
 
 # ------------------------------------------------------------------------ the static pathway
-
-@dataclasses.dataclass
-class StaticView:
-  image: np.ndarray       # [H, W, 3] uint8
-  depth: np.ndarray       # [H, W] z-depth, 0 = invalid
-  K: np.ndarray           # [3, 3] OpenCV
-  cam2world: np.ndarray   # [4, 4]
-
-
-def _portrait_resolution(hw, out_hw, rng, random_square: bool):
-  """Official per-view choice of the crop orientation: (h, w) to crop, and whether it is the
-  transposed (portrait) one that `rotate_to_landscape` later turns."""
-  H, W = hw
-  oh, ow = out_hw
-  if H > 1.1 * W:
-    return (ow, oh), True
-  if 0.9 < H / W < 1.1 and oh != ow and random_square and rng is not None and rng.integers(2):
-    return (ow, oh), True
-  return (oh, ow), False
-
-
-def rotate_to_landscape(v: StaticView) -> StaticView:
-  """rotate_90(k=1) (base_stereo_view_dataset.py:492-529): the image turned counter-clockwise,
-  K and the pose so that the turned view sees the same rays: u' = v, v' = W - 1 - u."""
-  h, w = v.depth.shape
-  K = np.asarray(v.K, np.float64)
-  K2 = np.array([[K[1, 1], 0.0, K[1, 2]], [0.0, K[0, 0], w - 1 - K[0, 2]], [0.0, 0.0, 1.0]])
-  rz = np.eye(4)
-  rz[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
-  return StaticView(np.ascontiguousarray(np.rot90(v.image)),
-                    np.ascontiguousarray(np.rot90(v.depth)), K2,
-                    np.asarray(v.cam2world, np.float64) @ rz)
-
-
-def resize_cover_center_crop(v: StaticView, out_hw, landscape: bool = True) -> StaticView:
-  """`_crop_resize_if_necessary` (base_stereo_view_dataset.py:183-211, cropping.py:60-132):
-  rescale so the image covers the (orientation-matched) shape (PIL Lanczos when shrinking,
-  bicubic otherwise; depth cv2 nearest; K through the +0.5 COLMAP convention), crop the centre
-  (offsets rounded half-to-even), then turn a portrait view to landscape."""
-  (oh, ow), portrait = _portrait_resolution(v.depth.shape, out_hw, None, False)
-  H, W = v.depth.shape
-  size = np.array([W, H])
-  scale = max(np.array([ow, oh]) / size) + 1e-8
-  new = np.floor(size * scale).astype(int)
-  image = Image.fromarray(np.asarray(v.image)).resize(
-      tuple(int(s) for s in new), Image.LANCZOS if scale < 1 else Image.BICUBIC)
-  depth = cv2.resize(np.asarray(v.depth, np.float32), (int(new[0]), int(new[1])),
-                     interpolation=cv2.INTER_NEAREST)
-  # The official numpy operations, in K's own dtype (cropping.py:93-132), so that the rounded
-  # crop offset ties break as there.
-  K = _camera_matrix_of_crop(np.asarray(v.K), size, new, scale)
-  left, top = np.int32(np.round(K[:2, 2] - _camera_matrix_of_crop(K, new, np.array([ow, oh]),
-                                                                   1)[:2, 2]))
-  K = K.copy()
-  K[0, 2] -= left
-  K[1, 2] -= top
-  out = StaticView(np.ascontiguousarray(np.asarray(image)[top:top + oh, left:left + ow]),
-                   np.ascontiguousarray(depth[top:top + oh, left:left + ow]), K,
-                   np.asarray(v.cam2world, np.float64))
-  return rotate_to_landscape(out) if portrait and landscape else out
-
-
-def _camera_matrix_of_crop(K, in_res, out_res, scaling):
-  """cropping.camera_matrix_of_crop with offset_factor 0.5 (through the COLMAP +0.5 frame)."""
-  offset = 0.5 * (np.asarray(in_res) * scaling - out_res)
-  K = K.copy()
-  K[0, 2] += 0.5
-  K[1, 2] += 0.5
-  K[:2, :] *= scaling
-  K[:2, 2] -= offset
-  K[0, 2] -= 0.5
-  K[1, 2] -= 0.5
-  return K
-
 
 def _project_pixels(v: StaticView, other: StaticView, idx=None) -> np.ndarray:
   """Flat index of the other view's pixel each pixel of v (or its flat indices idx) lands on:
@@ -586,7 +387,7 @@ def static_crop_pair(v0: StaticView, v1: StaticView, out_hw, rng, cfg: AugmentCo
   boxes, shapes, inside = [], [], []
   for v, xy in zip((v0, v1), corres):
     hw = v.depth.shape
-    crop_hw, portrait = _portrait_resolution(hw, out_hw, rng, cfg.square_random_portrait)
+    crop_hw, portrait = portrait_resolution(hw, out_hw, rng, cfg.square_random_portrait)
     if not cfg.portrait_to_landscape:
       crop_hw, portrait = tuple(out_hw), False
     b = random_crop_boxes(hw, cfg.static_crop_candidates, crop_hw,
@@ -617,7 +418,7 @@ def _blend_lut(base: float, factor: float) -> np.ndarray:
   """PIL Image.blend(constant base, image, factor) on uint8 as a lookup table: float32
   base + factor (x - base), clipped, truncated."""
   x = np.arange(256, dtype=np.float32)
-  return _trunc_u8(np.float32(base) + np.float32(factor) * (x - np.float32(base)))
+  return trunc_u8(np.float32(base) + np.float32(factor) * (x - np.float32(base)))
 
 
 def color_jitter(image: np.ndarray, params, fast: bool = False) -> np.ndarray:

@@ -1,8 +1,9 @@
 """File formats: decoders (and writers for what the project writes itself).
 
-Byte-level layouts follow ../shared/docs/datasets.md section 1. Every reader raises `ValueError`
-naming the path and what was expected when a file is malformed, and `FileNotFoundError` naming the
-path when it is missing. Writers are atomic (temp file + rename): a crash never leaves half a file.
+Each reader's docstring gives the byte layout it decodes; which dataset stores what:
+docs/datasets.md. Every reader raises `ValueError` naming the path and what was expected when a
+file is malformed, and `FileNotFoundError` naming the path when it is missing. Writers are atomic
+(temp file + rename): a crash never leaves half a file.
 """
 
 from __future__ import annotations

@@ -54,7 +54,7 @@ DEFAULT_DATA_ROOT = os.environ.get("UFM_DATA_ROOT", "~/ufm_data")
 # The official recipes' samples per epoch (the `N @ Dataset(...)` terms of train_dataset_str in
 # configs/dataset/quantity_options/ of the official train branch, commit d8c421e). Each number
 # is drawn per epoch like the official ResizedDataset: every pair floor(N / len) times, the rest
-# without replacement (ufm_jax.data.pipeline.draw_quota), from the seed and the epoch.
+# without replacement (ufm_jax.data.sampling_plan.draw_quota), from the seed and the epoch.
 _OLD = "configs/dataset/quantity_options/train/old_setting_100k.yaml"
 _OF = "configs/dataset/quantity_options/train/default.yaml:{key} (via opticalflow_100k.yaml)"
 _SP = "configs/dataset/quantity_options/train/static_pinhole_100k.yaml:{key}"

@@ -10,7 +10,7 @@ A source is a random-access sequence (`len()`, `__getitem__`) of sample dicts wi
   meta            dict: dataset, scene, frame ids; intrinsics, poses, depths when known
 
 Every source class also declares two bool class attributes, read by the training pipeline when it
-symmetrizes batches (ufm_jax.data.pipeline.backward_mode):
+symmetrizes batches (ufm_jax.data.backward_labels.backward_mode):
   has_backward    the source labels the backward pair (image1 -> image0) itself: `backward(i)`
                   returns it and `both(i)` returns (forward, backward), reading the images once
                   where it can; `both` may give (forward, None) for a pair without such labels
@@ -23,7 +23,7 @@ A source may also offer `lazy_pair(i)`: an object with `image0`, `image1`, the t
 -> the four label arrays of either direction by the official training code's rule, at the
 source pixels rows x cols only (posed.PosedPair: static scenes; kubric4d.KubricPair: rigid
 objects), and declare `pathway` ('static', 'kubric' or 'flow'): how the training pipeline crops
-and labels its pairs (ufm_jax.data.augment; pipeline.pathway).
+and labels its pairs (ufm_jax.data.augment; load_pair.pathway).
 """
 
 from __future__ import annotations

@@ -92,6 +92,27 @@ def _bilinear(img: np.ndarray, valid_f: np.ndarray, valid_u8: np.ndarray, u: np.
 _BLOCK_PIXELS = 1 << 15
 
 
+def _disparities(flow, disparity0, disparity_change, disparity1, K, baseline):
+  """Checked inputs of both rules: (flow float32, K, f * baseline, d0, d1, valid0, valid1,
+  depth0, depth1), z-depths 0 where the disparity is not positive."""
+  flow = np.asarray(flow, np.float32)
+  h, w = flow.shape[:2]
+  for name, a in (("disparity0", disparity0), ("disparity_change", disparity_change),
+                  ("disparity1", disparity1)):
+    if np.shape(a) != (h, w):
+      raise ValueError(f"sceneflow_covisibility: {name} has shape {np.shape(a)}, expected {(h, w)}")
+  K = sceneflow_intrinsics(h, w) if K is None else np.asarray(K, np.float64)
+  fb = np.float32(K[0, 0] * baseline)
+  d0 = np.asarray(disparity0, np.float32)
+  d1 = np.asarray(disparity1, np.float32)
+  with np.errstate(invalid="ignore", divide="ignore"):
+    valid0 = np.isfinite(d0) & (d0 > 0)
+    valid1 = np.isfinite(d1) & (d1 > 0)
+    depth0 = np.where(valid0, fb / d0, np.float32(0))
+    depth1 = np.where(valid1, fb / d1, np.float32(0))
+  return flow, K, fb, d0, d1, valid0, valid1, depth0, depth1
+
+
 def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_change: np.ndarray,
                            disparity1: np.ndarray, tau_d: float, tau_r: float,
                            K: np.ndarray | None = None, baseline: float = SCENEFLOW_BASELINE):
@@ -111,22 +132,11 @@ def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_c
   (V1 & ~F1) | (F1 & V_other)), error (float32 range error, inf outside F1), depth0 and depth1
   (float32 z-depth, 0 where invalid).
   """
-  flow = np.asarray(flow, np.float32)
+  flow, K, fb, d0, d1, valid0, valid1, depth0, depth1 = _disparities(
+      flow, disparity0, disparity_change, disparity1, K, baseline)
   h, w = flow.shape[:2]
-  for name, a in (("disparity0", disparity0), ("disparity_change", disparity_change),
-                  ("disparity1", disparity1)):
-    if np.shape(a) != (h, w):
-      raise ValueError(f"sceneflow_covisibility: {name} has shape {np.shape(a)}, expected {(h, w)}")
-  K = sceneflow_intrinsics(h, w) if K is None else np.asarray(K, np.float64)
-  fb = np.float32(K[0, 0] * baseline)
-  d0 = np.asarray(disparity0, np.float32)
-  d1 = np.asarray(disparity1, np.float32)
   dm = d0 + np.asarray(disparity_change, np.float32)  # disparity of the moved point
   with np.errstate(invalid="ignore", divide="ignore"):
-    valid0 = np.isfinite(d0) & (d0 > 0)
-    valid1 = np.isfinite(d1) & (d1 > 0)
-    depth0 = np.where(valid0, fb / d0, np.float32(0))
-    depth1 = np.where(valid1, fb / d1, np.float32(0))
     moved_ok = valid0 & np.isfinite(dm) & (dm > 0)  # positive disparity = in front of the camera
     z_moved = np.where(moved_ok, fb / dm, np.float32(0))
 
@@ -174,21 +184,10 @@ def official_sceneflow_covisibility(flow, disparity0, disparity_change, disparit
   direction's projections for its supervision mask (the loop variables of :583-597); with valid
   depth everywhere, as in FlyingThings3D and Monkaa, that gives the mask computed here.
   Returns the dict of `sceneflow_covisibility`, error on z-depth."""
-  flow = np.asarray(flow, np.float32)
+  flow, K, fb, d0, _, valid0, _, depth0, depth1 = _disparities(
+      flow, disparity0, disparity_change, disparity1, K, baseline)
   h, w = flow.shape[:2]
-  for name, a in (("disparity0", disparity0), ("disparity_change", disparity_change),
-                  ("disparity1", disparity1)):
-    if np.shape(a) != (h, w):
-      raise ValueError(f"sceneflow_covisibility: {name} has shape {np.shape(a)}, expected {(h, w)}")
-  K = sceneflow_intrinsics(h, w) if K is None else np.asarray(K, np.float64)
-  fb = np.float32(K[0, 0] * baseline)
-  d0 = np.asarray(disparity0, np.float32)
-  d1 = np.asarray(disparity1, np.float32)
   with np.errstate(invalid="ignore", divide="ignore"):
-    valid0 = np.isfinite(d0) & (d0 > 0)
-    valid1 = np.isfinite(d1) & (d1 > 0)
-    depth0 = np.where(valid0, fb / d0, np.float32(0))
-    depth1 = np.where(valid1, fb / d1, np.float32(0))
     expected = fb / (d0 + np.asarray(disparity_change, np.float32))   # z of the moved point
   expected = np.where(np.isfinite(expected), expected, np.float32(np.inf)).astype(np.float32)
   absolute, temperature, relative = (np.float32(p) for p in params)

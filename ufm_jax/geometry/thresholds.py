@@ -80,6 +80,15 @@ RENDERING_PARAMETERS["scannetpp_v2"] = RENDERING_PARAMETERS["scannetpp"]
 RENDERING_PARAMETERS["static_things"] = RENDERING_PARAMETERS["staticthings"]
 
 
+# The same rule's parameters on the official benchmark branch (etola/UFM `benchmark`, 2a949e5),
+# which labels its ETH3D and DTU dense benches with the training code's
+# `flow_occlusion_post_processing` (identical on both branches), in the units of each bench's
+# data: ETH3D metres (the pathway's defaults, widebaseline_datasets.py:126): tau = 0.169 m +
+# 0.005 d; DTU millimetres (widebaseline_datasets.py:160-168): tau = 20.318 mm + 0.01 d. The
+# branch runs ETH3D with opt_iters=2, which changes no label (`official_labels`).
+BENCHMARK_RENDERING_PARAMETERS = {"eth3d": (0.1, 0.1, 0.005), "dtu": (12.0, 12.0, 0.01)}
+
+
 def rendering_parameters(name: str) -> tuple[float, float, float] | None:
   """(absolute, temperature, relative) of a training dataset (`RENDERING_PARAMETERS`), or None
   for a dataset the official training code does not label from depth (benchmarks, flow sets)."""

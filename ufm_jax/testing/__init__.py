@@ -18,20 +18,25 @@ from flax import traverse_util
 from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
 
 
+def skip_or_fail(reason: str, ci_note: str) -> None:
+  """Skips the calling test with `reason`; under CI=true fails instead (`ci_note` says why CI
+  has what is missing), so CI never passes by skipping."""
+  import os
+
+  import pytest
+  if os.environ.get("CI", "").lower() == "true":
+    pytest.fail(f"{reason} ({ci_note})")
+  pytest.skip(reason)
+
+
 def require_extra(extra: str, modules) -> None:
   """Skips the calling test when an optional extra's modules are missing, naming the pip command;
   fails instead under CI=true (CI installs the test extra, which includes every extra tested)."""
   import importlib.util
-  import os
-
-  import pytest
   missing = [m for m in modules if importlib.util.find_spec(m) is None]
   if missing:
-    msg = (f"the [{extra}] extra is not installed ({', '.join(missing)} missing): "
-           f"pip install -e '.[{extra}]'")
-    if os.environ.get("CI") == "true":
-      pytest.fail(msg + " (CI installs the test extra, which includes it)")
-    pytest.skip(msg)
+    skip_or_fail(f"the [{extra}] extra is not installed ({', '.join(missing)} missing): "
+                 f"pip install -e '.[{extra}]'", "CI installs the test extra, which includes it")
 
 
 def training_fixtures(subdir: str | None = None) -> pathlib.Path:
@@ -42,18 +47,14 @@ def training_fixtures(subdir: str | None = None) -> pathlib.Path:
   fails instead, so CI can never pass the training parity tests by skipping them.
   """
   import os
-
-  import pytest
   repo = pathlib.Path(__file__).resolve().parents[2]
   default = repo.parent / "shared" / "fixtures" / "ufm_training"
   root = pathlib.Path(os.environ.get("UFM_TRAINING_FIXTURES", default))
   folder = root / subdir if subdir else root
   if not folder.is_dir():
-    msg = (f"official training fixtures not found at {folder}: set UFM_TRAINING_FIXTURES to the "
-           "folder that holds losses/, schedules/, labels/, processed/")
-    if os.environ.get("CI", "").lower() == "true":
-      pytest.fail(msg + " (CI=true: parity tests may not be skipped)")
-    pytest.skip(msg)
+    skip_or_fail(f"official training fixtures not found at {folder}: set UFM_TRAINING_FIXTURES "
+                 "to the folder that holds losses/, schedules/, labels/, processed/",
+                 "CI=true: parity tests may not be skipped")
   return folder
 
 

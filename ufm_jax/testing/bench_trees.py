@@ -106,21 +106,42 @@ def write_tawb_data(root, samples, split="data", per_shard=2):
   and a statistics JSON the reader must skip. `samples`: dicts with img0, img1 [H, W, 3] uint8,
   flow_fwd [2, H, W], non_occluded_fwd, fov_mask_fwd, occlusion_supervision_mask_fwd [H, W]
   (the backward keys are filled with the forward ones when absent)."""
-  import h5py
   import json
+
+  from ufm_jax.testing import official_trees
   d = os.path.join(root, split)
   os.makedirs(d, exist_ok=True)
   index = {}
   for k in range(0, len(samples), per_shard):
     chunk = samples[k:k + per_shard]
     name = f"part_{k // per_shard:03d}.h5"
-    with h5py.File(os.path.join(d, name), "w") as f:
-      for key in TAWB_KEYS:
-        fwd = key.replace("_bwd", "_fwd")
-        f.create_dataset(key, data=np.stack([s.get(key, s.get(fwd)) for s in chunk]))
+    official_trees.write_h5(os.path.join(d, name), **{
+        key: np.stack([s.get(key, s.get(key.replace("_bwd", "_fwd"))) for s in chunk])
+        for key in TAWB_KEYS})
     index.update({str(k + j): [name, j] for j in range(len(chunk))})
   with open(os.path.join(d, "index_map.json"), "w") as f:
     json.dump(index, f)
   with open(os.path.join(d, "statistics.json"), "w") as f:
     json.dump({"forward_match_errors": [0.5] * len(samples)}, f)
   return d
+
+
+def write_official_bench_root(root, scene, tawb_samples, flow_benches=True):
+  """The official benchmark branch's dataset_root: Sintel/ and KITTI/ (with flow_benches),
+  eth3d_processed/ with 4 pairs of distinct views DSC_<2k>, DSC_<2k+1> and dtu_processed/ with
+  one scan listed in 51 rows (the branch's every third / fiftieth row: 2 pairs each), their
+  anymap_data_pairs/ tables (ETH3D's an object array as released, DTU's a string array), and
+  TA-WB/ holding `tawb_samples` (`write_tawb_data`). `scene`: a wide_trees.PlaneScene."""
+  if flow_benches:
+    write_sintel(os.path.join(root, "Sintel"))
+    write_kitti(os.path.join(root, "KITTI"))
+  pairs = os.path.join(root, "anymap_data_pairs")
+  rows = [write_eth3d_processed(os.path.join(root, "eth3d_processed"), scene,
+                                views=(f"DSC_{2 * k}", f"DSC_{2 * k + 1}")) + (0.5,)
+          for k in range(4)]
+  write_anymap_pairs(os.path.join(pairs, "eth3d_valid_pairs.npz"), rows)
+  scan = write_dtu_processed(os.path.join(root, "dtu_processed"), scene)
+  write_anymap_pairs(os.path.join(pairs, "dtu_valid_pairs.npz"),
+                     [scan + (float(k),) for k in range(51)], object_array=False)
+  write_tawb_data(os.path.join(root, "TA-WB"), tawb_samples)
+  return root

@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import os
 
-import cv2
 import h5py
 import numpy as np
 
@@ -31,16 +30,6 @@ BLENDED_VAL_SEQ = "5a3cb4e4270f0e3f14d12f3a"  # seq_low % 10 == 0: val split
 BLENDED_PAIRS_DTYPE = [("seq_high", "<u4"), ("seq_low", "<u8"), ("img1", "<u4"), ("img2", "<u4"),
                        ("score", "<f4")]
 TAWB_FOLDER = "TartanAir/assembled/tartanair_640_mega_training_0328_good"
-
-
-def _mkdir(*parts) -> str:
-  path = os.path.join(*parts)
-  os.makedirs(path, exist_ok=True)
-  return path
-
-
-def _jpg(path, rgb):
-  assert cv2.imwrite(path, np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95])
 
 
 def texture(hw, seed) -> np.ndarray:
@@ -80,11 +69,11 @@ def write_blendedmvs(data_root, scene: wide.PlaneScene | None = None):
   """blendedmvs_processed/<seq>/%08d.{jpg,exr,npz} + dust3r_data_pairs/blendedmvs_pairs.npy:
   pairs (0, 1) and (1, 0) of the train sequence, one of a val sequence, one of an excluded one."""
   scene = scene or wide.PlaneScene()
-  d = _mkdir(data_root, "blendedmvs_processed", BLENDED_SEQ)
-  _mkdir(data_root, "blendedmvs_processed", BLENDED_VAL_SEQ)
+  d = wide.mkdir(data_root, "blendedmvs_processed", BLENDED_SEQ)
+  wide.mkdir(data_root, "blendedmvs_processed", BLENDED_VAL_SEQ)
   for i in (0, 1):
     stem = os.path.join(d, f"{i:08d}")
-    _jpg(stem + ".jpg", scene.image(i))
+    wide.write_image(stem + ".jpg", scene.image(i))
     exr.write_exr(stem + ".exr", scene.z_depth(i).astype(np.float32))
     _save_npz(stem + ".npz", intrinsics=scene.K[i].astype(np.float32),
               R_cam2world=scene.c2w[i][:3, :3].astype(np.float64),
@@ -93,7 +82,7 @@ def write_blendedmvs(data_root, scene: wide.PlaneScene | None = None):
           ("00000000000000000000000c", 0, 1, 0.4)]   # officially excluded (a train seq_low)
   pairs = np.array([(int(s[:8], 16), int(s[8:], 16), a, b, c) for s, a, b, c in rows],
                    dtype=BLENDED_PAIRS_DTYPE)
-  np.save(os.path.join(_mkdir(data_root, "dust3r_data_pairs"), "blendedmvs_pairs.npy"), pairs)
+  np.save(os.path.join(wide.mkdir(data_root, "dust3r_data_pairs"), "blendedmvs_pairs.npy"), pairs)
   return scene
 
 
@@ -101,17 +90,17 @@ def write_megadepth(data_root, scene: wide.PlaneScene | None = None):
   """megadepth_processed/0001/0/img<i>.{jpg,exr,npz} + dust3r_data_pairs/megadepth_pairs.npz
   (scenes "0001 0", "0015 0" (val), images without extension, structured pairs)."""
   scene = scene or wide.PlaneScene()
-  d = _mkdir(data_root, "megadepth_processed", "0001", "0")
+  d = wide.mkdir(data_root, "megadepth_processed", "0001", "0")
   for i in (0, 1):
     stem = os.path.join(d, f"img{i}")
-    _jpg(stem + ".jpg", scene.image(i))
+    wide.write_image(stem + ".jpg", scene.image(i))
     exr.write_exr(stem + ".exr", scene.z_depth(i).astype(np.float32))
     _save_npz(stem + ".npz", intrinsics=scene.K[i].astype(np.float32),
               cam2world=scene.c2w[i].astype(np.float32))
   pairs = np.array([(0, 0, 1, 0.7), (1, 0, 1, 0.6), (0, 1, 0, 0.5)],
                    dtype=[("scene_id", "<u4"), ("im1_id", "<u4"), ("im2_id", "<u4"),
                           ("score", "<f4")])
-  _save_npz(os.path.join(_mkdir(data_root, "dust3r_data_pairs"), "megadepth_pairs.npz"),
+  _save_npz(os.path.join(wide.mkdir(data_root, "dust3r_data_pairs"), "megadepth_pairs.npz"),
             scenes=np.array(["0001 0", "0015 0"]), images=np.array(["img0", "img1"]), pairs=pairs)
   return scene
 
@@ -120,11 +109,11 @@ def write_scannetpp(data_root, scene: wide.PlaneScene | None = None, name="0a5c0
   """scannetpp_anymap_processed/train/{all_metadata.npz, <scene>/images/*.jpg,
   <scene>/depth/*.png (uint16 mm)}; pairs [(0, 1), (1, 0), (0, 1)]: the first two are train."""
   scene = scene or wide.PlaneScene()
-  root = _mkdir(data_root, "scannetpp_anymap_processed", "train")
-  _mkdir(root, name, "images"), _mkdir(root, name, "depth")
+  root = wide.mkdir(data_root, "scannetpp_anymap_processed", "train")
+  wide.mkdir(root, name, "images"), wide.mkdir(root, name, "depth")
   names = ["DSC00000", "DSC00001"]
   for i, n in enumerate(names):
-    _jpg(os.path.join(root, name, "images", n + ".jpg"), scene.image(i))
+    wide.write_image(os.path.join(root, name, "images", n + ".jpg"), scene.image(i))
     io.write_png_depth16(os.path.join(root, name, "depth", n + ".png"), scene.z_depth(i), 1000.0)
   _save_npz(os.path.join(root, "all_metadata.npz"), counts=np.array([0]), scenes=np.array([name]),
             sceneids=np.array([0, 0]), images=np.array(names),
@@ -139,13 +128,13 @@ def write_staticthings(data_root, scene: wide.PlaneScene | None = None, letter="
   """staticthings3d_processed/{staticthings_pairs.npy, TRAIN/<A>/<seq>/<cam>/%04d_{clean,final}.jpg,
   %04d.exr, %04d.npz}; the final pass is the clean one 40 grey levels darker."""
   scene = scene or wide.PlaneScene()
-  root = _mkdir(data_root, "staticthings3d_processed")
+  root = wide.mkdir(data_root, "staticthings3d_processed")
   cams = {"l": "left", "r": "right"}
   for i, (cam, idx) in enumerate(frames):
-    d = _mkdir(root, "TRAIN", letter, f"{seq:04d}", cams[cam])
+    d = wide.mkdir(root, "TRAIN", letter, f"{seq:04d}", cams[cam])
     img = scene.image(i)
-    _jpg(os.path.join(d, f"{idx:04d}_clean.jpg"), img)
-    _jpg(os.path.join(d, f"{idx:04d}_final.jpg"),
+    wide.write_image(os.path.join(d, f"{idx:04d}_clean.jpg"), img)
+    wide.write_image(os.path.join(d, f"{idx:04d}_final.jpg"),
          np.clip(img.astype(int) - 40, 0, 255).astype(np.uint8))
     exr.write_exr(os.path.join(d, f"{idx:04d}.exr"), scene.z_depth(i).astype(np.float32))
     _save_npz(os.path.join(d, f"{idx:04d}.npz"), intrinsics=scene.K[i].astype(np.float32),
@@ -163,11 +152,11 @@ def write_habitat(data_root, scene: wide.PlaneScene | None = None, path="apt_0",
   <path>/<key>_<i>.jpeg, _depth.exr (float16), _camera_params.json}; view 1 = scene view 0,
   views 2..5 = scene view 1; the principal point is stored +0.5 (the official subtracts it)."""
   scene = scene or wide.PlaneScene()
-  root = _mkdir(data_root, "habitat_processed", "replica_cad_baked_lighting")
-  d = _mkdir(root, path)
+  root = wide.mkdir(data_root, "habitat_processed", "replica_cad_baked_lighting")
+  d = wide.mkdir(root, path)
   for i in range(1, 6):
     view = 0 if i == 1 else 1
-    _jpg(os.path.join(d, f"{key}_{i}.jpeg"), scene.image(view))
+    wide.write_image(os.path.join(d, f"{key}_{i}.jpeg"), scene.image(view))
     exr.write_exr(os.path.join(d, f"{key}_{i}_depth.exr"), scene.z_depth(view), half=True)
     K = scene.K[view].copy()
     K[:2, 2] += 0.5
@@ -183,9 +172,9 @@ def write_kubric4d(data_root, scene: wide.KubricScene | None = None, seq=42):
   """kubric4d/{kubric4d_raw/scn%05d/frames_p0_v<v>/..., kubric4d_metadata/{sampled_pairs.npz,
   metadata/scn%05d.npz}}; the metadata K is what the official formula turns into scene.K."""
   scene = scene or wide.KubricScene(num_frames=4)
-  base = _mkdir(data_root, "kubric4d")
+  base = wide.mkdir(data_root, "kubric4d")
   name = f"scn{seq:05d}"
-  wide.write_kubric4d(_mkdir(base, "kubric4d_raw"), scene, name=name, views=2)
+  wide.write_kubric4d(wide.mkdir(base, "kubric4d_raw"), scene, name=name, views=2)
   h, w = scene.hw
   flip = np.diag([1.0, -1.0, -1.0])
   intr, extr = [], []
@@ -197,7 +186,7 @@ def write_kubric4d(data_root, scene: wide.KubricScene | None = None, seq=42):
   frames = range(scene.num_frames)
   pos = np.array([[[scene.obj_pose(t)[:3, 3] for t in frames]]] * 2)
   quat = np.array([[[wide.rotmat_to_qvec(scene.obj_pose(t)[:3, :3]) for t in frames]]] * 2)
-  _save_npz(os.path.join(_mkdir(base, "kubric4d_metadata", "metadata"), f"{name}.npz"),
+  _save_npz(os.path.join(wide.mkdir(base, "kubric4d_metadata", "metadata"), f"{name}.npz"),
             intrinsics=np.array(intr, np.float64), extrinsics=np.array(extr, np.float64),
             positions=np.array([[c[:3, 3]] * scene.num_frames for c in extr]),
             orientations=np.array([[wide.rotmat_to_qvec(c[:3, :3])] * scene.num_frames
@@ -214,7 +203,7 @@ def write_kubric4d(data_root, scene: wide.KubricScene | None = None, seq=42):
 FLOW_CONTENT: dict[str, dict] = {}   # what the writers below stored, for the tests
 
 
-def _h5(path, **arrays):
+def write_h5(path, **arrays):
   """Datasets chunked by row, gzip: as the official preprocess writes them."""
   with h5py.File(path, "w") as f:
     for k, v in arrays.items():
@@ -230,9 +219,9 @@ def write_sceneflow(data_root, dataset="flyingthings", hw=(30, 40), frames=(6, 7
   right camera + 100. flow_layout 'hwc' = (N, H, W, 2) (what the preprocess writes), 'chw' =
   (N, 2, H, W)."""
   ft = dataset == "flyingthings"
-  root = _mkdir(data_root, "flyingthings3d_processed" if ft else "monkaa_processed")
+  root = wide.mkdir(data_root, "flyingthings3d_processed" if ft else "monkaa_processed")
   sub = ("train",) if ft else ()
-  iq, fl = _mkdir(root, "individual_quantities", *sub), _mkdir(root, "flow", *sub)
+  iq, fl = wide.mkdir(root, "individual_quantities", *sub), wide.mkdir(root, "flow", *sub)
   seq = 0 if ft else "a_rain_of_stones_x2"
   lead = {"split": "TRAIN", "division": "A"} if ft else {}
   n = len(frames)
@@ -244,7 +233,7 @@ def write_sceneflow(data_root, dataset="flyingthings", hw=(30, 40), frames=(6, 7
     arrays[f"depth_{c}"] = np.full((n,) + hw, 5.0, np.float32)
     arrays[f"intrinsics_{c}"] = np.tile(np.eye(3, dtype=np.float32), (n, 1, 1))
     arrays[f"pose_{c}"] = np.tile(np.eye(4, dtype=np.float32), (n, 1, 1))
-  _h5(os.path.join(iq, f"0_{n - 1}.h5"), **arrays)
+  write_h5(os.path.join(iq, f"0_{n - 1}.h5"), **arrays)
   with open(os.path.join(iq, "index.json"), "w") as f:
     json.dump({str(i): {"file_name": f"0_{n - 1}.h5", "file_index": i, **lead, "seq": seq,
                         "idx": k} for i, k in enumerate(frames)}, f)
@@ -259,7 +248,7 @@ def write_sceneflow(data_root, dataset="flyingthings", hw=(30, 40), frames=(6, 7
         if q == "flow" and flow_layout == "chw":
           stack = np.ascontiguousarray(np.moveaxis(stack, -1, 1))
         flow_arrays[f"{c}_view{v}_{q}"] = stack
-  _h5(os.path.join(fl, f"0_{n - 2}.h5"), **flow_arrays)
+  write_h5(os.path.join(fl, f"0_{n - 2}.h5"), **flow_arrays)
   rows = [{**lead, "seq": seq, "pair0_id": a, "pair1_id": b} for a, b in zip(frames, frames[1:])]
   with open(os.path.join(fl, "job_df.csv"), "w") as f:
     cols = list(rows[0])
@@ -278,15 +267,15 @@ def write_spring(data_root, hw=(30, 40), seqs=("0001", "0040")):
   """spring_processed/<train|test>/<seq>/<left|right>/{images/%04d.png, flow/0001_0002.npz};
   sequences 38 and up go to test/ as the preprocess does. 2% of the forward flow is NaN and
   the masks of both views are cleared there (the preprocess's NaN handling)."""
-  root = _mkdir(data_root, "spring_processed")
+  root = wide.mkdir(data_root, "spring_processed")
   content = {}
   for s in seqs:
     split = "train" if int(s) < 38 else "test"
     for ci, cam in enumerate(("left", "right")):
-      d = _mkdir(root, split, s, cam)
+      d = wide.mkdir(root, split, s, cam)
       imgs = [texture(hw, 7 * int(s) + 3 * ci + k) for k in (0, 1)]
       for k, img in zip((1, 2), imgs):
-        io.write_image(os.path.join(_mkdir(d, "images"), f"{k:04d}.png"), img)
+        io.write_image(os.path.join(wide.mkdir(d, "images"), f"{k:04d}.png"), img)
       views = [flow_labels(hw, 300 * int(s) + 30 * ci + 5 * v) for v in (0, 1)]
       nan = np.random.default_rng(int(s) + ci).random(hw) < 0.02
       views[0]["flow"][nan] = np.nan
@@ -295,7 +284,7 @@ def write_spring(data_root, hw=(30, 40), seqs=("0001", "0040")):
           v[q] = v[q] & ~nan
       arrays = {f"{q}_{i}": (np.ascontiguousarray(np.moveaxis(v[q], -1, 0)) if q == "flow"
                              else v[q]) for i, v in enumerate(views) for q in v}
-      _save_npz(os.path.join(_mkdir(d, "flow"), "0001_0002.npz"), **arrays)
+      _save_npz(os.path.join(wide.mkdir(d, "flow"), "0001_0002.npz"), **arrays)
       content[(split, s, cam)] = dict(images=imgs, views=views)
   FLOW_CONTENT["spring"] = content
   return root
@@ -303,7 +292,7 @@ def write_spring(data_root, hw=(30, 40), seqs=("0001", "0040")):
 
 def write_hd1k(data_root, hw=(30, 40), n=2):
   """hd1k_processed/%04d.npz: img0, img1 uint8, flow (2, H, W) float32, valid bool."""
-  root = _mkdir(data_root, "hd1k_processed")
+  root = wide.mkdir(data_root, "hd1k_processed")
   content = []
   for i in range(n):
     z = dict(img0=texture(hw, 40 + i), img1=texture(hw, 50 + i),
@@ -319,7 +308,7 @@ def write_tawb(data_root, hw=(32, 32), flow_dtype=np.float32):
   """TartanAir/assembled/tartanair_640_mega_training_0328_good/train/: shard_0_1.h5 (pairs 0, 1;
   list-form index json), shard_2_2.h5 (pair 2; dict-form index json) and match_errors.json
   (holds forward_match_errors, and an entry 0 -> a file that does not exist: not an index)."""
-  d = _mkdir(data_root, TAWB_FOLDER, "train")
+  d = wide.mkdir(data_root, TAWB_FOLDER, "train")
   pairs = []
   for i in range(3):
     views = [flow_labels(hw, 800 + 10 * i + v) for v in (0, 1)]
@@ -334,7 +323,7 @@ def write_tawb(data_root, hw=(32, 32), flow_dtype=np.float32):
                       ("occlusion_supervision_mask", "occlusion_supervision_mask"),
                       ("fov_mask", "fov_mask")):
         arrays[f"{stem}_{tag}"] = np.stack([pairs[i]["views"][v][q] for i in idx])
-    _h5(os.path.join(d, name + ".h5"), **arrays)
+    write_h5(os.path.join(d, name + ".h5"), **arrays)
   with open(os.path.join(d, "shard_0_1.json"), "w") as f:
     json.dump({"0": ["shard_0_1.h5", 0], "1": ["shard_0_1.h5", 1]}, f)
   with open(os.path.join(d, "shard_2_2.json"), "w") as f:
@@ -348,8 +337,8 @@ def write_tawb(data_root, hw=(32, 32), flow_dtype=np.float32):
 def write_flyingchairs(data_root, hw=(30, 40), n=3):
   """FlyingChairs/{data/%05d_img1.ppm, _img2.ppm, _flow.flo, FlyingChairs_train_val.txt} (the
   torchvision layout the official reader takes); pair 2 is in the val split."""
-  root = _mkdir(data_root, "FlyingChairs")
-  d = _mkdir(root, "data")
+  root = wide.mkdir(data_root, "FlyingChairs")
+  d = wide.mkdir(root, "data")
   for i in range(1, n + 1):
     for j in (1, 2):
       img = texture(hw, 20 * i + j)

@@ -163,7 +163,7 @@ def check_plane_sample(sample, scene: PlaneScene, tol=2e-3, depth_tol=1e-4, unit
 
 # ------------------------------------------------------------------------------------ file writers
 
-def _mkdir(*parts):
+def mkdir(*parts) -> str:
   path = os.path.join(*parts)
   os.makedirs(path, exist_ok=True)
   return path
@@ -229,7 +229,7 @@ BLENDED_SCENE = "5a2a95f032a1c655cfe3de62"  # seq_low % 10 != 0 -> train split
 def write_blendedmvs(root, scene: PlaneScene, name=BLENDED_SCENE):
   d = os.path.join(root, name)
   for sub in ("blended_images", "cams", "rendered_depth_maps"):
-    _mkdir(d, sub)
+    mkdir(d, sub)
   for i in (0, 1):
     write_image(os.path.join(d, "blended_images", f"{i:08d}.jpg"), scene.image(i))
     write_image(os.path.join(d, "blended_images", f"{i:08d}_masked.jpg"), scene.image(i) * 0)
@@ -258,8 +258,8 @@ def megadepth_scene(hw=(36, 48), pre_wh=((96, 72), (80, 60)), f=(80.0, 70.0), **
 
 def write_megadepth(root, scene, name="0001", sub="0"):
   dense = os.path.join(root, name, f"dense{sub}")
-  _mkdir(dense, "imgs"), _mkdir(dense, "depths")
-  sparse = _mkdir(root, name, "sparse", "manhattan", sub)
+  mkdir(dense, "imgs"), mkdir(dense, "depths")
+  sparse = mkdir(root, name, "sparse", "manhattan", sub)
   with open(os.path.join(sparse, "cameras.txt"), "w") as f:
     f.write("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, "
             "PARAMS[]\n# Number of cameras: 2\n")
@@ -292,8 +292,8 @@ def tartanair_scene(hw=(40, 40), **kw):
 
 def write_tartanair_v2(root, scene, env="AbandonedFactory", traj="P000", cam="lcam_front",
                        frames=(3, 4)):
-  d = _mkdir(root, env, "Data_easy", traj)
-  _mkdir(d, f"image_{cam}"), _mkdir(d, f"depth_{cam}")
+  d = mkdir(root, env, "Data_easy", traj)
+  mkdir(d, f"image_{cam}"), mkdir(d, f"depth_{cam}")
   lines = []
   for k in range(max(frames) + 1):
     view = frames.index(k) if k in frames else 0
@@ -314,7 +314,7 @@ def write_tartanair_v2(root, scene, env="AbandonedFactory", traj="P000", cam="lc
 def write_scannetpp(root, scene, name="0a5c013435"):
   from ufm_jax.data.sources.exr import write_exr
   d = os.path.join(root, name)
-  _mkdir(d, "images"), _mkdir(d, "rendered_depth")
+  mkdir(d, "images"), mkdir(d, "rendered_depth")
   frames = []
   for i in (0, 1):
     fn = f"DSC{i:05d}"
@@ -334,7 +334,7 @@ def write_scannetpp(root, scene, name="0a5c013435"):
 
 def write_habitat(root, scene, path="hm3d/00042-abcd", key="000123", half=True):
   from ufm_jax.data.sources.exr import write_exr
-  d = _mkdir(root, path)
+  d = mkdir(root, path)
   for i, view in ((1, 0), (2, 1)):
     write_image(os.path.join(d, f"{key}_{i}.jpeg"), scene.image(view))
     write_exr(os.path.join(d, f"{key}_{i}_depth.exr"), scene.z_depth(view), half=half)
@@ -348,8 +348,8 @@ def write_habitat(root, scene, path="hm3d/00042-abcd", key="000123", half=True):
 def write_staticthings(root, scene, letter="A", seq="0042", frames=(("left", 6), ("right", 7))):
   for i, (cam, idx) in enumerate(frames):
     for kind in ("frames_finalpass", "frames_cleanpass", "depths", "poses"):
-      _mkdir(root, kind, "TRAIN", letter, seq, cam)
-    _mkdir(root, "intrinsics", "TRAIN", letter, seq)
+      mkdir(root, kind, "TRAIN", letter, seq, cam)
+    mkdir(root, "intrinsics", "TRAIN", letter, seq)
     for kind in ("frames_finalpass", "frames_cleanpass"):
       write_image(os.path.join(root, kind, "TRAIN", letter, seq, cam, f"{idx:04d}.png"),
                   scene.image(i))
@@ -364,7 +364,7 @@ def write_staticthings(root, scene, letter="A", seq="0042", frames=(("left", 6),
 
 def write_dtu(root, scene, scan="scan1", views=(0, 1), light=3):
   """DTU keeps millimetres: the plane scene (metres) is written scaled by 1000."""
-  _mkdir(root, "Rectified", scan), _mkdir(root, "Cameras"), _mkdir(root, "Depths_raw", scan)
+  mkdir(root, "Rectified", scan), mkdir(root, "Cameras"), mkdir(root, "Depths_raw", scan)
   for i, v in enumerate(views):
     write_image(os.path.join(root, "Rectified", scan, f"rect_{v + 1:03d}_{light}_r5000.png"),
                 scene.image(i))
@@ -383,7 +383,7 @@ def write_dtu(root, scene, scan="scan1", views=(0, 1), light=3):
 def write_eth3d_prepared(root, scene, name="courtyard"):
   from ufm_jax.data.sources.exr import write_exr
   d = os.path.join(root, name)
-  _mkdir(d, "images"), _mkdir(d, "depth")
+  mkdir(d, "images"), mkdir(d, "depth")
   frames = []
   for i in (0, 1):
     fn = f"DSC_{i:04d}"
@@ -402,7 +402,7 @@ def write_tawb(root, scene, split="test", env="Sewerage", pair=7):
   from ufm_jax.data.sources.exr import write_exr
   d = os.path.join(root, split, env)
   for sub in ("images", "depth", "camera_params", "poses"):
-    _mkdir(d, sub)
+    mkdir(d, sub)
   for i in (0, 1):
     n = f"{pair:08d}_{i}"
     write_image(os.path.join(d, "images", n + ".png"), scene.image(i))
@@ -446,10 +446,6 @@ def two_view_flow(h=48, w=64):
   p1 = (K @ X1)[:2] / X1[2]
   flow = (p1 - np.stack([xs.ravel(), ys.ravel()])).T.reshape(h, w, 2)
   return flow, K, R, t
-
-
-def _quat_from_R(R):
-  return rotmat_to_qvec(R)
 
 
 def _axis_rot(axis, ang):
@@ -550,7 +546,7 @@ def write_kubric4d(root, scene: KubricScene, name="scn00042", views=2):
   h, w = scene.hw
   palette = np.array([[0, 0, 0], [200, 30, 90]] + [[k, k, k] for k in range(2, 256)], np.uint8)
   for v in range(views):
-    d = _mkdir(root, name, f"frames_p0_v{v}")
+    d = mkdir(root, name, f"frames_p0_v{v}")
     K = scene.K[v]
     Kn = [[-K[0, 0] / w, 0, -(K[0, 2] + 0.5) / w], [0, -K[1, 1] / h, -(K[1, 2] + 0.5) / h],
           [0, 0, -1]]

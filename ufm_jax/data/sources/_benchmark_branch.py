@@ -3,118 +3,74 @@
 
   * `crop_resize_view`: ETH3D / DTU views, `BaseStereoViewDataset._crop_resize_if_necessary`
     (uniflowmatch/datasets/base/base_stereo_view_dataset.py:183-211 with
-    uniflowmatch/datasets/utils/cropping.py:60-132);
+    uniflowmatch/datasets/utils/cropping.py:60-132), by ufm_jax.data.official_ops, which the
+    training augmentation uses too;
   * `resize_short_center_crop`: TA-WB's precomputed labels, `ResizeShortAxisManipulation` then
     `CenterCropManipulation` (uniflowmatch/datasets/base/base_optical_flow_dataset.py:64-106,
-    uniflowmatch/datasets/utils/flow_manipulation.py:224-347, 366-502);
+    uniflowmatch/datasets/utils/flow_manipulation.py:224-347, 366-502), by official_ops too;
   * `BranchPosedPairs`: a dense bench over posed views listed in an AnyMap pair table
-    (uniflowmatch/datasets/{eth3d,dtu}.py), labelled by
-    ufm_jax.geometry.benchmark_labels.branch_static_labels.
+    (uniflowmatch/datasets/{eth3d,dtu}.py), labelled by the training code's rule
+    (`flow_occlusion_post_processing`, the same on both branches): ufm_jax.geometry.official_labels
+    with the bench's geometry.thresholds.BENCHMARK_RENDERING_PARAMETERS.
 """
 
 from __future__ import annotations
 
 import os
 
-import cv2
 import numpy as np
 
-from ufm_jax.data import io
-from ufm_jax.geometry import benchmark_labels
+from ufm_jax import geometry
+from ufm_jax.data import io, official_ops
 
 BENCH_SIZE = (420, 560)  # (H, W): `resolution=(560, 420)` (W, H) of every wide-baseline bench
 _F = np.float32
 
 
 # ------------------------------------------------------------------------------ ETH3D / DTU views
-def _crop_camera(K, in_wh, out_wh, scaling=1.0):
-  """cropping.camera_matrix_of_crop: scale about COLMAP pixel corners, shift by half the margin;
-  float32 in place as the branch's arrays."""
-  margins = np.asarray(in_wh, np.float64) * scaling - np.asarray(out_wh, np.float64)
-  if (margins < 0).any():
-    raise ValueError(f"crop of {tuple(out_wh)} does not fit in {tuple(in_wh)} x {scaling}")
-  K = np.array(K, _F)
-  K[:2, 2] += _F(0.5)
-  K[:2, :] *= np.float64(scaling)
-  K[:2, 2] -= 0.5 * margins
-  K[:2, 2] -= _F(0.5)
-  return K
-
-
 def crop_resize_view(image: np.ndarray, depth: np.ndarray, K: np.ndarray, size=BENCH_SIZE,
                      where: str = "view"):
-  """Resize so that the image covers `size` (H, W), then centre-crop to it.
+  """Resize so that the image covers `size` (H, W), then centre-crop to it
+  (`official_ops.resize_cover_center_crop`, with K in float32 as the branch's arrays).
 
-  scale = max(W' / W, H' / H) + 1e-8, the resized size floor((W, H) * scale); the image with PIL
-  Lanczos when shrinking, bicubic otherwise, the depth with OpenCV nearest; the crop box is the
-  rounded shift of the principal point (cropping.py:60-132). Returns (image [H', W', 3] uint8,
-  depth [H', W'] float32, K float32). Portrait views (H > 1.1 W), which the branch crops in
-  portrait and turns to landscape, are refused; the benchmark data has none.
+  Returns (image [H', W', 3] uint8, depth [H', W'] float32, K float32). Portrait views (H > 1.1 W),
+  which the branch crops in portrait and turns to landscape, are refused; the benchmark data has
+  none.
   """
-  import PIL.Image
-
   h, w = image.shape[:2]
   if depth.shape != (h, w):
     raise ValueError(f"{where}: image is {h}x{w} but depth is {depth.shape}")
   if h > 1.1 * w:
     raise ValueError(f"{where}: portrait view {h}x{w}; the official benches only have landscape")
-  out_wh = np.array([size[1], size[0]])
-  scale = np.max(out_wh / np.array([w, h])) + 1e-8  # a float64 scalar, as the branch's
-  new_wh = np.floor(np.array([w, h]) * scale).astype(int)
-  resample = PIL.Image.Resampling.LANCZOS if scale < 1 else PIL.Image.Resampling.BICUBIC
-  img = np.asarray(PIL.Image.fromarray(np.ascontiguousarray(image)).resize(tuple(new_wh), resample))
-  depth = cv2.resize(np.asarray(depth, _F), tuple(int(v) for v in new_wh),
-                     interpolation=cv2.INTER_NEAREST)
-  K = _crop_camera(K, (w, h), new_wh, scale)
-  K_crop = _crop_camera(K, new_wh, out_wh)
-  left, top = np.round(K[:2, 2] - K_crop[:2, 2]).astype(np.int32)
-  img = img[top:top + size[0], left:left + size[1]]
-  depth = depth[top:top + size[0], left:left + size[1]]
-  K[0, 2] -= left
-  K[1, 2] -= top
-  return np.ascontiguousarray(img), np.ascontiguousarray(depth), K
+  v = official_ops.resize_cover_center_crop(
+      official_ops.StaticView(image, depth, np.array(K, _F), np.eye(4)), size)
+  return v.image, v.depth, v.K
 
 
 # --------------------------------------------------------------------------- TA-WB stored labels
 def resize_short_center_crop(image0, image1, flow, masks, size=BENCH_SIZE):
-  """Stored labels -> the bench crop (ResizeShortAxis + CenterCrop of the branch).
+  """Stored labels -> the bench crop (ResizeShortAxis + CenterCrop of the branch:
+  `official_ops.center_flow_crop`, images exact to torch's).
 
-  image0/1 [H, W, 3] uint8, flow [H, W, 2], masks {name: [H, W] bool} with `non_occluded`.
-  Resize by r = max(H' / H + 1e-8, W' / W + 1e-8) to (int(H r), int(W r)): images with torch's
-  antialiased bilinear and a truncating cast to uint8, flow and masks with legacy nearest (flow
-  scaled per axis); centre crop; `non_occluded` then also requires the flow target inside the crop
-  (0 <= x < W', 0 <= y < H'), and every other mask is ANDed with the cropped `non_occluded` before
-  that test (flow_manipulation.py:295-313: the branch's `additional_masks`).
+  image0/1 [H, W, 3] uint8, flow [H, W, 2], masks {name: [H, W] bool} with `non_occluded` (and
+  optionally `fov`, `occlusion_supervision`). `non_occluded` then also requires the flow target
+  inside the crop, and the other masks are ANDed with the cropped `non_occluded` before that test
+  (flow_manipulation.py:295-313: the branch's `additional_masks`).
   Returns (image0, image1, flow, masks) at `size`.
   """
-  from ufm_jax import inference
-
-  h, w = image0.shape[:2]
   if image1.shape != image0.shape:
     raise ValueError(f"image shapes differ: {image0.shape} vs {image1.shape}")
-  th, tw = size
-  r = max(th / h + 1e-8, tw / w + 1e-8)
-  rh, rw = int(h * r), int(w * r)
-
-  def img(x):
-    return inference.resize_bilinear_aa(np.asarray(x, _F), (rh, rw)).astype(np.uint8)
-
-  image0, image1 = img(image0), img(image1)
-  flow = inference.resize_nearest(np.asarray(flow, _F), (rh, rw)).copy()
-  flow[..., 0] *= rw / w
-  flow[..., 1] *= rh / h
-  masks = {k: inference.resize_nearest(np.asarray(m, bool), (rh, rw)) for k, m in masks.items()}
-  top, left = (rh - th) // 2, (rw - tw) // 2
-  crop = (slice(top, top + th), slice(left, left + tw))
-  image0, image1, flow = image0[crop], image1[crop], np.ascontiguousarray(flow[crop])
-  masks = {k: m[crop] for k, m in masks.items()}
-  gy, gx = np.mgrid[0:th, 0:tw].astype(_F)
-  tx, ty = gx + flow[..., 0], gy + flow[..., 1]
-  inside = (tx >= 0) & (ty >= 0) & (tx < tw) & (ty < th)
-  nonocc = masks["non_occluded"]
-  out = {k: m & nonocc for k, m in masks.items() if k != "non_occluded"}
-  out["non_occluded"] = nonocc & inside
-  return np.ascontiguousarray(image0), np.ascontiguousarray(image1), flow, out
+  crop = official_ops.center_flow_crop(image0.shape[:2], size)
+  image0, image1 = official_ops.flow_crop_images(image0, image1, crop, exact=True)
+  names = {"non_occluded": "covisibility", "fov": "fov_mask",
+           "occlusion_supervision": "covis_valid"}
+  unknown = sorted(set(masks) - set(names))
+  if unknown or "non_occluded" not in masks:
+    raise ValueError(f"masks {sorted(masks)}: need non_occluded, optionally fov and "
+                     "occlusion_supervision")
+  labels = official_ops.flow_crop_labels(
+      {"flow": flow, **{names[k]: m for k, m in masks.items()}}, crop, 0, "center_forward")
+  return (image0, image1, labels["flow"], {k: labels[names[k]] for k in masks})
 
 
 # ----------------------------------------------------------------------------- AnyMap pair tables
@@ -142,10 +98,11 @@ class BranchPosedPairs:
   """A wide-baseline dense bench of the benchmark branch over posed views.
 
   Pairs: every `stride`-th row of the pair table. Both views go through `crop_resize_view`, then
-  `branch_static_labels` gives flow (0 -> 1), covisibility (the branch's `covisible_mask`),
+  `geometry.official_labels` gives flow (0 -> 1), covisibility (the branch's `covisible_mask`),
   flow_valid (its `valid_mask`: in view and valid source depth) and covis_valid (its
-  `occlusion_supervision_mask`). Subclasses set name, pairs_file, stride, thresholds (a, T, r of
-  benchmark_labels.BRANCH_THRESHOLDS) and implement `load_view`.
+  `occlusion_supervision_mask`). Subclasses set name, pairs_file, stride, thresholds ((absolute,
+  temperature, relative) of geometry.thresholds.BENCHMARK_RENDERING_PARAMETERS) and implement
+  `load_view`.
   """
 
   name = "branch"
@@ -193,22 +150,10 @@ class BranchPosedPairs:
       image, depth, K = crop_resize_view(image, depth, K, self.size, f"{self.name}:{scene}/{f}")
       views.append((image, depth, K, np.linalg.inv(np.asarray(w2c, _F))))
     (im0, d0, K0, c2w0), (im1, d1, K1, c2w1) = views
-    lab = benchmark_labels.branch_static_labels(d0, K0, c2w0, d1, K1, c2w1, self.thresholds)
+    lab = geometry.official_labels(d0, K0, c2w0, d1, K1, c2w1, self.thresholds)
     meta = dict(dataset=self.name, scene=scene, frame0=f0, frame1=f1, K0=K0, K1=K1,
                 cam2world0=c2w0, cam2world1=c2w1, depth0=d0, depth1=d1,
                 gt_relpath=f"{scene}/{f0}_{f1}.flo")
-    return dict(image0=im0, image1=im1, flow=lab["flow"], covisibility=lab["non_occluded"],
-                flow_valid=lab["fov_mask"], covis_valid=lab["occlusion_supervision"], meta=meta)
+    return dict(image0=im0, image1=im1, flow=lab["flow"], covisibility=lab["covisibility"],
+                flow_valid=lab["flow_valid"], covis_valid=lab["covis_valid"], meta=meta)
 
-
-def load_npy(path: str, what: str, shape=None) -> np.ndarray:
-  """A .npy array, with its path in every error."""
-  if not os.path.isfile(path):
-    raise FileNotFoundError(f"{path}: missing file (expected {what})")
-  try:
-    arr = np.load(path, allow_pickle=False)
-  except ValueError as e:
-    raise ValueError(f"{path}: not a .npy array ({e})") from None
-  if shape is not None and arr.size != int(np.prod(shape)):
-    raise ValueError(f"{path}: expected {what} of shape {shape}, got {arr.shape}")
-  return arr.reshape(shape) if shape is not None else arr

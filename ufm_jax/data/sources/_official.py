@@ -17,6 +17,8 @@ FileNotFoundError for a missing one, so the training pipeline skips, counts and 
 
 from __future__ import annotations
 
+import glob
+import json
 import logging
 import os
 import re
@@ -90,28 +92,60 @@ def load_npz(path: str, keys: Iterable[str] | None = None, allow_pickle: bool = 
     raise ValueError(f"{path}: not a readable .npz ({type(e).__name__}: {e})") from None
 
 
-def load_npy(path: str, allow_pickle: bool = False) -> np.ndarray:
+def load_npy(path: str, what: str | None = None, shape=None, allow_pickle: bool = False
+             ) -> np.ndarray:
+  """A .npy array, with its path (and `what` it should hold) in every error; `shape`: reshaped
+  to it, refused unless it has that many elements."""
+  expected = f" (expected {what})" if what else ""
   if not os.path.isfile(path):
-    raise FileNotFoundError(f"{path}: file not found")
+    raise FileNotFoundError(f"{path}: file not found{expected}")
   try:
-    return np.load(path, allow_pickle=allow_pickle)
+    arr = np.load(path, allow_pickle=allow_pickle)
   except (OSError, ValueError, EOFError) as e:
     raise ValueError(f"{path}: not a readable .npy ({type(e).__name__}: {e})") from None
+  if shape is None:
+    return arr
+  if arr.size != int(np.prod(shape)):
+    raise ValueError(f"{path}: expected {what or 'an array'} of shape {tuple(shape)}, got "
+                     f"{arr.shape}")
+  return arr.reshape(shape)
 
 
 # ---------------------------------------------------------------------------- distributed h5
 
+def read_index_maps(folder) -> dict[int, tuple[str, int]]:
+  """{sample: (h5 file name, index in file)} from every index-map JSON of a folder in the
+  official `DistributedH5Reader` format (uniflowmatch/datasets/utils/distributed_h5.py): entries
+  [file name, index in file] or {file_name, file_index}; JSONs that are not such a dict, or hold
+  `forward_match_errors` (TA-WB's statistics, match_errors.json), are not index maps."""
+  entries = {}
+  for path in sorted(glob.glob(os.path.join(folder, "*.json"))):
+    with open(path) as f:
+      try:
+        m = json.load(f)
+      except ValueError as e:
+        raise ValueError(f"{path}: not JSON ({e})") from e
+    if not isinstance(m, dict) or "forward_match_errors" in m:
+      continue
+    for k, v in m.items():
+      try:
+        v = (v["file_name"], v["file_index"]) if isinstance(v, dict) else v
+        entries[int(k)] = (str(v[0]), int(v[1]))
+      except (KeyError, IndexError, TypeError, ValueError) as e:
+        raise ValueError(f"{path}: entry {k!r} is {v!r}, expected [h5 file, index]") from e
+  if not entries:
+    raise FileNotFoundError(f"{folder}: no index-map JSON (sample -> [h5 file, index])")
+  return entries
+
+
 class H5Index:
-  """The official `DistributedH5Reader` (uniflowmatch/datasets/utils/distributed_h5.py): the
-  .json files of `folder` map dataset index -> [file name, index in file] or {file_name,
-  file_index} (`tawb.read_index_maps`: json files that are not such a dict, or hold
-  `forward_match_errors` like TA-WB's match_errors.json, are not index maps), or `entries`."""
+  """The official `DistributedH5Reader`: the index maps of `folder` (`read_index_maps`), or
+  `entries`."""
 
   def __init__(self, folder: str, entries: Mapping[int, tuple[str, int]] | None = None):
     self.folder = folder
     if entries is None:
-      from ufm_jax.data.sources import tawb  # pylint: disable=g-import-not-at-top
-      entries = tawb.read_index_maps(folder)
+      entries = read_index_maps(folder)
     self.entries = dict(entries)
     if not self.entries:
       raise FileNotFoundError(f"{folder}: no entries mapping sample index -> (h5 file, index)")

@@ -32,8 +32,8 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
-from ufm_jax.data.sources import _benchmark_branch, posed
-from ufm_jax.geometry.benchmark_labels import BRANCH_THRESHOLDS
+from ufm_jax.data.sources import _benchmark_branch, _official, posed
+from ufm_jax.geometry.thresholds import BENCHMARK_RENDERING_PARAMETERS
 
 EVAL_SCANS = (1, 4, 9, 10, 11, 12, 13, 15, 23, 24, 29, 32, 33, 34, 48, 49, 62, 75, 77, 110, 114,
               118)
@@ -94,15 +94,15 @@ class DTUOfficial(_benchmark_branch.BranchPosedPairs):
   name = "dtu_official"
   pairs_file = "dtu_valid_pairs.npz"
   stride = 50
-  thresholds = BRANCH_THRESHOLDS["dtu"]
+  thresholds = BENCHMARK_RENDERING_PARAMETERS["dtu"]
 
   def load_view(self, scene, view):
     d = os.path.join(self.root, scene)
     image = io.read_image(os.path.join(d, "images", view + ".png"))
-    depth = _benchmark_branch.load_npy(os.path.join(d, "depths", view + ".npy"),
-                                       "an [H, W] z-depth map (mm)", image.shape[:2])
-    K = _benchmark_branch.load_npy(os.path.join(d, "camera_params", view + "_intrinsics.npy"),
-                                   "a 3x3 intrinsic matrix", (3, 3))
-    w2c = _benchmark_branch.load_npy(os.path.join(d, "poses", view + ".npy"),
-                                     "a 4x4 world-to-camera pose (mm)", (4, 4))
+    depth = _official.load_npy(os.path.join(d, "depths", view + ".npy"),
+                               "an [H, W] z-depth map (mm)", image.shape[:2])
+    K = _official.load_npy(os.path.join(d, "camera_params", view + "_intrinsics.npy"),
+                           "a 3x3 intrinsic matrix", (3, 3))
+    w2c = _official.load_npy(os.path.join(d, "poses", view + ".npy"),
+                             "a 4x4 world-to-camera pose (mm)", (4, 4))
     return image, depth.astype(np.float32), K, w2c

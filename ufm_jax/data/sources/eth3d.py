@@ -28,9 +28,9 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
-from ufm_jax.data.sources import _benchmark_branch, posed
-from ufm_jax.geometry.benchmark_labels import BRANCH_THRESHOLDS
+from ufm_jax.data.sources import _benchmark_branch, _official, posed
 from ufm_jax.data.sources.scannetpp import WaiScenes, wai_view
+from ufm_jax.geometry.thresholds import BENCHMARK_RENDERING_PARAMETERS
 
 
 @register("eth3d")
@@ -66,16 +66,16 @@ class ETH3DOfficial(_benchmark_branch.BranchPosedPairs):
   name = "eth3d_official"
   pairs_file = "eth3d_valid_pairs.npz"
   stride = 3
-  thresholds = BRANCH_THRESHOLDS["eth3d"]
+  thresholds = BENCHMARK_RENDERING_PARAMETERS["eth3d"]
 
   def load_view(self, scene, view):
     d = os.path.join(self.root, scene)
     image = io.read_image(os.path.join(d, "undistorted_images", view + ".jpg"))
-    depth = _benchmark_branch.load_npy(os.path.join(d, "undistorted_depths", view + ".npy"),
-                                       "an [H, W] z-depth map", image.shape[:2])
-    fx, fy, cx, cy = _benchmark_branch.load_npy(
+    depth = _official.load_npy(os.path.join(d, "undistorted_depths", view + ".npy"),
+                               "an [H, W] z-depth map", image.shape[:2])
+    fx, fy, cx, cy = _official.load_npy(
         os.path.join(d, "undistorted_camera_params", view + ".npy"), "fx, fy, cx, cy", (4,))
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float32)
-    w2c = _benchmark_branch.load_npy(os.path.join(d, "poses", view + ".npy"),
-                                     "a 4x4 world-to-camera pose", (4, 4))
+    w2c = _official.load_npy(os.path.join(d, "poses", view + ".npy"),
+                             "a 4x4 world-to-camera pose", (4, 4))
     return image, depth.astype(np.float32), K, w2c

@@ -39,6 +39,17 @@ def read_camera_params(path):
   return K, c2w
 
 
+def read_view(stem: str) -> posed.View:
+  """A DUSt3R Habitat render `<stem>.jpeg`, `<stem>_depth.exr`, `<stem>_camera_params.json`, as
+  stored (the camera in float64, the principal point in its corner-origin frame)."""
+  K, c2w = read_camera_params(f"{stem}_camera_params.json")
+  if not np.isfinite(c2w).all():
+    raise ValueError(f"{stem}_camera_params.json: non-finite pose")
+  image = io.read_image(f"{stem}.jpeg")
+  depth = posed.sanitize_depth(exr.read_exr(f"{stem}_depth.exr"))
+  return posed.View(image, depth, K, c2w)
+
+
 @register("habitat")
 class Habitat(posed.PosedPairSource):
   name = "habitat"
@@ -76,13 +87,7 @@ class Habitat(posed.PosedPairSource):
             yield scene, f"{key}_1", f"{key}_{j}"
 
   def load_view(self, scene, frame):
-    d = os.path.join(self.root, scene)
-    K, c2w = read_camera_params(os.path.join(d, f"{frame}_camera_params.json"))
-    if not np.isfinite(c2w).all():
-      raise ValueError(f"{os.path.join(d, frame)}_camera_params.json: non-finite pose")
-    image = io.read_image(os.path.join(d, f"{frame}.jpeg"))
-    depth = posed.sanitize_depth(exr.read_exr(os.path.join(d, f"{frame}_depth.exr")))
-    return posed.View(image, depth, K, c2w)
+    return read_view(os.path.join(self.root, scene, frame))
 
 
 # ------------------------------------------------------------------------ official processed layout
@@ -119,14 +124,9 @@ class HabitatProcessed(_official.OfficialPosed, posed.PosedPairSource):
         yield scene, f"{key}_1", f"{key}_{j}"
 
   def load_view(self, scene, frame):
-    d = os.path.join(self.root, scene)
-    K, c2w = read_camera_params(os.path.join(d, f"{frame}_camera_params.json"))
-    if not np.isfinite(c2w).all():
-      raise ValueError(f"{os.path.join(d, frame)}_camera_params.json: non-finite pose")
-    K = K.astype(np.float32)
+    stem = os.path.join(self.root, scene, frame)
+    v = read_view(stem)
+    K = v.K.astype(np.float32)
     K[:2, 2] -= 0.5
-    image = io.read_image(os.path.join(d, f"{frame}.jpeg"))
-    depth = posed.sanitize_depth(exr.read_exr(os.path.join(d, f"{frame}_depth.exr")))
-    return posed.check_view(posed.View(image, depth, K.astype(np.float64),
-                                       c2w.astype(np.float32).astype(np.float64)),
-                            os.path.join(d, frame))
+    return posed.check_view(posed.View(v.image, v.depth, K.astype(np.float64),
+                                       v.cam2world.astype(np.float32).astype(np.float64)), stem)

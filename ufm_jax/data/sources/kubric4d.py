@@ -300,7 +300,7 @@ class Kubric4D(posed.PosedPairSource):
     return self._pair(scene, f0, f1, backward=True)
 
   def _pair(self, scene, f0, f1, backward: bool) -> "KubricPair":
-    from ufm_jax import geometry
+    from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
     v0, seg0, m0, t0 = self._view(scene, f0)
     # The target's segmentation is read only for backward labels.
     v1, seg1, m1, t1 = self._view(scene, f1, with_segmentation=backward)
@@ -309,12 +309,16 @@ class Kubric4D(posed.PosedPairSource):
       if seg is not None and seg.shape != v.depth.shape:
         raise ValueError(f"kubric4d:{scene}/{f}: segmentation {seg.shape} vs depth "
                          f"{v.depth.shape}")
-    # Object poses are scene properties; every view's metadata carries them (each direction
-    # takes its source view's).
     return KubricPair(v0, v1, tuple(self.thresholds or geometry.covis_thresholds(self.name)),
                       self.name, scene, (f0, f1), (t0, t1), seg0, seg1,
-                      (object_poses(m0, t0), object_poses(m0, t1)),
-                      (object_poses(m1, t1), object_poses(m1, t0)))
+                      *self._object_poses(m0, t0, m1, t1))
+
+  def _object_poses(self, m0, t0, m1, t1):
+    """(forward, backward) object poses, each at (source time, target time). Object poses are
+    scene properties; every view's metadata carries them (each direction takes its source
+    view's)."""
+    return ((object_poses(m0, t0), object_poses(m0, t1)),
+            (object_poses(m1, t1), object_poses(m1, t0)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -443,19 +447,10 @@ class Kubric4DProcessed(Kubric4D):
         if with_segmentation else None
     return posed.View(image, depth, K, c2w), seg, (m, v), t
 
-  def _pair(self, scene, f0, f1, backward: bool) -> "KubricPair":
-    from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
-    v0, seg0, m0, t0 = self._view(scene, f0)
-    v1, seg1, m1, t1 = self._view(scene, f1, with_segmentation=backward)
-    for v, seg, f in ((v0, seg0, f0), (v1, seg1, f1)):
-      posed.check_view(v, f"kubric4d:{scene}/{f}")
-      if seg is not None and seg.shape != v.depth.shape:
-        raise ValueError(f"kubric4d:{scene}/{f}: segmentation {seg.shape} vs depth "
-                         f"{v.depth.shape}")
+  def _object_poses(self, m0, t0, m1, t1):
     # The official takes each view's object poses from its own view's metadata row.
     p0, p1 = _npz_object_poses(*m0, t0), _npz_object_poses(*m1, t1)
-    return KubricPair(v0, v1, tuple(self.thresholds or geometry.covis_thresholds(self.name)),
-                      self.name, scene, (f0, f1), (t0, t1), seg0, seg1, (p0, p1), (p1, p0))
+    return (p0, p1), (p1, p0)
 
   def __getitem__(self, i):
     sample = super().__getitem__(i)

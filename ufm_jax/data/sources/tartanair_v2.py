@@ -23,7 +23,6 @@ from __future__ import annotations
 import functools
 import os
 
-import cv2
 import numpy as np
 
 from ufm_jax.data import decode
@@ -48,12 +47,6 @@ def read_depth_png(path: str) -> np.ndarray:
     raise ValueError(f"{path}: expected a 4-channel uint8 PNG holding float32 depth, got "
                      f"{None if raw is None else (raw.shape, raw.dtype)}")
   return np.ascontiguousarray(raw).view("<f4")[..., 0]
-
-
-def write_depth_png(path: str, depth: np.ndarray) -> None:
-  d = np.ascontiguousarray(np.asarray(depth, "<f4"))
-  if not cv2.imwrite(path, d.view(np.uint8).reshape(d.shape + (4,))):
-    raise OSError(f"{path}: could not write depth PNG")
 
 
 def read_poses_ned(path: str) -> np.ndarray:

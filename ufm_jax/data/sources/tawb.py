@@ -25,51 +25,13 @@ The bench takes samples 0..1499 (`__len__` = 1500) and brings them to 560x420 wi
 
 from __future__ import annotations
 
-import glob
-import json
 import os
 
-import h5py
 import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
-from ufm_jax.data.sources import _benchmark_branch, exr, posed
-
-
-def _load_npy(path, shape, what):
-  posed.require_file(path, what)
-  try:
-    arr = np.load(path)
-  except ValueError as e:
-    raise ValueError(f"{path}: not a .npy array ({e})") from e
-  if arr.shape != shape:
-    raise ValueError(f"{path}: expected shape {shape} ({what}), got {arr.shape}")
-  return arr.astype(np.float64)
-
-
-def read_index_maps(split_dir) -> dict[int, tuple[str, int]]:
-  """{sample: (h5 file name, index in file)} from every index-map JSON of a TA-WB HDF5 split
-  (the official DistributedH5Reader format); statistics JSONs (`forward_match_errors`) and
-  non-dict JSONs are skipped."""
-  entries = {}
-  for path in sorted(glob.glob(os.path.join(split_dir, "*.json"))):
-    with open(path) as f:
-      try:
-        m = json.load(f)
-      except ValueError as e:
-        raise ValueError(f"{path}: not JSON ({e})") from e
-    if not isinstance(m, dict) or "forward_match_errors" in m:
-      continue
-    for k, v in m.items():
-      try:
-        v = (v["file_name"], v["file_index"]) if isinstance(v, dict) else v
-        entries[int(k)] = (str(v[0]), int(v[1]))
-      except (KeyError, IndexError, TypeError, ValueError) as e:
-        raise ValueError(f"{path}: entry {k!r} is {v!r}, expected [h5 file, index]") from e
-  if not entries:
-    raise FileNotFoundError(f"{split_dir}: no index-map JSON (sample -> [h5 file, index])")
-  return entries
+from ufm_jax.data.sources import _benchmark_branch, _official, exr, posed
 
 
 @register("tawb")
@@ -108,8 +70,10 @@ class TAWB(posed.PosedPairSource):
     depth = posed.sanitize_depth(exr.read_exr(os.path.join(d, "depth", f"{frame}.exr")))
     if self.percentile_cut is not None and (depth > 0).any():
       depth[depth > np.percentile(depth[depth > 0], self.percentile_cut)] = 0
-    K = _load_npy(os.path.join(d, "camera_params", f"{frame}.npy"), (3, 3), "3x3 intrinsics")
-    c2w = _load_npy(os.path.join(d, "poses", f"{frame}.npy"), (4, 4), "4x4 camera-to-world")
+    K = _official.load_npy(os.path.join(d, "camera_params", f"{frame}.npy"), "3x3 intrinsics",
+                           (3, 3)).astype(np.float64)
+    c2w = _official.load_npy(os.path.join(d, "poses", f"{frame}.npy"), "4x4 camera-to-world",
+                             (4, 4)).astype(np.float64)
     return posed.View(image, depth, K, c2w)
 
 
@@ -131,30 +95,22 @@ class TAWBOfficial:
       raise ValueError("tawb_official: a root is required (the official TA-WB/ folder)")
     self.dir = io.check_dir(os.path.join(os.fspath(root), split),
                             "TA-WB <split>/*.json index maps + *.h5 shards (download_ta_wb.sh)")
-    index = read_index_maps(self.dir)
-    n = min(int(num), len(index))
-    missing = [k for k in range(n) if k not in index]
+    self.index = _official.H5Index(self.dir)
+    n = min(int(num), len(self.index))
+    missing = [k for k in range(n) if k not in self.index.entries]
     if missing:
       raise ValueError(f"{self.dir}: the index maps lack samples {missing[:5]} of 0..{n - 1}")
-    self.entries = [index[k] for k in range(n)]
+    self.num = n
     self.size = tuple(size)
 
   def __len__(self):
-    return len(self.entries)
-
-  def read(self, i) -> dict:
-    fname, j = self.entries[i]
-    path = posed.require_file(os.path.join(self.dir, fname), "a TA-WB HDF5 shard")
-    with h5py.File(path, "r") as f:
-      try:
-        return {k: np.asarray(f[k][j]) for k in self.KEYS}
-      except KeyError as e:
-        raise ValueError(f"{path}: sample {i} (index {j}): missing {e}; expected datasets "
-                         f"{', '.join(self.KEYS)}") from None
+    return self.num
 
   def __getitem__(self, i):
-    d = self.read(i)
-    where = os.path.join(self.dir, self.entries[i][0])
+    if not 0 <= i < self.num:
+      raise IndexError(f"tawb_official: sample {i} of {self.num}")
+    d = self.index.read(i, self.KEYS)
+    where = self.index.location(i)[0]
     h, w = d["img0"].shape[:2]
     if d["img0"].shape != (h, w, 3) or d["img1"].shape != (h, w, 3):
       raise ValueError(f"{where}: sample {i}: images {d['img0'].shape}, {d['img1'].shape}, "
@@ -169,7 +125,8 @@ class TAWBOfficial:
         raise ValueError(f"{where}: sample {i}: {key} is {d[key].shape}, expected {(h, w)}")
       masks[name] = d[key].astype(bool)
     flow = np.moveaxis(d["flow_fwd"].astype(np.float32), 0, -1)
-    io.require_finite(flow, f"{where} sample {i}", masks["fov"])
+    # The crop's in-view test lets NaN through (as the official one): refuse it where it counts.
+    io.require_finite(flow, f"{where} sample {i}", masks["fov"] | masks["non_occluded"])
     im0, im1, flow, m = _benchmark_branch.resize_short_center_crop(
         d["img0"].astype(np.uint8), d["img1"].astype(np.uint8), flow, masks, self.size)
     meta = dict(dataset="tawb_official", scene="data", frame0=f"{i:06d}_0", frame1=f"{i:06d}_1",
