@@ -2,7 +2,8 @@
 the public fixtures do not cover, random parameters for them, official-style snapshot folders,
 random weights in official namings, the skip-or-fail rule of optional extras. Submodules:
 `wide_trees` (tiny trees in the real on-disk formats of the wide-baseline and benchmark datasets),
-`train_support` (a stand-in model, data and config for the training-machinery tests)."""
+`train_support` (a stand-in model, data and config for the training-machinery tests);
+`training_fixtures()` locates the official training-code fixtures."""
 
 from __future__ import annotations
 
@@ -30,6 +31,29 @@ def require_extra(extra: str, modules) -> None:
     if os.environ.get("CI") == "true":
       pytest.fail(msg + " (CI installs the test extra, which includes it)")
     pytest.skip(msg)
+
+
+def training_fixtures(subdir: str | None = None) -> pathlib.Path:
+  """The folder of the official training-code fixtures (`UFM_TRAINING_FIXTURES`, default
+  `../shared/fixtures/ufm_training` beside the repository), or `subdir` of it.
+
+  Missing: skips the calling test with a reason naming UFM_TRAINING_FIXTURES; under CI=true
+  fails instead, so CI can never pass the training parity tests by skipping them.
+  """
+  import os
+
+  import pytest
+  repo = pathlib.Path(__file__).resolve().parents[2]
+  default = repo.parent / "shared" / "fixtures" / "ufm_training"
+  root = pathlib.Path(os.environ.get("UFM_TRAINING_FIXTURES", default))
+  folder = root / subdir if subdir else root
+  if not folder.is_dir():
+    msg = (f"official training fixtures not found at {folder}: set UFM_TRAINING_FIXTURES to the "
+           "folder that holds losses/, schedules/, labels/, processed/")
+    if os.environ.get("CI", "").lower() == "true":
+      pytest.fail(msg + " (CI=true: parity tests may not be skipped)")
+    pytest.skip(msg)
+  return folder
 
 
 def write_snapshot(folder, config: dict, state: dict, metadata=None) -> pathlib.Path:
