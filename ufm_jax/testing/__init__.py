@@ -33,6 +33,16 @@ def require_extra(extra: str, modules) -> None:
     pytest.skip(msg)
 
 
+def training_fixtures_root() -> pathlib.Path:
+  """Where the official training-code fixtures are looked for (`UFM_TRAINING_FIXTURES`, default
+  `../shared/fixtures/ufm_training` beside the repository), without checking it exists: for
+  discovering the cases a folder lists when pytest collects (missing: no cases)."""
+  import os
+  repo = pathlib.Path(__file__).resolve().parents[2]
+  default = repo.parent / "shared" / "fixtures" / "ufm_training"
+  return pathlib.Path(os.environ.get("UFM_TRAINING_FIXTURES", default))
+
+
 def training_fixtures(subdir: str | None = None) -> pathlib.Path:
   """The folder of the official training-code fixtures (`UFM_TRAINING_FIXTURES`, default
   `../shared/fixtures/ufm_training` beside the repository), or `subdir` of it.
@@ -43,10 +53,7 @@ def training_fixtures(subdir: str | None = None) -> pathlib.Path:
   import os
 
   import pytest
-  repo = pathlib.Path(__file__).resolve().parents[2]
-  default = repo.parent / "shared" / "fixtures" / "ufm_training"
-  root = pathlib.Path(os.environ.get("UFM_TRAINING_FIXTURES", default))
-  folder = root / subdir if subdir else root
+  folder = training_fixtures_root() / subdir if subdir else training_fixtures_root()
   if not folder.is_dir():
     msg = (f"official training fixtures not found at {folder}: set UFM_TRAINING_FIXTURES to the "
            "folder that holds losses/, schedules/, labels/, processed/")
