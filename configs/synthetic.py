@@ -64,7 +64,7 @@ def get_config(arg=None):
                      "multiplier": 1.0, "multiplier_applied": False, "invalid_gt": "zero",
                      "eps": 1e-4},
       "covisibility_ce": {"type": "bce", "multiplier": 10.0, "eps": 1e-6},
-      "shared_cleanup": True})
+      "shared_cleanup": True, "groups": 1})
   c.model_name = arg.model
   # Unrolled: segments of 1-2 blocks gain nothing from scan, and the measured figures of
   # docs/synthetic_training.md are of this layout.

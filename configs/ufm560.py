@@ -64,6 +64,9 @@ def get_config(arg=None):
                      "multiplier": 1.0, "multiplier_applied": False, "invalid_gt": "zero",
                      "eps": 1e-4},
       "covisibility_ce": {"type": "bce", "multiplier": 10.0, "eps": 1e-6},
-      "shared_cleanup": True})
+      "shared_cleanup": True,
+      # Official: DDP, each GPU's own loss over its rows, gradients averaged; the GPU count of
+      # the paper's runs is unknown (losses.Recipe.groups). 1: one loss over the global batch.
+      "groups": 1})
   c.evals = ml_collections.ConfigDict({"sintel": config_lib.bench_eval("sintel")})
   return c

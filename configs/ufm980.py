@@ -51,6 +51,9 @@ def get_config(arg=None):
       "epe_all": {"type": "robust", "range": "all", "margin": 0.25, "alpha": 0.5, "c": 0.24,
                   "multiplier": 1.0, "multiplier_applied": False, "invalid_gt": "zero",
                   "eps": 1e-4},
-      "shared_cleanup": True})
+      "shared_cleanup": True,
+      # Official: DDP, each GPU's own loss over its rows, gradients averaged; the GPU count of
+      # the paper's runs is unknown (losses.Recipe.groups). 1: one loss over the global batch.
+      "groups": 1})
   c.evals = ml_collections.ConfigDict({"sintel": config_lib.bench_eval("sintel", resolution="980")})
   return c

@@ -215,3 +215,25 @@ def test_official_yaml_entries_map_to_terms():
                                                                     "multiplier": 10.0}
   with pytest.raises(ValueError, match="fov_mask"):
     losses.from_official("FlowEPELoss", {"supervision_range": "fov_mask"})
+
+
+def test_groups_average_per_group_losses_like_ddp():
+  """loss.groups = N: the mean of N losses over consecutive row blocks (each with its own
+  denominator), as N DDP workers average their gradients."""
+  rng = np.random.default_rng(0)
+  out = {"flow": jnp.asarray(rng.normal(size=(4, 3, 5, 2)), jnp.float32),
+         "covisibility_logits": jnp.asarray(rng.normal(size=(4, 3, 5)), jnp.float32)}
+  covis = rng.random((4, 3, 5)) < 0.5
+  covis[:2] = rng.random((2, 3, 5)) < 0.9      # the groups differ in their pixel counts
+  batch = {"flow": jnp.asarray(rng.normal(size=(4, 3, 5, 2)), jnp.float32),
+           "covisibility": jnp.asarray(covis), "covis_valid": jnp.ones((4, 3, 5), bool)}
+  pooled = losses.recipe_from_config(_config())
+  grouped = losses.recipe_from_config(_config(groups=2))
+  halves = [pooled({k: v[s] for k, v in out.items()}, {k: v[s] for k, v in batch.items()})[0]
+            for s in (slice(0, 2), slice(2, 4))]
+  total, aux = grouped(out, batch)
+  assert float(total) == pytest.approx((float(halves[0]) + float(halves[1])) / 2, rel=1e-6)
+  assert float(total) != pytest.approx(float(pooled(out, batch)[0]), rel=1e-4)
+  assert aux["loss_robust_epe"].shape == ()
+  with pytest.raises(ValueError, match="does not divide"):
+    losses.recipe_from_config(_config(groups=3))(out, batch)

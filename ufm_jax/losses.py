@@ -280,15 +280,41 @@ class Recipe:
   temperature: Optional[float] = None    # the refinement model's (RefinementCE reads it)
   # Rows in official batches that may supervise the refinement: dataset names -> per-row flags.
   dataset_names: Optional[Tuple[str, ...]] = None
+  # The official runs are DDP: each of N GPUs takes the loss over its own rows (its own means
+  # and pixel cap) and the gradients are averaged, i.e. the total is the mean of N per-group
+  # losses over consecutive row blocks. N of the paper's runs is not known (the 560 script's
+  # comment mentions 8 GPUs); 1 pools the whole batch.
+  groups: int = 1
 
   def __call__(self, outputs, batch, rng=None, suitable_rows=None):
+    if rng is None:
+      rng = jax.random.PRNGKey(0)
+    if suitable_rows is None:
+      suitable_rows = self.suitable_rows(batch)
+    if self.groups == 1:
+      return self._pooled(outputs, batch, rng, suitable_rows)
+    b = batch["flow"].shape[0]
+    if b % self.groups:
+      raise ValueError(f"loss.groups={self.groups} does not divide the batch of {b} rows")
+
+    def split(tree):   # [B, ...] leaves -> [G, B/G, ...]; others (attention_bias) shared
+      return jax.tree.map(lambda x: x.reshape((self.groups, b // self.groups) + x.shape[1:])
+                          if getattr(x, "ndim", 0) and x.shape[0] == b else x, tree)
+
+    def axes(tree):
+      return jax.tree.map(lambda x: 0 if getattr(x, "ndim", 0) and x.shape[0] == b else None,
+                          tree)
+
+    total, aux = jax.vmap(self._pooled, in_axes=(axes(outputs), axes(batch), 0,
+                                                 None if suitable_rows is None else 0))(
+        split(outputs), split(batch), jax.random.split(rng, self.groups), split(suitable_rows))
+    return jnp.mean(total), jax.tree.map(jnp.mean, aux)
+
+  def _pooled(self, outputs, batch, rng, suitable_rows):
     pred = outputs.get("flow_before_refinement", outputs.get("flow"))
     shared = {"gt": batch["flow"].astype(jnp.float32),
               "pred": None if pred is None else pred.astype(jnp.float32)}
-    if rng is None:
-      rng = jax.random.PRNGKey(0)
-    ctx = {"temperature": self.temperature,
-           "suitable_rows": self.suitable_rows(batch) if suitable_rows is None else suitable_rows}
+    ctx = {"temperature": self.temperature, "suitable_rows": suitable_rows}
     total = jnp.zeros((), jnp.float32)
     aux = {}
     for i, (name, term) in enumerate(self.terms):
@@ -312,7 +338,8 @@ class Recipe:
 
 def recipe_from_config(cfg: Mapping[str, Any], temperature: Optional[float] = None,
                        dataset_names: Optional[Sequence[str]] = None) -> Recipe:
-  """`config.loss` -> Recipe: {"terms": (names in order), name: {type, fields}, shared_cleanup}."""
+  """`config.loss` -> Recipe: {"terms": (names in order), name: {type, fields}, shared_cleanup,
+  groups}."""
   cfg = dict(cfg.to_dict() if hasattr(cfg, "to_dict") else cfg)
   names = tuple(cfg.pop("terms", ()))
   if not names:
@@ -322,7 +349,8 @@ def recipe_from_config(cfg: Mapping[str, Any], temperature: Optional[float] = No
     raise ValueError(f"config.loss.terms names {missing} without a config.loss.<name> block")
   terms = tuple((n, make_term(cfg.pop(n), n)) for n in names)
   shared_cleanup = bool(cfg.pop("shared_cleanup", True))
+  groups = int(cfg.pop("groups", 1))
   if cfg:
     raise ValueError(f"config.loss: unknown keys {sorted(cfg)} (blocks not named in terms?)")
   return Recipe(terms, shared_cleanup, temperature,
-                None if dataset_names is None else tuple(dataset_names))
+                None if dataset_names is None else tuple(dataset_names), groups)
