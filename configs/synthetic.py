@@ -22,7 +22,7 @@ Where it deviates from the official recipe (configs/ufm560.py, docs/recipe.md) a
 parameter model from scratch (no pretrained DINOv2 exists at this size), with flax's default
 initializers, the `synth` variant's key-equals-query fusion init and flow normalisation (std 8 at
 112 px) and a detached covisibility head (`model.param_init`, `detach_uncertainty_head` left at the
-variant's: the figures of docs/synthetic_training.md were measured so); the `l1` flow loss by
+variant's: the figures of docs/synthetic_training.md come from that setup); the `l1` flow loss by
 default (the paper's robust loss is `loss=paper`); one learning rate for every group, 5% warmup
 and cosine to 0 over a fixed number of steps (rendered data has no epochs); 4 unique pairs per
 step, not augmented. The quirk keys of the loss are the official ones.

@@ -19,7 +19,7 @@ covis_valid (official `occlusion_supervision_mask`), flow_valid (no official cou
 where said), dataset_id. Outputs: flow [B,H,W,2], covisibility_logits [B,H,W]; refinement models
 also flow_before_refinement, feature_map_0/1 [B,H,W,C], attention_bias [P*P]. The regression
 terms read `flow_before_refinement` when present: in training mode the official refinement model
-returns the regressed flow as `flow.flow_output` (models/ufm.py:1006-1017).
+returns the regressed flow as `flow.flow_output` (models/ufm.py:1000-1022).
 
 Official batches are symmetrized ((a, b), (b, a) rows) and every loss averages over all rows
 together (`batch[0]` holds both directions after `make_batch_symmetric`).
