@@ -3,18 +3,29 @@
   python evaluate.py                                    # --bench synthetic on the embedded data
   python evaluate.py --bench sintel --checkpoint DIR --data_root /data
   python evaluate.py --bench all --snapshot UFM-Base/ --data_root /data --out results/
+  python evaluate.py --bench eth3d,dtu,tawb --snapshot UFM-Base/ --data_root /data/ufm_benchmarks
   python evaluate.py --bench kitti --checkpoint DIR --data_root /data/kitti2015 \
-      --resolution native --save_predictions preds/
+      --protocol native --resolution native --save_predictions preds/
+
+--protocol (docs/benchmarks.md): `official` (default) reproduces the UFM benchmark branch on the
+five benches of the paper's Tables 2 and 3 (sintel, kitti, eth3d, dtu, tawb): its data as the
+official download scripts lay it out under --data_root (Sintel/, KITTI/, eth3d_processed/,
+dtu_processed/, anymap_data_pairs/, TA-WB/), its pairs, 560x420 crops, labels and masks, the model
+at its own inference resolution; compare these numbers with the paper. `native` is ours: the
+data/*/ layouts (sintel/, kitti2015/, eth3d/, dtu/, tawb/, scannet1500/), full resolution, any
+--resolution. Benches with no official variant (synthetic, the pose benches) always run natively;
+results.json records the protocol of each bench.
 
 --checkpoint: a converted checkpoint (`python -m ufm_jax convert`), a training workdir, or an
 official snapshot folder; --snapshot forces the latter. Without either, the synthetic training
 workdir (workdirs/synthetic) is used when present, else a randomly initialised small model (the
 numbers are then meaningless, but the whole path runs). --data_root holds one folder per dataset
-(sintel/, kitti2015/, eth3d/, dtu/, tawb/, scannet1500/; see data/*/README.md) or, for a single
-bench, the dataset folder itself. --resolution: 560 / 980 (longest side, source aspect kept, sides
-multiples of 14), `native` (source size rounded to multiples of 14), or unset (the model config's
-inference resolution, as the official predict). Metrics are computed at the dataset's native
-resolution. Runtime = median forward time per pair after warm-up, excluding I/O, resize and unmap.
+(see data/*/README.md) or, for a single bench, the dataset folder itself. --resolution (native
+protocol only): 560 / 980 (longest side, source aspect kept, sides multiples of 14), `native`
+(source size rounded to multiples of 14), or unset (the model config's inference resolution, as
+the official predict). Metrics are computed at the resolution of the bench's samples (native:
+the dataset's; official: 560x420 for eth3d / dtu / tawb). Runtime = median forward time per pair
+after warm-up, excluding I/O, resize and unmap (the mean, the branch's figure, is recorded too).
 The synthetic bench renders the task a train.py workdir was trained on (its config.json: pair type,
 size, shift) on the test split, and reports `epe_zero`, the EPE of predicting no motion, beside
 the model's `epe`: a model that matches is well below it.
@@ -44,7 +55,10 @@ def parse_args(argv=None):
   ap.add_argument("--checkpoint", default=None, help="converted checkpoint, training workdir or snapshot")
   ap.add_argument("--snapshot", default=None, help="official Hugging Face snapshot folder")
   ap.add_argument("--data_root", default=os.environ.get("UFM_DATA"), help="datasets folder ($UFM_DATA)")
-  ap.add_argument("--resolution", default=None, help="560 | 980 | native (default: model config)")
+  ap.add_argument("--protocol", default="official", choices=evaluators.PROTOCOLS,
+                  help="official: the UFM benchmark branch (paper numbers); native: ours")
+  ap.add_argument("--resolution", default=None,
+                  help="560 | 980 | native (default: model config); native protocol only")
   ap.add_argument("--max_pairs", type=int, default=None, help="evaluate at most N pairs per split")
   ap.add_argument("--save_predictions", default=None, help="write .flo + covisibility PNG per pair here")
   ap.add_argument("--num_panels", type=int, default=8, help="panel PNGs for the first N pairs")
@@ -84,13 +98,13 @@ def synthetic_task(path) -> dict:
 
 def load_model(args):
   """(model, params, description) following the --checkpoint / --snapshot rules above."""
-  from ufm_jax import cli
+  from ufm_jax import model_io
   if args.snapshot:
-    return (*cli.load_model(args.snapshot, snapshot=True), os.path.abspath(args.snapshot))
+    return (*model_io.load_model(args.snapshot, snapshot=True), os.path.abspath(args.snapshot))
   if args.checkpoint:
-    return (*cli.load_model(args.checkpoint), os.path.abspath(args.checkpoint))
+    return (*model_io.load_model(args.checkpoint), os.path.abspath(args.checkpoint))
   if os.path.isdir(DEFAULT_WORKDIR):
-    return (*cli.load_model(DEFAULT_WORKDIR), os.path.abspath(DEFAULT_WORKDIR))
+    return (*model_io.load_model(DEFAULT_WORKDIR), os.path.abspath(DEFAULT_WORKDIR))
   return (*random_model(), f"random-init:{RANDOM_MODEL}")
 
 
@@ -116,10 +130,16 @@ def main(argv=None) -> int:
     if unknown:
       print(f"error: unknown bench {unknown}; known: {', '.join(evaluators.BENCHES)}, all", file=sys.stderr)
       return 2
+  benches = {name: evaluators.get_bench(name, args.protocol) for name in names}
+  official = [n for n, b in benches.items() if b.protocol == "official"]
+  if args.resolution is not None and official:
+    print(f"error: --resolution applies to the native protocol only; the official protocol runs "
+          f"{', '.join(official)} at the model's own inference resolution (add --protocol native)",
+          file=sys.stderr)
+    return 2
   # Check data first (cheap), so a missing dataset fails before any model is loaded.
   skipped, sources = {}, {}
-  for name in names:
-    bench = evaluators.BENCHES[name]
+  for name, bench in benches.items():
     try:
       opts = synthetic_task(model_dir(args)) if name == "synthetic" else {}
       sources[name] = {s.label: evaluators.open_source(bench, s, args.data_root, **opts)
@@ -140,21 +160,25 @@ def main(argv=None) -> int:
     print(f"error: {e}", file=sys.stderr)
     return 2
   writer = base.PredictionWriter(args.save_predictions, args.num_panels) if args.save_predictions else None
-  results, counts, runtime = {}, {}, {}
+  results, counts, runtime, runtime_mean = {}, {}, {}, {}
   t0 = time.time()
   for name, srcs in sources.items():
     runner = base.Runner(model, params, args.resolution)
     res, n = evaluators.run_bench(name, runner, args.data_root, args.max_pairs, writer,
-                                  progress=not args.no_progress, sources=srcs, seed=args.seed)
+                                  progress=not args.no_progress, sources=srcs, seed=args.seed,
+                                  protocol=args.protocol)
     results.update(res)
     counts.update(n)
     runtime[name] = runner.ms_per_pair()
+    runtime_mean[name] = runner.ms_per_pair(mean=True)
   payload = {
       "bench": args.bench if args.bench == "all" else ",".join(names),
       "benches_run": list(sources), "skipped": skipped,
+      "protocol": args.protocol, "bench_protocols": {n: benches[n].protocol for n in sources},
       "checkpoint": ckpt, "resolution": args.resolution if args.resolution is not None else "model",
       "n_pairs": counts, "max_pairs": args.max_pairs,
-      "runtime_ms_per_pair": runtime, "wall_time_s": round(time.time() - t0, 1),
+      "runtime_ms_per_pair": runtime, "runtime_ms_per_pair_mean": runtime_mean,
+      "wall_time_s": round(time.time() - t0, 1),
       "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
       "versions": base.summary_versions(),
       "metrics": results,

@@ -42,7 +42,7 @@ def main(argv):
   if config.get("matmul_precision"):
     jax.config.update("jax_default_matmul_precision", config.matmul_precision)
   from ufm_jax import checkpoint as ckpt_lib
-  from ufm_jax import optim, trainer
+  from ufm_jax import loop_control, model_init, optim, trainer
   from ufm_jax.data import io
   from ufm_jax.evaluators import train_evals
 
@@ -94,7 +94,7 @@ def main(argv):
     params = jax.jit(init_fn, out_shardings=param_sh)(rng)
     if config.get("model_init"):
       host_params = jax.tree.map(np.asarray, params)
-      loaded, report = ckpt_lib.load_init_params(config.model_init, host_params, model.config)
+      loaded, report = model_init.load_init_params(config.model_init, host_params, model.config)
       if is_main:
         print(report.summary(), flush=True)
       params = jax.device_put(loaded, param_sh)
@@ -127,8 +127,8 @@ def main(argv):
   t_last, step_last = time.time(), start_step
   t_start, first_step = None, start_step
   step = start_step
-  with ckpt_lib.PreemptionGuard(mesh) as guard:
-    keeper = ckpt_lib.Keeper(manager, guard, config.get("max_nonfinite_steps", 100), start_step)
+  with loop_control.PreemptionGuard(mesh) as guard:
+    keeper = loop_control.SaveAndStop(manager, guard, config.get("max_nonfinite_steps", 100), start_step)
     while step < total_steps:
       batch = next(train_iter)
       state, metrics = p_train_step(state, batch)

@@ -4,6 +4,7 @@
   python benchmarks/data_pipeline.py --longest_side 560 --workers 0,2,4 --batch_size 16
   python benchmarks/data_pipeline.py --config configs/ufm560.py --data_root /data/ufm  # real mixture
   python benchmarks/data_pipeline.py --table1 --longest_side 560 [--native] [--no_keep_heap]  # Table 1 formats
+  python benchmarks/data_pipeline.py --table1 --layouts official  # the official processed layouts
 
 Source per shape: up to --render_max_side the synthetic source renders pairs on the fly at 3:4 of
 the training side; above it (rendering a 420x560 pair takes seconds, far more than reading one), the
@@ -109,11 +110,16 @@ def _input_block(args, longest_side, workers):
 
 def _measured(block, args, longest_side, workers):
   """`block` with the benchmark's batch, shape, worker and read settings."""
+  from ufm_jax.data import augment  # pylint: disable=g-import-not-at-top
   block.batch_size = args.batch_size
   block.longest_side = longest_side
+  official = {560: augment.SHAPES_560, 980: augment.SHAPES_980}.get(longest_side)
+  # The recipes' shapes at 560 and 980 (input.shapes), else W = longest_side with aspect_ratios.
+  block.shapes = official if official and not args.config else block.get("shapes", ())
   block.num_workers = workers
   block.read_threads = args.read_threads
   block.keep_heap = args.keep_heap
+  block.augment = {**dict(block.get("augment", {})), **json.loads(args.augment)}
   if not workers:
     # Synchronous: each timed batch is made inside the timed window. With read threads a
     # prefetch buffer fills during the warm-up and the CPU time of those rows goes uncounted.
@@ -170,6 +176,13 @@ def main(argv=None):
                       "real on-disk format (workers=0), and their mean weighted by the epoch quotas")
   p.add_argument("--native", action="store_true",
                  help="with --table1: the flow datasets' trees at their native frame sizes")
+  p.add_argument("--layouts", default="raw,official",
+                 help="with --table1: which on-disk layouts to measure (raw: the datasets' own "
+                      "releases; official: the official processed layouts, weighted by the "
+                      "official 560 recipe's samples per epoch)")
+  p.add_argument("--augment", default="{}",
+                 help="JSON of input.augment keys (ufm_jax.data.augment.AugmentConfig), e.g. "
+                      "'{\"fast_image_ops\": false}'")
   args = p.parse_args(argv)
   if args.table1:
     return table1(args)
@@ -196,30 +209,50 @@ def main(argv=None):
 
 def table1(args):
   """Per-dataset host CPU ms/row through the whole pipeline (reader, backward labels, checks,
-  augmentation, batching) and the quota-weighted mean over the Table 1 mixture."""
+  augmentation, batching) and the quota-weighted mean: raw layouts weighted by Table 1, the
+  official processed layouts by the official 560 recipe."""
   import tempfile  # pylint: disable=g-import-not-at-top
   import cv2  # pylint: disable=g-import-not-at-top
   cv2.setNumThreads(1)  # a grain worker's share of the host: one core
   side = int(args.longest_side.split(",")[-1])
-  rows = {}
+  layouts = args.layouts.split(",")
   print(f"host CPU ms per training row, workers=0, longest side {side}, batch {args.batch_size}, "
         f"{'symmetrized' if args.symmetrize else 'one direction'}; one-pair trees at "
         f"{3 * side // 4}x{side}{' (flow sets at native sizes)' if args.native else ''}")
-  with tempfile.TemporaryDirectory() as root:
-    options = _table1_trees(root, side, args.native)
-    for name in mixture.QUOTAS:
-      block = _measured(pipeline.input_config(
-          mixture.mixture([name], options={name: options[name]}), symmetrize=args.symmetrize,
-          data_root=root), args, side, 0)
-      _, _, _, cpu_ms = measure(block, args.batches, args.warmup)
-      rows[name] = cpu_ms
-      print(f"  {name:14s} {mixture.QUOTAS[name]:>8d} pairs/epoch {cpu_ms:8.1f} ms/row", flush=True)
-  total = sum(mixture.QUOTAS.values())
-  mean = sum(mixture.QUOTAS[n] * ms for n, ms in rows.items()) / total
-  print(f"  {'Table 1 mean':14s} {total:>8d} pairs/epoch {mean:8.1f} ms/row (weighted by quota)")
-  print(json.dumps({"load_avg_1m": round(os.getloadavg()[0], 2), "longest_side": side,
-                    "native": args.native, "ms_per_row": rows, "table1_mean_ms_per_row": mean}))
-  return mean
+  out = {"load_avg_1m": None, "longest_side": side, "native": args.native,
+         "augment": json.loads(args.augment)}
+  if "raw" in layouts:
+    with tempfile.TemporaryDirectory() as root:
+      options = _table1_trees(root, side, args.native)
+      rows, mean = _table1_rows(args, side, root, mixture.QUOTAS, options, "raw, Table 1")
+    out.update(ms_per_row=rows, table1_mean_ms_per_row=mean)
+  if "official" in layouts:
+    from ufm_jax.testing import official_trees  # pylint: disable=g-import-not-at-top
+    quotas = {n: q for n, (q, _) in mixture.RECIPES["ufm560"].items()}
+    with tempfile.TemporaryDirectory() as root:
+      official_trees.write_official_root(root, (3 * side // 4, side),
+                                         official_trees.NATIVE if args.native else None)
+      rows, mean = _table1_rows(args, side, root, quotas, {}, "official, ufm560 recipe")
+    out.update(official_ms_per_row=rows, official_mean_ms_per_row=mean)
+  out["load_avg_1m"] = round(os.getloadavg()[0], 2)
+  print(json.dumps(out))
+  return out
+
+
+def _table1_rows(args, side, root, quotas, options, what):
+  print(f"  [{what}]")
+  rows = {}
+  for name in quotas:
+    block = _measured(pipeline.input_config(
+        mixture.mixture([name], quotas, options={name: options.get(name, {})}),
+        symmetrize=args.symmetrize, data_root=root), args, side, 0)
+    _, _, _, cpu_ms = measure(block, args.batches, args.warmup)
+    rows[name] = cpu_ms
+    print(f"  {name:14s} {quotas[name]:>8d} pairs/epoch {cpu_ms:8.1f} ms/row", flush=True)
+  total = sum(quotas.values())
+  mean = sum(quotas[n] * ms for n, ms in rows.items()) / total
+  print(f"  {'mean':14s} {total:>8d} pairs/epoch {mean:8.1f} ms/row (weighted by quota)")
+  return rows, mean
 
 
 if __name__ == "__main__":

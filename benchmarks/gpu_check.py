@@ -150,9 +150,9 @@ def parity(fixture_dir):
   """The official snapshot's forward on this device against the official float32 outputs."""
   import jax
   import numpy as np
-  from ufm_jax import convert
+  import ufm_jax
   d = pathlib.Path(fixture_dir)
-  model, params = convert.load_official(d)
+  model, params = ufm_jax.load_official(d)
   io = dict(np.load(d / "io.npz"))
   rows = []
   for label, dtype, precision in (("float32, default precision", "float32", None),

@@ -33,7 +33,7 @@ import ml_collections
 from ufm_jax import config_lib, optim
 from ufm_jax.data import mixture, pipeline
 
-_NO_AUGMENT = {"zoom": (1.0, 1.0), "view_scale_jitter": 0.0, "color_prob": 0.0}
+_NO_AUGMENT = {"enabled": False}
 
 
 def get_config(arg=None):
@@ -52,7 +52,7 @@ def get_config(arg=None):
       mixture.synthetic_mixture(num_pairs=100_000, size=hw, pair_type=arg.pairs, **train_shift),
       batch_size=arg.batch, longest_side=hw[1], aspect_ratios=(1.0,), num_workers=0,
       read_threads=2, prefetch_buffer_size=2,
-      # Every shift pair is a fresh texture already; zoom or per-view scale would break its
+      # Every shift pair is a fresh texture already; the official crops would break its
       # patch-aligned pairs and colour jitter was not needed (measured without any).
       augment=_NO_AUGMENT if arg.pairs == "shift" else None)
   if arg.loss not in ("l1", "paper"):

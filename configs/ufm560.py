@@ -7,11 +7,14 @@ r"""UFM-560: the official training recipe (`bash_scripts/training/megatraining_5
 Full UFM-Base (ViT-L/14 DINOv2 + 12 x 768 fusion + DPT heads), encoder initialised from pretrained
 DINOv2 (`model_init`: the HF facebook/dinov2-large folder or its model.safetensors, or the original
 dinov2_vitl14_pretrain.pth with the torch extra), the rest initialised as the official modules are
-(`model.param_init`). 48 unique pairs per step, symmetrized into 96 rows; 48 epochs; AdamW
-(0.9, 0.95), weight decay 0.05 on every parameter; peak lr 5e-6 (encoder) and 1e-4 (the rest);
-warmup 4.8 epochs, then cosine to 1% of the peak; gradients clipped to global norm 1.0. Loss:
-robust EPE on covisible pixels + 10 x covisibility BCE, whose gradient reaches the trunk
-(`detach_uncertainty_head=False`). Arg `data=of|wb|both` selects the Table 4 data ablation.
+(`model.param_init`). The 12 datasets with the samples per epoch of the official recipe
+(`mixture.RECIPES['ufm560']`: old_setting_100k.yaml), the official training shapes (H in {420,
+364, 308, 280, 168} x 560) and augmentation. 48 unique pairs per step, symmetrized into 96 rows;
+48 epochs; AdamW (0.9, 0.95), weight decay 0.05 on every parameter; peak lr 5e-6 (encoder) and
+1e-4 (the rest); warmup 4.8 epochs, then cosine to 1% of the peak; gradients clipped to global
+norm 1.0. Loss: robust EPE on covisible pixels + 10 x covisibility BCE, whose gradient reaches
+the trunk (`detach_uncertainty_head=False`). Arg `data=of|wb|both` selects the Table 4 data
+ablation (same number of epochs).
 
 Each official quirk is one key below (`loss.*`, `optim.fractional_warmup`); the comment at its
 definition (ufm_jax/losses.py, ufm_jax/optim.py) says what switching it changes, e.g.
@@ -21,7 +24,7 @@ definition (ufm_jax/losses.py, ufm_jax/optim.py) says what switching it changes,
 import ml_collections
 
 from ufm_jax import config_lib, optim
-from ufm_jax.data import mixture, pipeline
+from ufm_jax.data import augment, mixture, pipeline
 
 
 def get_config(arg=None):
@@ -32,8 +35,12 @@ def get_config(arg=None):
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.seed = 42
   c.num_epochs = 48
-  c.input = pipeline.input_config(mixture.mixture(names[arg.data]), batch_size=96,
-                                  longest_side=560)
+  # The official shapes and augmentation (ufm_jax.data.augment, docs/recipe.md); the one
+  # deviation, fast_image_ops (OpenCV's bicubic and HSV for PIL's), keeps the host CPU per row
+  # within budget (docs/host_input.md).
+  c.input = pipeline.input_config(mixture.recipe("ufm560", names[arg.data]), batch_size=96,
+                                  longest_side=560, shapes=augment.SHAPES_560,
+                                  augment={"fast_image_ops": True})
 
   c.model_name = arg.model
   c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)

@@ -12,7 +12,10 @@ order: the plain EPE of the regressed flow (multiplier 0, which the official cod
 a constant, the base being frozen) and 10 x the refinement cross-entropy
 (`ufm_jax.refine_training.RefinementCE`) on at most 400k pixels, only on rows whose dataset the
 official code marks suitable for refinement. 24 unique pairs per step (48 symmetrized rows), 30
-epochs, lr 1e-4 with 3 warmup epochs, cosine to 1%, clipping at 1.0.
+epochs, lr 1e-4 with 3 warmup epochs, cosine to 1%, clipping at 1.0. Data: BlendedMVS, MegaDepth,
+ScanNet++, StaticThings and Habitat with the official recipe's samples per epoch
+(`mixture.RECIPES['refine560']`: static_pinhole_100k.yaml); of these only BlendedMVS trains the
+refiner.
 
 Model: the released UFM-Refine structure (`ufm_refine`). The official recipe trains another one
 (U-Net with BatchNorm, `modulate` feature combination, encoder taps [6, 23], no covisibility head);
@@ -26,7 +29,7 @@ Smoke run on a fresh machine (tiny refine model, embedded synthetic pairs, rando
 import ml_collections
 
 from ufm_jax import config_lib, optim
-from ufm_jax.data import mixture, pipeline
+from ufm_jax.data import augment, mixture, pipeline
 
 
 def get_config(arg=None):
@@ -37,8 +40,13 @@ def get_config(arg=None):
   # Rows of these datasets train the refiner (official `suitable_for_refinement`).
   refine_datasets = ("blendedmvs", "flyingthings", "hypersim")
   if arg.data == "refine":
-    c.input = pipeline.input_config(mixture.mixture(mixture.REFINE), batch_size=48,
-                                    longest_side=560)
+    # configs/dataset/static_pinhole.yaml: the 560_many_ar shapes (square included) and
+    # Habitat's `cropping` yaml (crop augmentation and low light, unlike the 560 recipe).
+    c.input = pipeline.input_config(
+        mixture.recipe("refine560"), batch_size=48, longest_side=560,
+        shapes=augment.SHAPES_560_SQUARE,
+        augment={"no_crop_datasets": (), "low_light_datasets": ("flyingchairs", "habitat"),
+                 "fast_image_ops": True})
   elif arg.data == "synthetic":
     c.input = pipeline.input_config(mixture.synthetic_mixture(num_pairs=10_000, size=(56, 56)),
                                     batch_size=2, longest_side=56, aspect_ratios=(1.0,),

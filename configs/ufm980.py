@@ -6,17 +6,19 @@ the UFM `train` branch; every setting and its source: docs/recipe.md), bootstrap
 
 Parameters from a 560 checkpoint (`model_init`: a training workdir, a converted checkpoint or the
 official UFM-Base snapshot; the flow adaptor normalisation below must be the one it was trained
-with), a fresh optimizer. 16 unique pairs per step (32 symmetrized rows), 15 epochs, the
-optical-flow datasets only, longest side 980. Peak lr 5e-7 (encoder) and 1e-5 (fusion transformer,
-flow head) with 2 warmup epochs, cosine to 1%; the covisibility head is frozen (lr 0: no gradient,
-no optimizer state) and has no loss: the robust EPE is taken on every pixel whose ground-truth
-target lies within a 25% margin around the image (`loss.epe_all.range="all"`, margin 0.25).
+with), a fresh optimizer. The optical-flow datasets only, with the official recipe's samples per
+epoch (`mixture.RECIPES['ufm980']`), the official shapes (H in {644, 560, 490, 308} x 980) and
+augmentation. 16 unique pairs per step (32 symmetrized rows), 15 epochs. Peak lr 5e-7 (encoder)
+and 1e-5 (fusion transformer, flow head) with 2 warmup epochs, cosine to 1%; the covisibility head
+is frozen (lr 0: no gradient, no optimizer state) and has no loss: the robust EPE is taken on every
+pixel whose ground-truth target lies within a 25% margin around the image
+(`loss.epe_all.range="all"`, margin 0.25).
 """
 
 import ml_collections
 
 from ufm_jax import config_lib, optim
-from ufm_jax.data import mixture, pipeline
+from ufm_jax.data import augment, mixture, pipeline
 
 
 def get_config(arg=None):
@@ -24,8 +26,10 @@ def get_config(arg=None):
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.seed = 42
   c.num_epochs = 15
-  c.input = pipeline.input_config(mixture.mixture(mixture.OPTICAL_FLOW), batch_size=32,
-                                  longest_side=980)
+  # The official shapes (980_many_opticalflow_ar) and augmentation, as ufm560.py.
+  c.input = pipeline.input_config(mixture.recipe("ufm980"), batch_size=32,
+                                  longest_side=980, shapes=augment.SHAPES_980,
+                                  augment={"fast_image_ops": True})
 
   c.model_name = arg.model
   c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)

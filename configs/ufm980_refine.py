@@ -9,8 +9,10 @@ As the official script, it starts from the 560 base (`resume_model=infinity1096/
 from the 560 refiner: the refiner (5 x 5 window) starts fresh and trains at lr 1e-4 while the base
 trains at 5e-7 (encoder) / 1e-5 (fusion transformer, flow head). Loss: the robust EPE on every
 pixel whose target lies within a 25% margin, plus 10 x the refinement cross-entropy on rows of the
-datasets suitable for refinement. 16 unique pairs per step (32 symmetrized rows), 20 epochs, 2
-warmup epochs, cosine to 1%, clipping at 1.0; the optical-flow datasets at longest side 980.
+datasets suitable for refinement (of the optical-flow sets: FlyingThings3D). 16 unique pairs per
+step (32 symmetrized rows), 20 epochs, 2 warmup epochs, cosine to 1%, clipping at 1.0; the
+optical-flow datasets with the official samples per epoch (`mixture.RECIPES['refine980']`),
+shapes (H in {644, 560, 490, 308} x 980) and augmentation.
 
 Model: the released UFM-Refine structure (`ufm_refine`) with a 5 x 5 window; the official recipe
 trains the refinement structure with BatchNorm U-Net, `modulate` combination, encoder taps [6, 23]
@@ -24,7 +26,7 @@ Smoke run (tiny refine model, embedded synthetic pairs, random base):
 import ml_collections
 
 from ufm_jax import config_lib, optim
-from ufm_jax.data import mixture, pipeline
+from ufm_jax.data import augment, mixture, pipeline
 
 
 def get_config(arg=None):
@@ -34,8 +36,10 @@ def get_config(arg=None):
   c.num_epochs = 20
   refine_datasets = ("blendedmvs", "flyingthings", "hypersim")
   if arg.data == "of":
-    c.input = pipeline.input_config(mixture.mixture(mixture.OPTICAL_FLOW), batch_size=32,
-                                    longest_side=980)
+    # dataset=ufm_980_highres, as ufm980.py: its samples per epoch, shapes and augmentation.
+    c.input = pipeline.input_config(mixture.recipe("refine980"), batch_size=32,
+                                    longest_side=980, shapes=augment.SHAPES_980,
+                                    augment={"fast_image_ops": True})
   elif arg.data == "synthetic":
     c.input = pipeline.input_config(mixture.synthetic_mixture(num_pairs=10_000, size=(56, 56)),
                                     batch_size=2, longest_side=56, aspect_ratios=(1.0,),

@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 from safetensors.numpy import save_file
 
-from ufm_jax import checkpoint, convert, optim
+from ufm_jax import checkpoint, model_init, optim
+from ufm_jax.models import dinov2
 from ufm_jax import testing
 
 
 def test_hf_dinov2_to_original_names(tmp_path):
   sd = testing.hf_dinov2()
   save_file(sd, str(tmp_path / "model.safetensors"))
-  orig = convert.read_dinov2(tmp_path)  # the folder, as downloaded from the Hub
+  orig = dinov2.read_weights(tmp_path)  # the folder, as downloaded from the Hub
   expected = {"cls_token", "mask_token", "pos_embed", "patch_embed.proj.weight",
               "patch_embed.proj.bias", "norm.weight", "norm.bias"}
   for i in range(2):
@@ -42,10 +43,10 @@ def test_dinov2_errors_name_the_problem(tmp_path):
   del sd["encoder.layer.0.attention.attention.key.weight"]
   save_file(sd, str(tmp_path / "x.safetensors"))
   with pytest.raises(ValueError, match="incomplete q/k/v"):
-    convert.read_dinov2(tmp_path / "x.safetensors")
+    dinov2.read_weights(tmp_path / "x.safetensors")
   (tmp_path / "empty").mkdir()
   with pytest.raises(FileNotFoundError, match="no \\*.safetensors"):
-    convert.read_dinov2(tmp_path / "empty")
+    dinov2.read_weights(tmp_path / "empty")
 
 
 def test_original_pth_needs_torch_or_reads_it(tmp_path):
@@ -53,7 +54,7 @@ def test_original_pth_needs_torch_or_reads_it(tmp_path):
   sd = {"blocks.0.attn.qkv.weight": np.ones((6, 2), np.float32), "cls_token": np.zeros((1, 1, 2),
                                                                                      np.float32)}
   torch.save({k: torch.from_numpy(v) for k, v in sd.items()}, tmp_path / "d.pth")
-  got = convert.read_dinov2(tmp_path / "d.pth")
+  got = dinov2.read_weights(tmp_path / "d.pth")
   np.testing.assert_array_equal(got["blocks.0.attn.qkv.weight"], 1.0)
 
 
@@ -62,7 +63,7 @@ def test_resize_pos_embed_keeps_cls_and_is_bicubic_on_smooth_grid():
   yy, xx = np.meshgrid(np.arange(g), np.arange(g), indexing="ij")
   grid = np.stack([np.ones((g, g)) * 5.0, 0 * xx, 0 * yy], -1).reshape(1, g * g, d)
   pe = np.concatenate([np.full((1, 1, d), 7.0), grid], 1).astype(np.float32)
-  out = convert.resize_pos_embed(pe, (1, 1 + 8 * 8, d))
+  out = dinov2.resize_pos_embed(pe, (1, 1 + 8 * 8, d))
   assert out.shape == (1, 65, 3)
   np.testing.assert_array_equal(out[0, 0], 7.0)
   np.testing.assert_allclose(out[0, 1:, 0], 5.0, rtol=1e-6)  # constants stay constant
@@ -73,13 +74,13 @@ def test_merge_report():
               "head": {"b": jnp.zeros((3,))}}
   loaded = {"enc/pos_embed": np.ones((1, 1 + 9, 2), np.float32), "enc/w": np.full((2, 2), 2.0),
             "extra/x": np.zeros(1)}
-  params, rep = checkpoint.merge_into(template, loaded, "test")
+  params, rep = model_init.merge_into(template, loaded, "test")
   assert rep.loaded == ["enc/w"] and rep.left_at_init == ["head/b"] and rep.unused == ["extra/x"]
   assert rep.resized == ["enc/pos_embed (1, 10, 2)->(1, 5, 2)"]
   np.testing.assert_allclose(params["enc"]["pos_embed"], 1.0, rtol=1e-6)
   np.testing.assert_array_equal(params["enc"]["w"], 2.0)
   with pytest.raises(ValueError, match="enc/w: checkpoint \\(3,\\) vs model \\(2, 2\\)"):
-    checkpoint.merge_into(template, {"enc/w": np.zeros(3)}, "test")
+    model_init.merge_into(template, {"enc/w": np.zeros(3)}, "test")
 
 
 def _iterator(n=40):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from orbax.checkpoint._src.path import atomicity
 
-from ufm_jax import checkpoint, optim
+from ufm_jax import checkpoint, loop_control, optim
 
 
 def _iterator(n=40):
@@ -102,8 +102,8 @@ def test_restore_fails_naming_every_step_when_none_restores_and_moves_nothing(tm
 
 def _keeper(tmp_path, max_nonfinite=100, start_step=0):
   mngr = checkpoint.make_manager(tmp_path, save_interval_steps=4, keep=10)
-  guard = checkpoint.PreemptionGuard()
-  return mngr, guard, checkpoint.Keeper(mngr, guard, max_nonfinite, start_step)
+  guard = loop_control.PreemptionGuard()
+  return mngr, guard, loop_control.SaveAndStop(mngr, guard, max_nonfinite, start_step)
 
 
 def _run(keeper, oks, it, total=None, sigterm_at=None):
@@ -130,7 +130,7 @@ def test_saves_wait_for_a_finite_update_and_a_long_nonfinite_run_stops(tmp_path)
   mngr, _, keeper = _keeper(tmp_path, max_nonfinite=5)
   oks = [True] * 3 + [False, False] + [True] + [True] * 4 + [False] * 8
   #      1..3       4 (save step) 5    6: the deferred save  7..10 (8 saves)  11..18
-  with pytest.raises(checkpoint.NonFiniteSteps,
+  with pytest.raises(loop_control.NonFiniteSteps,
                      match=r"5 consecutive updates skipped .*steps 11-15.*last finite update: "
                            r"step 10; newest checkpoint: step 8"):
     _run(keeper, oks, _iterator(), total=100)
@@ -166,7 +166,7 @@ def test_failed_background_write_is_reported_within_a_few_steps(tmp_path, monkey
     assert time.time() - t0 < 60, "the background write of step 8 never ended"
     time.sleep(0.01)
   next(it)
-  with pytest.raises(checkpoint.CheckpointWriteError,  # ...and the next step reports it
+  with pytest.raises(loop_control.CheckpointWriteError,  # ...and the next step reports it
                      match=r"writing checkpoint step 8 .* failed: .*No space left on device.*"
                            r"newest complete checkpoint is step 4"):
     keeper.end_of_step(9, _state(9), it, jnp.bool_(True), False)

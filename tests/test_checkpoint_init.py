@@ -9,7 +9,7 @@ import pytest
 from safetensors.numpy import save_file
 
 from ufm_jax.models import variants as model_variants
-from ufm_jax import checkpoint, optim
+from ufm_jax import checkpoint, model_init, optim
 from ufm_jax.models import ufm
 
 from ufm_jax import testing
@@ -31,12 +31,12 @@ def test_dinov2_hf_into_ufm_encoder(tmp_path, tiny):
   sd = testing.hf_dinov2(depth=depth, dim=dim, grid=4, seed=1)
   save_file(sd, str(tmp_path / "model.safetensors"))
   (tmp_path / "config.json").write_text('{"model_type": "dinov2"}')
-  params, rep = checkpoint.load_init_params(str(tmp_path), template)  # kind guessed: dinov2
+  params, rep = model_init.load_init_params(str(tmp_path), template)  # kind guessed: dinov2
   assert rep.source.startswith("dinov2:")
   assert rep.unused == []
   assert [r.split(" ")[0] for r in rep.resized] == ["encoder/pos_embed"]
   assert all(k.startswith("encoder/") for k in rep.loaded)
-  n_enc = len(checkpoint._flat({"encoder": enc}))
+  n_enc = len(model_init.flatten({"encoder": enc}))
   assert len(rep.loaded) + len(rep.resized) == n_enc
   assert rep.left_at_init and not any(k.startswith("encoder/") for k in rep.left_at_init)
   # Linear: torch [out, in] -> flax kernel [in, out]; qkv = [q; k; v] on the output axis.
@@ -55,7 +55,7 @@ def test_snapshot_init_loads_everything(reference_dir):
   x = jnp.zeros((1, 28, 28, 3), jnp.uint8)
   template = jax.eval_shape(lambda r: model.init(r, x, x)["params"], jax.random.PRNGKey(0))
   template = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), template)
-  params, rep = checkpoint.load_init_params(f"snapshot:{reference_dir / 'base'}", template)
+  params, rep = model_init.load_init_params(f"snapshot:{reference_dir / 'base'}", template)
   assert rep.left_at_init == [] and rep.resized == [] and rep.unused == []
   for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(official)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -69,7 +69,7 @@ def test_ckpt_init_from_training_workdir(tmp_path, tiny):
   checkpoint.save(mngr, 3, optim.TrainState.create(trained, tx), None, force=True)
   mngr.wait_until_finished()
   mngr.close()
-  params, rep = checkpoint.load_init_params(str(tmp_path), template)  # kind guessed: ckpt
+  params, rep = model_init.load_init_params(str(tmp_path), template)  # kind guessed: ckpt
   assert rep.source.endswith("@3") and rep.left_at_init == []
   for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(trained)):
     np.testing.assert_array_equal(np.asarray(a), b)

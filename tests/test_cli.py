@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from ufm_jax import cli
+from ufm_jax import cli, model_io
 from ufm_jax.data.io import read_flo, read_image, write_image
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -89,7 +89,7 @@ def test_infer_cli_on_fixture_snapshot(io, reference_dir, pair_files, tmp_path):
 
 @pytest.mark.slow
 def test_convert_then_infer_from_converted_checkpoint(io, reference_dir, pair_files, tmp_path, capsys):
-  """`convert` delegates to ufm_jax.convert; `infer --checkpoint` then reads the orbax checkpoint."""
+  """`convert` writes our checkpoint (ufm_jax.model_io); `infer --checkpoint` then reads it."""
   ckpt = tmp_path / "ckpt"
   assert cli.main(["convert", str(reference_dir / "base"), str(ckpt)]) == 0
   assert cli.main(["infer", *map(str, pair_files), "--checkpoint", str(ckpt), "--out",
@@ -120,8 +120,8 @@ def test_load_train_workdir(tmp_path):
     checkpoint.save(manager, step, state, force=True)
   manager.wait_until_finished()
   (tmp_path / "config.json").write_text(json.dumps({"model_name": "tiny", "model": {}}))
-  assert cli.is_workdir(tmp_path)
-  loaded_model, loaded = cli.load_model(tmp_path)
+  assert model_io.what_is(tmp_path) == model_io.WORKDIR
+  loaded_model, loaded = model_io.load_model(tmp_path)
   assert loaded_model.config == model.config
   for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params)):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b) + 2, rtol=0, atol=1e-6)  # latest step

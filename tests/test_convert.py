@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 from safetensors.numpy import load_file
 
-from ufm_jax import convert, testing
-from ufm_jax.models import dpt, ufm
+from ufm_jax import model_io, testing
+from ufm_jax.models import dinov2, dpt, ufm
+from ufm_jax.official import config as official_config
+from ufm_jax.official import keymap, snapshot
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -24,7 +26,7 @@ def fixture_dir(reference_dir):
 
 @pytest.fixture(scope="module")
 def loaded(fixture_dir):
-  return convert.load_official(fixture_dir)
+  return snapshot.load_official(fixture_dir)
 
 
 def _snapshot(tmp_path, config, state):
@@ -47,7 +49,7 @@ def test_structure_from_config_and_shapes(loaded, fixture_dir):
   assert cfg.flow_adaptor.base_shape == (120, 160)
   # every tensor of the file is a parameter or a checked buffer: counts must agree
   state = load_file(str(fixture_dir / "model.safetensors"))
-  n_file = sum(v.size for k, v in state.items() if k not in convert.ufm_buffers(cfg))
+  n_file = sum(v.size for k, v in state.items() if k not in official_config.ufm_buffers(cfg))
   n_params = sum(v.size for v in jax.tree.leaves(params))
   assert n_file == n_params
 
@@ -66,19 +68,19 @@ def test_key_map_names():
   }
   for key, path in cases.items():
     ndim = 1 if key.endswith(("norm.weight", "bias", "gamma")) else 3 if "tokens" in key else 2
-    assert convert.torch_key_to_path(key, ndim) == path, key
+    assert keymap.torch_key_to_path(key, ndim) == path, key
 
 
 def test_layouts():
   w = np.arange(2 * 3 * 4 * 5, dtype=np.float32).reshape(2, 3, 4, 5)
   # Conv2d OIHW -> HWIO
-  got = convert.torch_to_flax_array("x.conv1.weight", w)
+  got = keymap.torch_to_flax_array("x.conv1.weight", w)
   assert got.shape == (4, 5, 3, 2) and got[1, 2, 0, 1] == w[1, 0, 1, 2]
   # ConvTranspose2d [in, out, kh, kw] -> [kh, kw, in, out]
-  got = convert.torch_to_flax_array("head1.0.0.input_process.0.0.1.weight", w)
+  got = keymap.torch_to_flax_array("head1.0.0.input_process.0.0.1.weight", w)
   assert got.shape == (4, 5, 2, 3) and got[1, 2, 0, 1] == w[0, 1, 1, 2]
   lin = np.arange(6, dtype=np.float32).reshape(2, 3)
-  assert convert.torch_to_flax_array("a.fc1.weight", lin).shape == (3, 2)
+  assert keymap.torch_to_flax_array("a.fc1.weight", lin).shape == (3, 2)
 
 
 def test_conv_transpose_matches_definition():
@@ -94,7 +96,7 @@ def test_conv_transpose_matches_definition():
         for bb in range(2):
           ref[0, 2 * i + a, 2 * j + bb] = x[0, i, j] @ wt[:, :, a, bb] + b
   mod = dpt.ConvTranspose(5, 2)
-  params = {"kernel": convert.torch_to_flax_array("input_process.1.0.1.weight", wt), "bias": b}
+  params = {"kernel": keymap.torch_to_flax_array("input_process.1.0.1.weight", wt), "bias": b}
   got = mod.apply({"params": params}, x)
   np.testing.assert_allclose(np.asarray(got), ref, rtol=1e-6, atol=1e-6)
 
@@ -107,12 +109,12 @@ def test_deduplicated_aliases_accepted(tmp_path, fixture_dir, loaded):
       w = state[f"{head}.0.0.input_process.{k}.1.weight"]
       state[f"{head}.0.0.scratch.layer{k + 1}_rn.weight"] = w.copy()
       state[f"{head}.0.0.scratch.layer_rn.{k}.weight"] = w.copy()
-  _, params = convert.load_official(_snapshot(tmp_path, cj, state))
+  _, params = snapshot.load_official(_snapshot(tmp_path, cj, state))
   jax.tree.map(np.testing.assert_array_equal, params, loaded[1])
   # ... but the aliases must agree
   state["head1.0.0.scratch.layer_rn.2.weight"] = state["head1.0.0.scratch.layer_rn.2.weight"] + 1
   with pytest.raises(ValueError, match=r"head1\.0\.0\.scratch\.layer_rn\.2\.weight: differs"):
-    convert.load_official(_snapshot(tmp_path, cj, state))
+    snapshot.load_official(_snapshot(tmp_path, cj, state))
 
 
 def test_tampered_checkpoint_lists_every_problem(tmp_path, fixture_dir):
@@ -123,7 +125,7 @@ def test_tampered_checkpoint_lists_every_problem(tmp_path, fixture_dir):
   state["info_sharing.view_pos_table"] = state["info_sharing.view_pos_table"] + 0.5
   d = _snapshot(tmp_path, cj, state)
   with pytest.raises(ValueError) as e:
-    convert.load_official(d)
+    snapshot.load_official(d)
   msg = str(e.value)
   assert "model.safetensors" in msg
   assert "missing (1)" in msg and "info_sharing.self_attention_blocks.1.mlp.fc2.bias" in msg
@@ -136,12 +138,12 @@ def test_config_errors(tmp_path, fixture_dir):
   cj, state = _fixture_files(fixture_dir)
   bad = dict(cj, encoder_kwargs=dict(cj["encoder_kwargs"], keep_first_n_layers=3))
   with pytest.raises(ValueError, match="keep_first_n_layers=3.*2 encoder blocks"):
-    convert.load_official(_snapshot(tmp_path, bad, state))
+    snapshot.load_official(_snapshot(tmp_path, bad, state))
   bad = dict(cj, info_sharing_str="alternating_attention")
   with pytest.raises(ValueError, match="info_sharing_str"):
-    convert.load_official(_snapshot(tmp_path, bad, state))
+    snapshot.load_official(_snapshot(tmp_path, bad, state))
   with pytest.raises(FileNotFoundError, match="config.json"):
-    convert.load_official(tmp_path / "nowhere")
+    snapshot.load_official(tmp_path / "nowhere")
 
 
 # --------------------------------------------------------------------------- unseen structures
@@ -154,7 +156,7 @@ def test_loader_on_unseen_structure(tmp_path, name):
   cfg = testing.STRUCTURES[name]
   model = ufm.model_from_config(cfg)
   params = testing.perturbed_params(model, 3)
-  state = convert.state_dict_from_params(params, convert.ufm_buffers(cfg))
+  state = keymap.state_dict_from_params(params, official_config.ufm_buffers(cfg))
   if cfg.encoder.num_register_tokens:
     assert state["encoder.model.register_tokens"].shape == (1, 4, 384)
   if cfg.info_sharing.qk_norm:
@@ -162,8 +164,8 @@ def test_loader_on_unseen_structure(tmp_path, name):
     assert "info_sharing.self_attention_blocks.2.ls2.gamma" in state
   if cfg.info_sharing.input_embed_dim == cfg.info_sharing.dim:
     assert not any(k.startswith("info_sharing.proj_embed") for k in state)
-  d = _snapshot(tmp_path, convert.official_config_dict(cfg), state)
-  model2, params2 = convert.load_official(d)
+  d = _snapshot(tmp_path, official_config.official_config_dict(cfg), state)
+  model2, params2 = snapshot.load_official(d)
   assert model2.config == cfg
   jax.tree.map(np.testing.assert_array_equal, params2, params)
   rng = np.random.default_rng(0)
@@ -184,12 +186,12 @@ def test_convert_cli_round_trip(tmp_path, fixture_dir, loaded):
   out = tmp_path / "ckpt"
   env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""),
              JAX_PLATFORMS="cpu")
-  res = subprocess.run([sys.executable, "-m", "ufm_jax.convert", str(fixture_dir), str(out)],
+  res = subprocess.run([sys.executable, "-m", "ufm_jax", "convert", str(fixture_dir), str(out)],
                        capture_output=True, text=True, env=env, timeout=300)
   assert res.returncode == 0, res.stderr[-3000:]
-  assert (out / convert.CONFIG_FILE).is_file()
+  assert (out / model_io.CONFIG_FILE).is_file()
   assert [p.name for p in tmp_path.iterdir()] == ["ckpt"]  # no temp folder left behind
-  model, params = convert.load(out)
+  model, params = model_io.load(out)
   assert model.config == loaded[0].config
   jax.tree.map(np.testing.assert_array_equal, params, loaded[1])
   import ufm_jax
@@ -197,15 +199,15 @@ def test_convert_cli_round_trip(tmp_path, fixture_dir, loaded):
   assert model_b == loaded[0]
   # an existing output folder is never overwritten
   with pytest.raises(FileExistsError):
-    convert.save(out, *loaded)
+    model_io.save(out, *loaded)
 
 
 def test_load_errors(tmp_path):
   with pytest.raises(FileNotFoundError, match="model_config.json"):
-    convert.load(tmp_path)
-  (tmp_path / convert.CONFIG_FILE).write_text(json.dumps({"class": "Nope", "config": {}}))
+    model_io.load(tmp_path)
+  (tmp_path / model_io.CONFIG_FILE).write_text(json.dumps({"class": "Nope", "config": {}}))
   with pytest.raises(ValueError, match="unknown model class 'Nope'"):
-    convert.load(tmp_path)
+    model_io.load(tmp_path)
 
 
 def test_truncated_safetensors_says_so(fixture_dir, tmp_path):
@@ -216,8 +218,8 @@ def test_truncated_safetensors_says_so(fixture_dir, tmp_path):
   (snap / "model.safetensors").write_bytes(data[:len(data) // 3])
   with pytest.raises(ValueError, match=rf"looks truncated: its header describes {len(data):,} "
                                        rf"bytes, the file has {len(data) // 3:,}"):
-    convert.load_official(snap)
+    snapshot.load_official(snap)
   # DINOv2 weights for model_init are read by the same reader.
   with pytest.raises(ValueError, match=rf"model.safetensors: cannot read safetensors .*looks "
                                        rf"truncated: its header describes {len(data):,} bytes"):
-    convert.read_dinov2(snap / "model.safetensors")
+    dinov2.read_weights(snap / "model.safetensors")

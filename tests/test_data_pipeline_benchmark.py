@@ -1,6 +1,7 @@
-"""benchmarks/data_pipeline.py --table1: every Table 1 dataset, written in its real on-disk format,
-goes through the symmetrized training pipeline, and the host CPU per row is counted for every
-row (synchronous reads: no prefetched row escapes the timed window)."""
+"""benchmarks/data_pipeline.py --table1: every Table 1 dataset, written in its real on-disk format
+and in the official processed layout, goes through the symmetrized training pipeline, and the
+host CPU per row is counted for every row (synchronous reads: no prefetched row escapes the
+timed window)."""
 
 import json
 import pathlib
@@ -25,3 +26,8 @@ def test_table1_mixture_cpu_per_row(tmp_path):
   weights = sum(mixture.QUOTAS.values())
   mean = sum(mixture.QUOTAS[k] * v for k, v in res["ms_per_row"].items()) / weights
   assert abs(res["table1_mean_ms_per_row"] - mean) < 1e-6
+  quotas = {k: q for k, (q, _) in mixture.RECIPES["ufm560"].items()}
+  assert sorted(res["official_ms_per_row"]) == sorted(quotas)
+  assert all(ms > 0.1 for ms in res["official_ms_per_row"].values()), res["official_ms_per_row"]
+  mean = sum(quotas[k] * v for k, v in res["official_ms_per_row"].items()) / sum(quotas.values())
+  assert abs(res["official_mean_ms_per_row"] - mean) < 1e-6

@@ -131,6 +131,50 @@ def test_too_large_image_and_file_are_refused(server, client, pair, tmp_path):
   assert r.status_code == 413, (r.status_code, r.text)
 
 
+def test_a_file_that_is_no_image_and_a_too_small_image_are_refused(client, pair, tmp_path,
+                                                                  reference_dir):
+  """A renamed non-image gets our message, without the server's temp path; an image with a side
+  under one pixel per encoder patch of the inference resolution is refused, naming the limit."""
+  import json
+  from gradio_client import handle_file
+  from gradio_client.exceptions import AppError
+  src, tgt = pair
+  fake = tmp_path / "notimage.png"
+  fake.write_bytes(b"this is not a png")
+  with pytest.raises(AppError) as e:
+    client.predict(handle_file(str(fake)), handle_file(str(tgt)), 0.5, 100, api_name="/analyse")
+  text = str(e.value)
+  assert "the source file is not an image" in text
+  assert "/tmp" not in text and "notimage" not in text and "UnidentifiedImageError" not in text
+  cfg = json.loads((reference_dir / "base" / "config.json").read_text())
+  w_inf, h_inf = cfg["inference_resolution"]
+  patch = cfg["encoder_kwargs"]["patch_size"]
+  smallest = -(-min(w_inf, h_inf) // patch)   # one pixel per patch of the shorter side
+  thin = tmp_path / "thin.png"
+  io.write_image(thin, np.zeros((smallest - 1, 64, 3), np.uint8))
+  with pytest.raises(AppError) as e:
+    client.predict(handle_file(str(src)), handle_file(str(thin)), 0.5, 100, api_name="/analyse")
+  assert f"{smallest - 1}x64" in str(e.value) and f"minimum of {smallest} px" in str(e.value)
+  ok = tmp_path / "ok.png"
+  io.write_image(ok, np.full((smallest, smallest, 3), 128, np.uint8))
+  client.predict(handle_file(str(src)), handle_file(str(ok)), 0.5, 100, api_name="/analyse")
+
+
+def test_sliders_update_on_input_events(client):
+  """Typing in a slider's number box or using the arrow keys fires `input` (Gradio's `release`
+  fires only on a mouse release): both sliders re-run the analysis on `input`, with the Run
+  button's inputs and outputs."""
+  cfg = client.config
+  ids = {c["props"].get("label"): c["id"] for c in cfg["components"]}
+  deps = cfg["dependencies"]
+  run = next(d for d in deps if d.get("api_name") == "analyse")
+  for label in ("covisibility threshold", "matches to sample"):
+    wired = [d for d in deps if [ids[label], "input"] in [list(t) for t in d["targets"]]]
+    assert len(wired) == 1, label
+    assert wired[0]["inputs"] == run["inputs"] and wired[0]["outputs"] == run["outputs"]
+    assert not [d for d in deps if [ids[label], "release"] in [list(t) for t in d["targets"]]]
+
+
 def _listening(port: int) -> list[str]:
   """Local addresses (hex, as /proc/net/tcp* write them) of sockets listening on `port`."""
   found = []
@@ -152,6 +196,7 @@ def test_binds_loopback_only_by_default(server):
   assert _listening(port) == ["0100007F"], (_listening(port), log.read_text()[-2000:])
   text = log.read_text()
   assert f"http://127.0.0.1:{port}" in text and "gradio.live" not in text
+  assert "--share" in text and "share=True" not in text   # our flag, not Gradio's argument
 
 
 def test_without_the_extra_exits_2_naming_it(monkeypatch, tmp_path, capsys):

@@ -1,6 +1,7 @@
-"""evaluate.py end to end on tiny trees in each dataset's real on-disk format.
+"""evaluate.py end to end on tiny trees in each dataset's real on-disk format (the native
+protocol; the official one: tests/test_evaluate_official.py).
 
-One `--bench all` run with the public fixture snapshot (random weights: the numbers are arbitrary,
+One `--bench all --protocol native` run with the public fixture snapshot (random weights: the numbers are arbitrary,
 so the checks are structural plus an independent recomputation of the reported EPE from the
 files written by --save_predictions). The fixture's fixed inference resolution (168x224) means a
 single compiled forward serves every dataset.
@@ -12,52 +13,16 @@ import os
 import numpy as np
 import pytest
 
-from ufm_jax.testing import wide_trees as trees
+from ufm_jax.testing import bench_trees, wide_trees as trees
 from ufm_jax import evaluators, metrics
 from ufm_jax.data import get_source, io
 from ufm_jax.evaluators import base
 
 
 
-def write_sintel(root, h=28, w=42, frames=3, scene="alley_1"):
-  rng = np.random.default_rng(0)
-  tr = os.path.join(root, "training")
-  for sub in ("clean", "final", "flow", "occlusions", "invalid"):
-    os.makedirs(os.path.join(tr, sub, scene))
-  for k in range(1, frames + 1):
-    for p in ("clean", "final"):
-      io.write_image(os.path.join(tr, p, scene, f"frame_{k:04d}.png"),
-                     rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
-    if k < frames:
-      io.write_flo(os.path.join(tr, "flow", scene, f"frame_{k:04d}.flo"),
-                   rng.normal(0, 3, (h, w, 2)).astype(np.float32))
-      occ = np.zeros((h, w), bool)
-      occ[:, :5] = True
-      io.write_mask(os.path.join(tr, "occlusions", scene, f"frame_{k:04d}.png"), occ)
-      io.write_mask(os.path.join(tr, "invalid", scene, f"frame_{k:04d}.png"), np.zeros((h, w), bool))
-
-
-def write_kitti(root, h=30, w=50, n=2):
-  rng = np.random.default_rng(1)
-  tr = os.path.join(root, "training")
-  for sub in ("image_2", "flow_occ", "flow_noc", "obj_map"):
-    os.makedirs(os.path.join(tr, sub))
-  for i in range(n):
-    for f in (10, 11):
-      io.write_image(os.path.join(tr, "image_2", f"{i:06d}_{f}.png"),
-                     rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
-    flow = rng.normal(0, 20, (h, w, 2)).astype(np.float32)
-    valid = rng.random((h, w)) < 0.6
-    io.write_kitti_flow(os.path.join(tr, "flow_occ", f"{i:06d}_10.png"), flow, valid)
-    io.write_kitti_flow(os.path.join(tr, "flow_noc", f"{i:06d}_10.png"), flow, valid & (rng.random((h, w)) < 0.8))
-    obj = np.zeros((h, w), np.uint8)
-    obj[10:20, 10:30] = 1
-    io.write_image(os.path.join(tr, "obj_map", f"{i:06d}_10.png"), np.repeat(obj[..., None], 3, -1))
-
-
 def write_all(root):
-  write_sintel(os.path.join(root, "sintel"))
-  write_kitti(os.path.join(root, "kitti2015"))
+  bench_trees.write_sintel(os.path.join(root, "sintel"))
+  bench_trees.write_kitti(os.path.join(root, "kitti2015"))
   scene = trees.PlaneScene()
   trees.write_dtu(os.path.join(root, "dtu"), scene)
   pair = trees.write_eth3d_prepared(os.path.join(root, "eth3d"), scene)
@@ -77,12 +42,14 @@ def test_bench_all_on_tiny_trees(snapshot, tmp_path_factory, run_evaluate):
   root = tmp_path_factory.mktemp("data")
   write_all(str(root))
   preds, out = root / "preds", root / "out"
-  rc, printed, err = run_evaluate("--bench", "all", "--snapshot", snapshot, "--data_root",
-                                  str(root), "--max_pairs", "2", "--save_predictions", str(preds),
-                                  "--num_panels", "1", "--out", str(out), "--no_progress")
+  rc, printed, err = run_evaluate("--bench", "all", "--protocol", "native", "--snapshot", snapshot,
+                                  "--data_root", str(root), "--max_pairs", "2",
+                                  "--save_predictions", str(preds), "--num_panels", "1", "--out",
+                                  str(out), "--no_progress")
   assert rc == 0, err[-3000:]
   res = json.loads((out / "results.json").read_text())
   assert res["skipped"] == {} and sorted(res["benches_run"]) == sorted(evaluators.BENCHES)
+  assert res["protocol"] == "native" and set(res["bench_protocols"].values()) == {"native"}
   assert res["n_pairs"]["sintel_clean"] == 2 and res["n_pairs"]["kitti"] == 2
   assert res["n_pairs"]["eth3d"] == 1 and res["n_pairs"]["scannet1500"] == 1
   m = res["metrics"]

@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import cli, convert, export, testing
+from ufm_jax import cli, export, testing
+from ufm_jax.official import config as official_config
+from ufm_jax.official import snapshot
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -68,7 +70,7 @@ def _max_err(a, b):
 @pytest.fixture(scope="module", params=["base", "refine"])
 def fixture_model(request, reference_dir):
   d = reference_dir / request.param
-  model, params = convert.load_official(d)
+  model, params = snapshot.load_official(d)
   io = np.load(d / "io.npz")
   src, tgt = io["img1_uint8"], io["img2_uint8"]
   ref = _apply(model, params, src, tgt)
@@ -104,7 +106,7 @@ def test_stablehlo_roundtrip_in_fresh_process(fixture_model, tmp_path):
   assert set(meta["platforms"]) == {"cpu", "cuda"}
   assert meta["ufm_jax_version"] == ufm_jax.__version__
   assert meta["outputs"]["flow"]["shape"][1:] == [h, w, 2]
-  assert meta["model"]["class"] == convert.CLASS_NAMES[type(fm["model"])]
+  assert meta["model"]["class"] == official_config.CLASS_NAMES[type(fm["model"])]
   cfg = json.loads(json.dumps(dataclasses.asdict(fm["model"].config)))
   assert meta["model"]["config"] == cfg
   assert not list(tmp_path.glob(".*tmp*"))
@@ -112,7 +114,7 @@ def test_stablehlo_roundtrip_in_fresh_process(fixture_model, tmp_path):
 
 def test_bfloat16_export_runs_the_bf16_model(reference_dir, tmp_path):
   d = reference_dir / "base"
-  model, params = convert.load_official(d)
+  model, params = snapshot.load_official(d)
   io = np.load(d / "io.npz")
   src, tgt = io["img1_uint8"][:1], io["img2_uint8"][:1]
   art = tmp_path / "bf16.stablehlo"
@@ -139,7 +141,7 @@ def test_export_errors_name_the_problem(reference_dir, tmp_path, capsys):
     cli.main(["export", "--checkpoint", d, "--size", "98x154", "--out", "x", "--batch", "0"])
   assert not (tmp_path / "a").exists()
 
-  model, params = convert.load_official(d)
+  model, params = snapshot.load_official(d)
   art = tmp_path / "m.stablehlo"
   export.export(model, params, (98, 154), art, batch=1)
   run = export.load_exported(art)
@@ -179,7 +181,7 @@ def _onnx_parity(fm, tmp_path, batch):
 
 
 def test_onnx_matches_apply_base(reference_dir, tmp_path):
-  model, params = convert.load_official(reference_dir / "base")
+  model, params = snapshot.load_official(reference_dir / "base")
   io = np.load(reference_dir / "base" / "io.npz")
   src, tgt = io["img1_uint8"], io["img2_uint8"]
   fm = dict(kind="base", dir=reference_dir / "base", src=src, tgt=tgt,
@@ -190,7 +192,7 @@ def test_onnx_matches_apply_base(reference_dir, tmp_path):
 @pytest.mark.slow
 def test_onnx_matches_apply_refine(reference_dir, tmp_path):
   """The refinement's windowed gather and the U-Net's max-pool convert too (fixed batch 2)."""
-  model, params = convert.load_official(reference_dir / "refine")
+  model, params = snapshot.load_official(reference_dir / "refine")
   io = np.load(reference_dir / "refine" / "io.npz")
   src, tgt = io["img1_uint8"], io["img2_uint8"]
   fm = dict(kind="refine", dir=reference_dir / "refine", src=src, tgt=tgt,

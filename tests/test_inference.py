@@ -123,8 +123,8 @@ def test_predict_input_errors():
 
 
 def _load_official(reference_dir):
-  from ufm_jax import convert
-  return convert.load_official(reference_dir / "base")
+  from ufm_jax.official import snapshot
+  return snapshot.load_official(reference_dir / "base")
 
 
 @pytest.mark.slow
@@ -142,9 +142,9 @@ def test_predict_vs_reference(io, reference_dir):
 def test_predict_refine_vs_reference(reference_dir):
   """The same high-level path on the refine fixture. Its flow tolerance is the refiner's own
   forward tolerance (5e-3, see test_refine_parity.py): the resize and unmap add < 1e-4."""
-  from ufm_jax import convert
+  from ufm_jax.official import snapshot
   io = dict(np.load(reference_dir / "refine" / "io.npz"))
-  model, params = convert.load_official(reference_dir / "refine")
+  model, params = snapshot.load_official(reference_dir / "refine")
   outs = inference.predict(model, params, [io[f"{p}_src_uint8"] for p in PAIRS],
                            [io[f"{p}_tgt_uint8"] for p in PAIRS])
   for p, out in zip(PAIRS, outs):

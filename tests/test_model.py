@@ -6,14 +6,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ufm_jax import convert, trainer
+from ufm_jax import trainer
 from ufm_jax.models import dinov2, info_sharing, ufm, variants
+from ufm_jax.official import snapshot
 
 
 
 @pytest.fixture(scope="module")
 def fixture(reference_dir):
-  model, params = convert.load_official(reference_dir / "base")
+  model, params = snapshot.load_official(reference_dir / "base")
   io = dict(np.load(reference_dir / "base" / "io.npz"))
   return model, params, io
 

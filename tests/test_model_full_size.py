@@ -8,13 +8,13 @@ import numpy as np
 from flax import traverse_util
 import pytest
 
-from ufm_jax import convert
+from ufm_jax.official import snapshot
 from ufm_jax.models import dinov2, ufm, variants
 
 
 
 def _count(model):
-  return sum(int(np.prod(s)) for s in convert.expected_param_shapes(model).values())
+  return sum(int(np.prod(s)) for s in snapshot.expected_param_shapes(model).values())
 
 
 # ---- closed-form counts of the official modules (torch Linear/Conv/LayerNorm parameter sizes)
@@ -67,7 +67,7 @@ def test_ufm_base_structure():
   assert (s.dim, s.depth, s.num_heads) == (768, 12, 12)
   assert s.indices == (5, 8)  # layers 6 and 9 of 12 (1-based), then the final layer
   assert cfg.flow_head.layer_dims == (96, 192, 384, 768) and cfg.flow_head.feature_dim == 256
-  shapes = convert.expected_param_shapes(ufm.model_from_config(cfg))
+  shapes = snapshot.expected_param_shapes(ufm.model_from_config(cfg))
   assert shapes[("encoder", "pos_embed")] == (1, 1370, 1024)
   assert shapes[("info_sharing", "self_attention_blocks_11", "mlp", "fc1", "kernel")] == (768, 3072)
   assert shapes[("head1_0_0", "input_process_3_0_1", "kernel")] == (3, 3, 768, 768)
@@ -95,7 +95,7 @@ def test_dinov2_sizes(size, d, depth, swiglu):
 
 
 def test_fixture_small_is_the_fixture_structure(reference_dir):
-  model, params = convert.load_official(reference_dir / "base")
+  model, params = snapshot.load_official(reference_dir / "base")
   assert model.config == variants.fixture_small()
   assert _count(model) == sum(v.size for v in jax.tree.leaves(params))
 

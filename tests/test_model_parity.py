@@ -10,7 +10,7 @@ import jax
 import numpy as np
 import pytest
 
-from ufm_jax import convert
+from ufm_jax.official import snapshot
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -20,7 +20,7 @@ def base(reference_dir, request):
   """The official snapshot, run per layer and as the scan model (stacked params); both must
   match the official stages, the scan one through its per-block scan outputs."""
   d = reference_dir / "base"
-  model, params = convert.load_official(d)
+  model, params = snapshot.load_official(d)
   if request.param:
     from ufm_jax.models import scan
     model = model.clone(config=model.config.replace(scan_blocks=True))
@@ -154,10 +154,10 @@ def test_float64_matches_official_float64_run(reference_dir, scan_blocks):
   script = textwrap.dedent(f"""
     import jax, numpy as np
     jax.config.update("jax_enable_x64", True)
-    from ufm_jax import convert
     from ufm_jax.models import scan
+    from ufm_jax.official import snapshot
     d = {str(reference_dir / "base")!r}
-    model, params = convert.load_official(d)
+    model, params = snapshot.load_official(d)
     model = model.clone(config=model.config.replace(dtype="float64", scan_blocks={scan_blocks}))
     params = scan.to_layout(params, model.config)
     params = jax.tree.map(lambda p: np.asarray(p, np.float64), params)

@@ -152,7 +152,7 @@ def test_pipeline_skips_and_counts_an_all_nan_flow_file(tmp_path, caplog):
   write_flo(bad, np.full((28, 28, 2), np.nan, np.float32))
   cfg = {"datasets": {"pairs_folder": {"quota": 4, "root": str(out)}}, "batch_size": 4,
          "symmetrize": False, "longest_side": 28, "aspect_ratios": (1.0,), "read_threads": 1,
-         "augment": {"color_prob": 0.0, "zoom": (1.0, 1.0), "view_scale_jitter": 0.0},
+         "augment": {"enabled": False},
          "max_skip_fraction": 0.5, "skip_check_min_samples": 1}
   it = iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1))
   with caplog.at_level(logging.WARNING, logger="ufm_jax.data.pipeline"):

@@ -64,7 +64,7 @@ def decode(batch, symmetrize):
 
 def make_config(tmp_path, datasets, **kw):
   cfg = {"datasets": {}, "batch_size": 8, "symmetrize": True, "longest_side": 28,
-         "augment": {"color_prob": 0.0, "zoom": (1.0, 1.0), "view_scale_jitter": 0.0},
+         "augment": {"enabled": False},
          "read_threads": 1, "prefetch_buffer_size": 2, "max_skip_fraction": 0.05,
          "skip_check_min_samples": 1}
   for i, (quota, opts) in enumerate(datasets):
@@ -159,7 +159,7 @@ def test_batch_layout_symmetric_and_shapes(tmp_path):
 
 def test_same_seed_same_batches_other_seed_differs(tmp_path):
   cfg = make_config(tmp_path, [(12, {"n": 30, "code": 1}), (8, {"n": 30, "code": 2})],
-                    augment={"view_scale_jitter": 0.1, "hflip_prob": 0.5})
+                    augment={})
   a = batches(pipeline.create(cfg, seed=5, process_index=0, process_count=1), 6)
   b = batches(pipeline.create(cfg, seed=5, process_index=0, process_count=1), 6)
   assert_batches_equal(a, b)
@@ -171,7 +171,7 @@ def test_resume_mid_epoch_from_checkpoint(tmp_path):
   from etils import epath
   import grain
   cfg = make_config(tmp_path, [(12, {"n": 30, "code": 1}), (9, {"n": 5, "code": 2})],
-                    augment={"view_scale_jitter": 0.1, "hflip_prob": 0.5, "color_prob": 1.0})
+                    augment={})
   pipe = pipeline.create(cfg, seed=2, num_epochs=2, process_index=0, process_count=1)
   it = iter(pipe)
   batches(it, 3)  # 12 unique pairs: mid first epoch of 21
@@ -264,7 +264,13 @@ def test_symmetrize_without_backward_labels(tmp_path):
   b = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)))
   np.testing.assert_array_equal(b["image0"][1::2], b["image1"][::2])
   for k in ("flow_valid", "covis_valid", "covisibility"):
-    assert b[k][::2].all() and not b[k][1::2].any()
+    assert b[k][::2].any() and not b[k][1::2].any()
+  assert b["flow_valid"][::2].all() and b["covis_valid"][::2].all()
+  # Covisible unless the (constant) flow leaves the crop (the official CenterCrop's update).
+  h, w = b["flow"].shape[1:3]
+  u, v = b["flow"][::2, ..., 0], b["flow"][::2, ..., 1]
+  inside = (np.arange(w) + u < w) & (np.arange(h)[:, None] + v < h)
+  np.testing.assert_array_equal(b["covisibility"][::2], inside)
   cfg["symmetrize"] = False
   pipe = pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)
   b = next(iter(pipe))
@@ -312,7 +318,7 @@ def test_bad_batch_sizes(tmp_path):
 @pytest.mark.multiprocess
 def test_worker_processes_same_batches_and_resume(tmp_path):
   cfg = make_config(tmp_path, [(12, {"n": 30, "code": 1}), (9, {"n": 5, "code": 2, "corrupt": [4]})],
-                    augment={"view_scale_jitter": 0.1, "hflip_prob": 0.5}, max_skip_fraction=0.5)
+                    augment={}, max_skip_fraction=0.5)
   ref = batches(pipeline.create(cfg, seed=2, num_epochs=2, process_index=0, process_count=1), 8)
   cfg_mp = dict(cfg, num_workers=2)
   it = iter(pipeline.create(cfg_mp, seed=2, num_epochs=2, process_index=0, process_count=1))
@@ -366,15 +372,20 @@ def test_symmetrize_backward_from_depth_and_poses(tmp_path, name):
   cfg = make_config(tmp_path, [], backward_fallback="error")
   (tmp_path / "p").mkdir()
   cfg["datasets"] = {name: {"quota": 4, "root": str(tmp_path / "p"), "options": {"n": 4}}}
-  cfg["augment"] = {"color_prob": 0.0, "zoom": (1.0, 1.0), "view_scale_jitter": 0.0}
+  cfg["augment"] = {"enabled": False}
   b = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)))
   for row in range(4):
     fwd, bwd = 2 * row, 2 * row + 1
     m = b["flow_valid"][bwd] & b["covisibility"][bwd]
     assert m.mean() > 0.5   # all but the column leaving the view
     # Both views are scaled alike, so the backward flow is the negated forward one: +s px.
-    np.testing.assert_allclose(b["flow"][bwd][m], -b["flow"][fwd][m], atol=1e-4)
-    assert abs(b["flow"][fwd][0, 0, 0]) > 0.9
+    both = m & b["flow_valid"][fwd]
+    np.testing.assert_allclose(b["flow"][bwd][both], -b["flow"][fwd][both], atol=1e-4)
+    assert b["flow"][fwd][0, -1, 0] < -0.9
+    # The official labels are made after the crop: the left column's match leaves the view, its
+    # flow is 0 and it is a supervised negative.
+    assert (b["flow"][fwd][:, 0] == 0).all() and not b["flow_valid"][fwd][:, 0].any()
+    assert b["covis_valid"][fwd][:, 0].all() and not b["covisibility"][fwd][:, 0].any()
 
 
 class DynamicPlaneFake(PlaneFake):

@@ -64,7 +64,7 @@ def test_input_block_drives_the_pipeline(tmp_path, caplog):
   names = ("_tpc_a", "_tpc_b", "blendedmvs")   # blendedmvs absent under tmp_path
   ds = mixture.mixture(names, quotas={"_tpc_a": 10, "_tpc_b": 6})
   cfg = pipeline.input_config(ds, batch_size=4, longest_side=28, data_root=str(tmp_path),
-                            num_workers=0, augment={"color_prob": 0.0})
+                            num_workers=0, augment={})
   assert isinstance(cfg, ml_collections.ConfigDict) and cfg.datasets.blendedmvs.quota == 100_000
   with caplog.at_level(logging.WARNING):
     pipe = pipeline.create(cfg, seed=0, num_epochs=1, process_index=0, process_count=1)
@@ -118,7 +118,7 @@ def test_pairs_folder_on_disk_with_a_truncated_png(tmp_path, caplog):
   png.write_bytes(png.read_bytes()[:40])
   ds = {"pairs_folder": {"quota": 6, "root": str(root), "options": {}}}
   cfg = pipeline.input_config(ds, batch_size=4, longest_side=28, num_workers=0,
-                            max_skip_fraction=0.5, augment={"color_prob": 0.0})
+                            max_skip_fraction=0.5, augment={})
   pipe = pipeline.create(cfg, seed=1, num_epochs=1, process_index=0, process_count=1)
   it = iter(pipe)
   with caplog.at_level(logging.WARNING):

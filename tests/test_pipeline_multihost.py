@@ -23,7 +23,7 @@ _WORKER = textwrap.dedent("""
   import numpy as np
   from ufm_jax.data import mixture, pipeline
   cfg = pipeline.input_config(mixture.synthetic_mixture(num_pairs=8, size=(28, 42)), batch_size=8,
-                            longest_side=28, num_workers=0, augment={"hflip_prob": 0.5})
+                            longest_side=28, num_workers=0, augment={})
   pipe = pipeline.create(cfg, seed=3, num_epochs=1)
   out = [b["image0"] for b in pipe]
   np.savez(sys.argv[3], process=jax.process_index(), count=jax.process_count(),
@@ -33,7 +33,7 @@ _WORKER = textwrap.dedent("""
 
 def _config():
   return pipeline.input_config(mixture.synthetic_mixture(num_pairs=8, size=(28, 42)), batch_size=8,
-                             longest_side=28, num_workers=0, augment={"hflip_prob": 0.5})
+                             longest_side=28, num_workers=0, augment={})
 
 
 @pytest.mark.multiprocess

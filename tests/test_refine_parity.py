@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from safetensors.numpy import load_file
 
-from ufm_jax import convert
+from ufm_jax.official import keymap
 from ufm_jax.models import refine
 
 REFINER_PREFIXES = ("unet_feature.", "classification_head.", "conv1.", "conv2.",
@@ -25,11 +25,11 @@ def fx(reference_dir):
   params = {}
   for key, value in tensors.items():
     if key.startswith(REFINER_PREFIXES):
-      path = convert.torch_key_to_path(key, value.ndim)
+      path = keymap.torch_key_to_path(key, value.ndim)
       node = params
       for part in path[:-1]:
         node = node.setdefault(part, {})
-      node[path[-1]] = convert.torch_to_flax_array(key, value)
+      node[path[-1]] = keymap.torch_to_flax_array(key, value)
   return dict(dir=d, tensors=tensors, params=params,
               io=dict(np.load(d / "io.npz")), it=dict(np.load(d / "intermediates.npz")))
 
@@ -100,7 +100,7 @@ def test_local_refinement_matches_fixture(fx, chunk):
 
 @pytest.fixture(scope="module", params=[False, True], ids=["unrolled", "scan"])
 def full(fx, request):
-  from ufm_jax.convert import load_official
+  from ufm_jax.official.snapshot import load_official
   from ufm_jax.models import scan
   model, params = load_official(fx["dir"])
   if request.param:   # the same snapshot as a scan model (stacked encoder / fusion blocks)
@@ -167,7 +167,7 @@ def test_convert_save_load_and_infer_cli(fx, full, tmp_path):
   reproduces the official high-level output of pair hl1 (target smaller than the source)."""
   import cv2
   from ufm_jax import cli
-  from ufm_jax.convert import load, save
+  from ufm_jax.model_io import load, save
   model, params, _ = full
   save(tmp_path / "ckpt", model, params)
   model2, params2 = load(tmp_path / "ckpt")
@@ -187,7 +187,7 @@ def test_loader_rejects_wrong_refiner_weights(fx, tmp_path):
   import json
   import shutil
   from safetensors.numpy import save_file
-  from ufm_jax.convert import load_official
+  from ufm_jax.official.snapshot import load_official
   d = tmp_path / "snap"
   d.mkdir()
   shutil.copy(fx["dir"] / "config.json", d / "config.json")
@@ -219,7 +219,7 @@ def test_float64_matches_official_float64_run(fx):
   script = textwrap.dedent(f"""
     import jax, numpy as np
     jax.config.update("jax_enable_x64", True)
-    from ufm_jax.convert import load_official
+    from ufm_jax.official.snapshot import load_official
     d = {str(fx["dir"])!r}
     model, params = load_official(d)
     model = model.clone(config=model.config.replace(dtype="float64"))

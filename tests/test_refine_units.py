@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ufm_jax import convert
+from ufm_jax.official import keymap
 from ufm_jax.models import refine
 
 A = -0.75
@@ -141,7 +141,7 @@ def test_up_conv_matches_conv_transpose_definition():
       for a in range(2):
         for bb in range(2):
           expected[0, 2 * i + a, 2 * j + bb] += x[0, i, j] @ w_torch[:, :, a, bb]
-  params = {"kernel": convert.torch_to_flax_array("unet_feature.ups.2.weight", w_torch), "bias": b}
+  params = {"kernel": keymap.torch_to_flax_array("unet_feature.ups.2.weight", w_torch), "bias": b}
   out = refine.UpConv2x2(5).apply({"params": params}, jnp.asarray(x))
   np.testing.assert_allclose(np.asarray(out), expected, atol=1e-5)
 
@@ -164,18 +164,18 @@ def test_unet_handles_odd_sizes():
 
 
 def test_torch_key_mapping():
-  assert convert.torch_key_to_path("unet_feature.downs.3.conv.2.weight", 4) == (
+  assert keymap.torch_key_to_path("unet_feature.downs.3.conv.2.weight", 4) == (
       "unet_feature", "downs_3", "conv_2", "kernel")
-  assert convert.torch_key_to_path("unet_feature.ups.4.weight", 4) == (
+  assert keymap.torch_key_to_path("unet_feature.ups.4.weight", 4) == (
       "unet_feature", "ups_4", "kernel")
-  assert convert.torch_key_to_path("classification_head.mlp.fc1.bias", 1) == (
+  assert keymap.torch_key_to_path("classification_head.mlp.fc1.bias", 1) == (
       "classification_head", "mlp", "fc1", "bias")
-  assert convert.torch_key_to_path("classification_bias", 1) == ("classification_bias",)
+  assert keymap.torch_key_to_path("classification_bias", 1) == ("classification_bias",)
   w = np.arange(2 * 3 * 2 * 2, dtype=np.float32).reshape(2, 3, 2, 2)
   # ConvTranspose2d (even `ups` entries) [in, out, kh, kw]; the DoubleConvs are Conv2d [out, in, ...]
-  assert convert.torch_to_flax_array("unet_feature.ups.6.weight", w).shape == (2, 2, 2, 3)
-  assert convert.torch_to_flax_array("unet_feature.ups.7.conv.0.weight", w).shape == (2, 2, 3, 2)
-  assert convert.torch_to_flax_array("unet_feature.ups.10.weight", w).shape == (2, 2, 2, 3)
+  assert keymap.torch_to_flax_array("unet_feature.ups.6.weight", w).shape == (2, 2, 2, 3)
+  assert keymap.torch_to_flax_array("unet_feature.ups.7.conv.0.weight", w).shape == (2, 2, 3, 2)
+  assert keymap.torch_to_flax_array("unet_feature.ups.10.weight", w).shape == (2, 2, 2, 3)
 
 
 def test_windows_far_outside_read_zeros():

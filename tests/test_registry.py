@@ -14,9 +14,14 @@ def test_unknown_dataset_lists_known_names():
 # Paper Table 1 above the dashed line plus the static benchmark scenes; the sources that label
 # backward pairs themselves (scene flow, Spring's BW files, Kubric's rigid objects, pair folders
 # with reverse/, the generator).
+# The readers of the official processed layouts (#30): the static DUSt3R-style sets, and the flow
+# sets whose files store both directions' labels (TA-WB shards, HD1K's empty backward view).
 STATIC = {"blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat", "staticthings",
-          "dtu", "eth3d", "tawb", "scannet1500"}
-WITH_BACKWARD = {"flyingthings", "monkaa", "spring", "kubric4d", "pairs_folder", "synthetic"}
+          "dtu", "eth3d", "tawb", "scannet1500", "blendedmvs_official", "megadepth_official",
+          "scannetpp_official", "habitat_official", "staticthings_official"}
+WITH_BACKWARD = {"flyingthings", "monkaa", "spring", "kubric4d", "pairs_folder", "synthetic",
+                 "flyingthings_official", "monkaa_official", "spring_official", "hd1k_official",
+                 "tartanair_assembled", "kubric4d_official"}
 
 
 def test_every_source_class_declares_backward_labels_and_static_scenes():

@@ -11,13 +11,14 @@ import pytest
 from flax import traverse_util
 from safetensors.numpy import save_file
 
-from ufm_jax import checkpoint, cli, convert, trainer
-from ufm_jax.models import layers, scan, ufm
+from ufm_jax import checkpoint, model_init, model_io, trainer
+from ufm_jax.models import dinov2, layers, scan, ufm
+from ufm_jax.official import keymap, snapshot
 
 
 @pytest.fixture(scope="module")
 def official(reference_dir):
-  model, params = convert.load_official(reference_dir / "base")
+  model, params = snapshot.load_official(reference_dir / "base")
   io = dict(np.load(reference_dir / "base" / "io.npz"))
   return model, jax.tree.map(np.asarray, params), io
 
@@ -42,7 +43,7 @@ def test_stacked_layout_round_trip(official):
   cfg = _scan(model).config
   stacked = scan.stack_blocks(params, cfg)
   # The stacked tree is exactly what the scan model declares.
-  assert {k: v.shape for k, v in _flat(stacked).items()} == convert.expected_param_shapes(
+  assert {k: v.shape for k, v in _flat(stacked).items()} == snapshot.expected_param_shapes(
       _scan(model))
   assert stacked["encoder"]["blocks"]["attn"]["qkv"]["kernel"].shape[0] == cfg.encoder.depth
   np.testing.assert_array_equal(stacked["info_sharing"]["self_attention_blocks"]["mlp"]["fc1"]
@@ -110,15 +111,15 @@ def test_model_init_puts_any_layout_into_the_model(official, reference_dir, tmp_
   model, params, _ = official
   m = _scan(model)
   template = trainer.random_params(m)
-  got, rep = checkpoint.load_init_params(f"snapshot:{reference_dir / 'base'}", template, m.config)
+  got, rep = model_init.load_init_params(f"snapshot:{reference_dir / 'base'}", template, m.config)
   assert rep.left_at_init == [] and rep.unused == [] and rep.resized == []
   _assert_trees_equal(got, scan.stack_blocks(params, m.config))
 
   # DINOv2 weights in the original names (the fixture encoder's), as a safetensors file.
-  state = convert.state_dict_from_params({"encoder": params["encoder"]}, {})
+  state = keymap.state_dict_from_params({"encoder": params["encoder"]}, {})
   dino = {k[len("encoder.model."):]: v for k, v in state.items()}
   save_file(dino, str(tmp_path / "dinov2.safetensors"))
-  got, rep = checkpoint.load_init_params(str(tmp_path / "dinov2.safetensors"), template, m.config)
+  got, rep = model_init.load_init_params(str(tmp_path / "dinov2.safetensors"), template, m.config)
   assert rep.source.startswith("dinov2:") and rep.unused == []
   assert not any(k.startswith("encoder/") for k in rep.left_at_init)
   _assert_trees_equal(got["encoder"], scan.stack_blocks(params, m.config)["encoder"])
@@ -131,16 +132,16 @@ def test_model_init_puts_any_layout_into_the_model(official, reference_dir, tmp_
   checkpoint.save(mngr, 5, optim.TrainState.create(trained, optim.optax.sgd(1.0)), force=True)
   mngr.wait_until_finished()
   mngr.close()
-  got, rep = checkpoint.load_init_params(f"ckpt:{tmp_path / 'run'}", params, model.config)
+  got, rep = model_init.load_init_params(f"ckpt:{tmp_path / 'run'}", params, model.config)
   assert rep.left_at_init == [] and rep.unused == []
   _assert_trees_equal(got, jax.tree.map(lambda p: p + 1.0, params))
   # Without the config the layouts must already agree: nothing is silently loaded.
-  _, rep = checkpoint.load_init_params(f"ckpt:{tmp_path / 'run'}", params)
+  _, rep = model_init.load_init_params(f"ckpt:{tmp_path / 'run'}", params)
   assert rep.unused and any("blocks_0" in k for k in rep.left_at_init)
 
 
 def test_workdir_of_a_scan_run_loads_as_a_usable_model(tmp_path):
-  """cli.load_workdir rebuilds the scan model from config.json; its stacked params run and
+  """model_io.load_workdir rebuilds the scan model from config.json; its stacked params run and
   equal the per-layer model on the unstacked params."""
   from ufm_jax.models import variants
   model = variants.build_model("fixture_small", scan_blocks=True)
@@ -150,7 +151,7 @@ def test_workdir_of_a_scan_run_loads_as_a_usable_model(tmp_path):
   manager.wait_until_finished()
   (tmp_path / "config.json").write_text(json.dumps(
       {"model_name": "fixture_small", "model": {"scan_blocks": True, "attention_impl": None}}))
-  loaded_model, loaded = cli.load_model(tmp_path)
+  loaded_model, loaded = model_io.load_model(tmp_path)
   assert loaded_model.config.scan_blocks
   x = np.random.default_rng(0).integers(0, 255, (1, 56, 70, 3), np.uint8)
   y = np.roll(x, 3, axis=2)

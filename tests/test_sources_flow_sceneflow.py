@@ -137,3 +137,56 @@ def test_invalid_target_neighbour_falls_back_to_nearest():
   out = sceneflow.sceneflow_covisibility(flow, disp0, np.zeros((h, w)), disp1, 0.01, 0.0, K=K)
   assert out["covisibility"][0, 2] and out["covis_valid"][0, 2]
   assert not out["covisibility"][0, 3] and not out["covis_valid"][0, 3]
+
+
+# The official preprocess's rule (official_sceneflow_covisibility), params (abs, temp, rel).
+OFFICIAL = (0.01, 0.01, 0.001)
+
+
+@pytest.mark.parametrize("delta,covisible", [(0.0218, True), (0.0220, False), (-0.0218, True),
+                                             (-0.0220, False)])
+def test_official_threshold_has_the_temperature_term(delta, covisible):
+  # z = 5: 0.01 + 0.001 * 5 - ln(0.5) * 0.01 = 0.021931 (the paper's rule stops at 0.015).
+  disp0 = np.full((5, 5), F / 5.0)
+  disp1 = np.full((5, 5), F / (5.0 + delta))
+  out = sceneflow.official_sceneflow_covisibility(np.zeros((5, 5, 2), np.float32), disp0,
+                                                  np.zeros((5, 5)), disp1, OFFICIAL)
+  assert out["covisibility"][2, 2] == covisible
+  np.testing.assert_allclose(out["error"][2, 2], abs(delta), rtol=1e-3)
+
+
+def test_official_compares_z_not_range_and_has_no_half_pixel_margin():
+  # Off-axis pixels of a fronto-parallel plane: equal z-depths match whatever the ray norm.
+  h, w = 3, 9
+  K = np.array([[2.0, 0, 4.0], [0, 2.0, 1.0], [0, 0, 1]])
+  disp = np.full((h, w), 2.0 / 4.0)
+  flow = np.zeros((h, w, 2), np.float32)
+  flow[..., 0] = 0.5          # column 8 lands at 8.5
+  out = sceneflow.official_sceneflow_covisibility(flow, disp, np.zeros((h, w)), disp, OFFICIAL, K=K)
+  # in view iff 0 <= u < W: column 8 (u = 8.5 < 9) is in view, but its bilinear right tap is the
+  # zero padding: sampled z = 2 instead of 4, occluded.
+  np.testing.assert_array_equal(out["fov_mask"], np.ones((h, w), bool))
+  expected = np.ones((h, w), bool)
+  expected[:, -1] = False
+  np.testing.assert_array_equal(out["covisibility"], expected)
+  flow[..., 0] = -0.25        # column 0 lands at -0.25: out of view (the paper's rule keeps it)
+  out = sceneflow.official_sceneflow_covisibility(flow, disp, np.zeros((h, w)), disp, OFFICIAL, K=K)
+  assert not out["fov_mask"][:, 0].any() and out["fov_mask"][:, 1:].all()
+  assert out["covis_valid"][:, 0].all()   # out of view with valid depth: supervised negative
+
+
+def test_official_target_holes_pull_the_bilinear_sample_to_zero():
+  # A point landing a quarter pixel from a hole (depth 0) is occluded: the zero is blended in.
+  h, w = 1, 6
+  K = np.array([[1e6, 0, 2.5], [0, 1e6, 0.0], [0, 0, 1]])
+  fb = K[0, 0]
+  disp0 = np.full((h, w), fb / 4.0)
+  disp1 = np.full((h, w), fb / 4.0)
+  disp1[0, 3] = 0.0
+  flow = np.zeros((h, w, 2), np.float32)
+  flow[0, 2, 0] = 0.25
+  out = sceneflow.official_sceneflow_covisibility(flow, disp0, np.zeros((h, w)), disp1, OFFICIAL,
+                                                  K=K)
+  assert not out["covisibility"][0, 2] and out["covis_valid"][0, 2]   # nearest target valid
+  assert not out["covisibility"][0, 3] and not out["covis_valid"][0, 3]
+  np.testing.assert_allclose(out["error"][0, 2], 1.0, rtol=1e-5)      # 0.75 * 4 vs 4

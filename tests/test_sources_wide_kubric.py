@@ -18,7 +18,9 @@ def kubric_tree(tmp_path_factory):
 def test_kubric4d_moving_object_across_view_and_time(kubric_tree):
   root, scene, name = kubric_tree
   (root / "pairs_train.txt").write_text(f"{name} 0/1 1/4\n{name} 1/5 0/0\n")
-  src = data.get_source("kubric4d", str(root))
+  # The exact geometry (principal point shifted to the pixel-centre convention); the default is
+  # the official code's unshifted one (test_kubric4d_official_principal_point below).
+  src = data.get_source("kubric4d", str(root), principal_point_shift=True)
   for i, (v0, t0, v1, t1) in enumerate([(0, 1, 1, 4), (1, 5, 0, 0)]):
     s = src[i]
     e = scene.expected(v0, t0, v1, t1)
@@ -39,13 +41,27 @@ def test_kubric4d_moving_object_across_view_and_time(kubric_tree):
 def test_kubric4d_backward_is_the_reversed_dynamic_pair(kubric_tree):
   root, scene, name = kubric_tree
   (root / "pairs_test.txt").write_text(f"{name} 0/1 1/4\n")
-  src = data.get_source("kubric4d", str(root), split="all", pairs=str(root / "pairs_test.txt"))
+  src = data.get_source("kubric4d", str(root), split="all", pairs=str(root / "pairs_test.txt"),
+                        principal_point_shift=True)
   b = src.backward(0)
   e = scene.expected(1, 4, 0, 1)
   m = e["inside"] & ~e["ambiguous"]
   assert np.abs(b["flow"] - e["flow"]).max(-1)[m].max() < 0.02
   assert ((b["covisibility"] != e["covis"]) & ~e["ambiguous"]).sum() == 0
   assert (b["meta"]["time0"], b["meta"]["time1"]) == (4, 1)
+
+
+def test_kubric4d_official_principal_point(kubric_tree):
+  """By default K keeps Kubric's corner-origin principal point, as the official training code
+  (its -0.5 goes to a discarded copy, kubric4d.py:55-60): half a pixel off the exact one."""
+  root, scene, name = kubric_tree
+  (root / "pairs_train.txt").write_text(f"{name} 0/1 1/4\n")
+  official = data.get_source("kubric4d", str(root)).lazy_pair(0)
+  exact = data.get_source("kubric4d", str(root), principal_point_shift=True).lazy_pair(0)
+  np.testing.assert_allclose(official.v0.K[:2, 2] - exact.v0.K[:2, 2], [0.5, 0.5], atol=1e-9)
+  np.testing.assert_allclose(official.v0.K[[0, 1], [0, 1]], exact.v0.K[[0, 1], [0, 1]])
+  # The depth is converted from the range with the same K.
+  assert not np.array_equal(official.v0.depth, exact.v0.depth)
 
 
 def test_kubric4d_palette_segmentation_roundtrip(tmp_path):

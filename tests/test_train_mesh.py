@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from ufm_jax import checkpoint
+from ufm_jax import checkpoint, model_init
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -43,8 +43,8 @@ def test_sharded_step_equals_single_device(tmp_path):
     assert a["loss_robust_epe"] == pytest.approx(b["loss_robust_epe"], rel=1e-5)
   s_mesh, _ = checkpoint.read_state_numpy(runs["mesh"], 2)
   s_single, _ = checkpoint.read_state_numpy(runs["single"], 2)
-  flat_a = checkpoint._flat(s_mesh["params"])
-  flat_b = checkpoint._flat(s_single["params"])
+  flat_a = model_init.flatten(s_mesh["params"])
+  flat_b = model_init.flatten(s_single["params"])
   assert flat_a.keys() == flat_b.keys()
   moved = 0
   for k in flat_a:

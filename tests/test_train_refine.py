@@ -11,7 +11,7 @@ import tempfile
 import jax
 import numpy as np
 
-from ufm_jax import checkpoint
+from ufm_jax import checkpoint, model_init
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 XLA_CACHE = pathlib.Path(tempfile.gettempdir()) / "ufm_jax_test_xla_cache"
@@ -32,7 +32,7 @@ def test_refine_stage_trains_only_the_refiner(tmp_path):
   assert r.returncode == 0, r.stderr[-3000:]
   s1, _ = checkpoint.read_state_numpy(tmp_path, 1)
   s3, _ = checkpoint.read_state_numpy(tmp_path, 3)
-  f1, f3 = checkpoint._flat(s1["params"]), checkpoint._flat(s3["params"])
+  f1, f3 = model_init.flatten(s1["params"]), model_init.flatten(s3["params"])
   moved = []
   for k in f1:
     if k.split("/")[0] in REFINER:

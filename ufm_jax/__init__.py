@@ -2,7 +2,7 @@
 
 Top-level API (imported lazily so that `import ufm_jax` stays cheap):
   - `load_official(snapshot_dir)`: (model, params) from a Hugging Face snapshot of the PyTorch release.
-  - `load(checkpoint_dir)`: (model, params) from a checkpoint written by `python -m ufm_jax.convert`.
+  - `load(checkpoint_dir)`: (model, params) from a checkpoint written by `python -m ufm_jax convert`.
   - `save_official(model, params, out_dir)`: the inverse of `load_official` (a new HF snapshot).
   - `predict(model, params, source, target)`: the official high-level inference on HWC uint8 images.
   - `match(model, params, source, target)`: sparse matches (keypoints0/1, confidence) in pixels.
@@ -12,9 +12,9 @@ Top-level API (imported lazily so that `import ufm_jax` stays cheap):
 __version__ = "0.1.0"
 
 _LAZY = {
-    "load_official": ("ufm_jax.convert", "load_official"),
-    "load": ("ufm_jax.convert", "load"),
-    "save_official": ("ufm_jax.convert", "save_official"),
+    "load_official": ("ufm_jax.official.snapshot", "load_official"),
+    "load": ("ufm_jax.model_io", "load"),
+    "save_official": ("ufm_jax.official.snapshot", "save_official"),
     "predict": ("ufm_jax.inference", "predict"),
     "load_exported": ("ufm_jax.export", "load_exported"),
     "match": ("ufm_jax.matching", "match"),

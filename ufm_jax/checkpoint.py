@@ -1,38 +1,24 @@
-"""Checkpoints: the orbax manager (train state + data iterator), `model_init`, preemption.
+"""Checkpoints of a training run: the orbax manager (train state + data iterator), restoring the
+newest step that restores, and reading a step back as numpy.
 
 Layout of a workdir:
   checkpoints/<step>/state   the TrainState (orbax, sharded arrays, written asynchronously)
   checkpoints/<step>/data    the grain iterator state (one JSON per process)
 
-`model_init` sources (string, optionally prefixed with a kind):
-  ckpt:DIR       a training workdir or its checkpoints/ folder (latest step), or a
-                 `python -m ufm_jax.convert` output (read through `ufm_jax.load`)
-  snapshot:DIR   a Hugging Face snapshot of the official PyTorch release (`ufm_jax.load_official`)
-  dinov2:PATH    DINOv2 weights for the encoder: HF `facebook/dinov2-*` model.safetensors (or its
-                 folder), transformers naming, no torch needed; or the original `dinov2_vit*14*.pth`
-                 (needs the optional torch extra)
-Without a prefix the kind is guessed from what is on disk.
+When to save and stop is `ufm_jax.loop_control`; parameters from elsewhere (`model_init`) are
+`ufm_jax.model_init`.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import os
 import pathlib
-import re
-import signal
 import time
-from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 from absl import logging
-from flax import traverse_util
-
-from ufm_jax import convert
 
 # ---------------------------------------------------------------------------------------------
 # Manager
@@ -157,82 +143,6 @@ def restore_latest(manager, abstract_state, data_iter=None):
   return None, None
 
 
-# ---------------------------------------------------------------------------------------------
-# Preemption and the other ways a run stops
-
-
-class PreemptionGuard:
-  """Turns SIGTERM into a flag the loop polls, so it can save and exit cleanly.
-
-  With several processes the signal may reach only one of them (one preempted host), yet all
-  must stop after the same step, or the others wait forever in the next collective. `poll` ORs
-  each flag over all processes with a tiny all-reduce over the mesh, read one step late (while
-  the next step runs, so the host never waits for the device); JAX's own preemption sync point
-  (when its preemption service is on) counts as SIGTERM too.
-  """
-
-  def __init__(self, mesh=None):
-    self.requested = False
-    self._previous = None
-    self._mesh = mesh
-    self._reduce = None
-    self._pending = None
-    self._sync_point = True
-
-  def __enter__(self):
-    def handler(signum, frame):
-      del frame
-      logging.warning("received signal %d: will save a checkpoint and exit", signum)
-      self.requested = True
-    self._previous = signal.signal(signal.SIGTERM, handler)
-    return self
-
-  def __exit__(self, *exc):
-    signal.signal(signal.SIGTERM, self._previous or signal.SIG_DFL)
-
-  def _any_process(self, flags: np.ndarray):
-    """Issues max over processes of `flags`; returns the result of the previous call (or None)."""
-    from jax.sharding import NamedSharding, PartitionSpec
-    if self._reduce is None:
-      if self._mesh is None:
-        self._mesh = jax.sharding.Mesh(np.array(jax.devices()), ("all",))
-      axes = tuple(self._mesh.axis_names)
-      self._sharding = NamedSharding(self._mesh, PartitionSpec(axes, None))
-      self._reduce = jax.jit(lambda x: jnp.max(x, axis=0),
-                             out_shardings=NamedSharding(self._mesh, PartitionSpec()))
-    rows = np.broadcast_to(flags[None], (self._mesh.devices.size, flags.size))
-    x = jax.make_array_from_callback(rows.shape, self._sharding, lambda idx: rows[idx])
-    previous, self._pending = self._pending, self._reduce(x)
-    return None if previous is None else np.asarray(previous)
-
-  def poll(self, step: int, *flags: bool) -> tuple[bool, ...]:
-    """(stop, *flags), each OR-ed over all processes; the same answer on every process when all
-    call it once per step."""
-    local = np.array([self.requested, *flags], np.int32)
-    if jax.process_count() == 1:
-      return tuple(bool(v) for v in local)
-    agreed = self._any_process(local)
-    out = [False] * local.size if agreed is None else [bool(v) for v in agreed]
-    if self._sync_point:
-      from jax.experimental import multihost_utils
-      try:
-        out[0] = out[0] or bool(multihost_utils.reached_preemption_sync_point(step))
-      except Exception:  # noqa: BLE001 - preemption service unavailable on this platform
-        self._sync_point = False
-    return tuple(out)
-
-  def should_stop(self, step: int) -> bool:
-    return self.poll(step)[0]
-
-
-class NonFiniteSteps(RuntimeError):
-  """Too many consecutive updates were skipped for a non-finite loss or gradient."""
-
-
-class CheckpointWriteError(RuntimeError):
-  """A background checkpoint write failed."""
-
-
 def write_error(manager) -> BaseException | None:
   """The error of a failed background checkpoint write once the write is over (None while one is
   in flight or when it succeeded); never waits."""
@@ -246,160 +156,9 @@ def write_error(manager) -> BaseException | None:
   return None
 
 
-def _step_or_none(step) -> str:
-  return "none" if step is None else f"step {step}"
-
-
-class Keeper:
-  """Saves and stops train.py's loop: `end_of_step` once per step, on every process.
-
-  - Saves at the manager's interval, at the last step, and when a process got SIGTERM (once per
-    step when these coincide), then returns True for the loop to exit 0 (`message` says what).
-  - Never saves a step inside a run of skipped (non-finite) updates: a regular save waits for the
-    next finite update, a preemption exits without a new checkpoint. After `max_nonfinite_steps`
-    consecutive skipped updates it raises NonFiniteSteps naming the count and the last finite step.
-  - Polls the background checkpoint write every step and raises CheckpointWriteError when it
-    failed (on any process); the failed step never becomes a checkpoint, the newest complete one
-    stays.
-  `update_ok` is read one step late unless the step saves, so the host stays a step ahead.
-  """
-
-  def __init__(self, manager, guard: PreemptionGuard, max_nonfinite_steps: int | None,
-               start_step: int):
-    self.manager, self.guard = manager, guard
-    self.max_nonfinite = int(max_nonfinite_steps or 0)
-    self.last_finite = start_step  # checkpoints are never written inside a non-finite run
-    self.streak = 0
-    self.saved_step = None
-    self.message = ""
-    self._unread = None
-    self._deferred = False
-    self._writing = False
-
-  def _count(self, step: int, update_ok) -> None:
-    if bool(jax.device_get(update_ok)):
-      if self.streak:
-        logging.warning("step %d: finite again after %d skipped updates", step, self.streak)
-      self.last_finite, self.streak = step, 0
-    else:
-      if not self.streak:
-        logging.warning("step %d: non-finite loss or gradient, update skipped", step)
-      self.streak += 1
-    if self.max_nonfinite and self.streak >= self.max_nonfinite:
-      newest = self.manager.latest_step()
-      try:
-        self.manager.wait_until_finished()  # a save in flight is of a finite step: let it finish
-      except Exception:  # noqa: BLE001 - this error is the one to report
-        pass
-      raise NonFiniteSteps(
-          f"{self.streak} consecutive updates skipped for a non-finite loss or gradient (steps "
-          f"{step - self.streak + 1}-{step}, max_nonfinite_steps={self.max_nonfinite}); last "
-          f"finite update: step {self.last_finite}; newest checkpoint: {_step_or_none(newest)}")
-
-  def end_of_step(self, step: int, state, data_iter, update_ok, last: bool) -> bool:
-    if self._unread is not None:
-      self._count(*self._unread)
-      self._unread = None
-    regular = last or self._deferred or self.manager.should_save(step)
-    error = None
-    if self._writing:
-      error = write_error(self.manager)
-      self._writing = self.manager.is_saving_in_progress()
-    stop, failed = self.guard.poll(step, error is not None)
-    if failed:
-      self._write_failed(error)
-    if not (regular or stop):
-      self._unread = (step, update_ok)
-      return False
-    self._count(step, update_ok)
-    if self.streak:
-      self._deferred = regular and not stop
-      logging.warning("step %d: not saved, %d updates in a row were skipped (last finite update: "
-                      "step %d)%s", step, self.streak, self.last_finite,
-                      "; saving at the next finite one" if self._deferred else "")
-    elif self.saved_step != step:
-      self._deferred = False
-      save(self.manager, step, state, data_iter, force=True)
-      self.saved_step, self._writing = step, True
-    if stop:
-      self.wait()
-      self.message = (
-          f"preempted: saved step {step}, exiting" if self.saved_step == step else
-          f"preempted at step {step} during skipped updates: not saved; newest checkpoint: "
-          f"{_step_or_none(self.manager.latest_step())}, exiting")
-    return stop
-
-  def _write_failed(self, error):
-    how = f": {type(error).__name__}: {error}" if error is not None else " on another process"
-    raise CheckpointWriteError(
-        f"writing checkpoint step {self.saved_step} to {self.manager.directory} failed{how}; "
-        f"the newest complete checkpoint is {_step_or_none(self.manager.latest_step())}")
-
-  def wait(self):
-    """Waits for the checkpoint write in flight; CheckpointWriteError when it failed."""
-    try:
-      self.manager.wait_until_finished()
-    except Exception as e:  # noqa: BLE001 - whatever the writer raised
-      self._write_failed(e)
-
 
 # ---------------------------------------------------------------------------------------------
-# model_init: parameters from elsewhere
-
-
-@dataclasses.dataclass
-class InitReport:
-  source: str
-  loaded: list[str]
-  resized: list[str]
-  left_at_init: list[str]
-  unused: list[str]
-
-  def summary(self) -> str:
-    lines = [f"model_init from {self.source}: {len(self.loaded)} loaded, {len(self.resized)} "
-             f"resized, {len(self.left_at_init)} left at init, {len(self.unused)} unused"]
-    for name, items in (("resized", self.resized), ("left at init", self.left_at_init),
-                        ("unused", self.unused)):
-      if items:
-        shown = ", ".join(items[:20]) + (f", ... ({len(items) - 20} more)" if len(items) > 20 else "")
-        lines.append(f"  {name}: {shown}")
-    return "\n".join(lines)
-
-
-def _flat(tree) -> dict[str, Any]:
-  return traverse_util.flatten_dict(dict(tree), sep="/")
-
-
-def merge_into(template, loaded: dict[str, np.ndarray], source: str,
-               resizable: str = r"pos_embed") -> tuple[Any, InitReport]:
-  """Fills `template` (a param tree) with `loaded` (flat "a/b/c" -> array) where paths match.
-
-  Shape mismatches on `resizable` params (position embeddings) are resized; other mismatches
-  are an error naming both shapes. Returns (params, report).
-  """
-  flat_t = _flat(template)
-  out, rep = {}, InitReport(source, [], [], [], sorted(set(loaded) - set(flat_t)))
-  mismatched = []
-  for k, v in flat_t.items():
-    if k not in loaded:
-      out[k] = v
-      rep.left_at_init.append(k)
-      continue
-    w = np.asarray(loaded[k])
-    if w.shape == tuple(v.shape):
-      out[k] = jnp.asarray(w, v.dtype)
-      rep.loaded.append(k)
-    elif re.search(resizable, k):
-      out[k] = jnp.asarray(convert.resize_pos_embed(w, v.shape), v.dtype)
-      rep.resized.append(f"{k} {w.shape}->{tuple(v.shape)}")
-    else:
-      mismatched.append(f"{k}: checkpoint {w.shape} vs model {tuple(v.shape)}")
-  if mismatched:
-    raise ValueError(f"model_init {source}: shape mismatch for\n  " + "\n  ".join(mismatched))
-  return traverse_util.unflatten_dict(out, sep="/"), rep
-
-
-# --- UFM parameters --------------------------------------------------------------------------
+# Reading a step back (tools, model_init, to-official)
 
 
 def checkpoint_steps(path) -> list[int]:
@@ -431,60 +190,3 @@ def read_state_numpy(path, step: int | None = None) -> tuple[dict, int]:
     return handler.restore(item, args=ocp.args.PyTreeRestore(restore_args=restore_args)), step
   finally:
     handler.close()
-
-
-def _latest_params_from_workdir(path: pathlib.Path):
-  state, step = read_state_numpy(path)
-  return _flat(state["params"]), f"{path}@{step}"
-
-
-def guess_kind(spec: str) -> tuple[str, str]:
-  if ":" in spec and spec.split(":", 1)[0] in ("ckpt", "snapshot", "dinov2"):
-    kind, path = spec.split(":", 1)
-    return kind, path
-  p = pathlib.Path(spec)
-  if p.is_file():
-    if p.suffix == ".pth":
-      return "dinov2", spec
-    if p.suffix == ".safetensors":
-      from safetensors import safe_open
-      with safe_open(str(p), "np") as f:
-        keys = list(f.keys())
-      return ("snapshot" if any(k.startswith("info_sharing.") for k in keys) else "dinov2"), spec
-  if (p / "config.json").is_file() and (p / "model.safetensors").is_file():
-    cfg = json.loads((p / "config.json").read_text())
-    return ("dinov2" if cfg.get("model_type", "").startswith("dinov2") else "snapshot"), spec
-  if (p / "checkpoints").is_dir() or any(x.name.isdigit() for x in p.glob("*")) \
-      or (p / "params").exists() or (p / "model_config.json").exists():
-    return "ckpt", spec
-  raise FileNotFoundError(f"model_init: cannot tell what {spec!r} is (expected a training workdir, "
-                          "a converted checkpoint, a UFM HF snapshot or DINOv2 weights)")
-
-
-def load_init_params(spec: str, template, config=None) -> tuple[Any, InitReport]:
-  """Parameters for `template` (the freshly initialised tree) from the `model_init` source.
-
-  `config` (the model's UFMConfig) puts the loaded blocks into the template's layout: per-layer
-  sources (snapshots, DINOv2, unscanned runs) stacked for a `scan_blocks` model, stacked ones
-  (scan runs) split for a per-layer model. Without it the layouts must already agree.
-  """
-  kind, path = guess_kind(spec)
-  if kind == "dinov2":
-    loaded = convert.dinov2_to_flax(convert.read_dinov2(path))
-  elif kind == "snapshot":
-    _, params = convert.load_official(path)
-    loaded = {k: np.asarray(v) for k, v in _flat(params).items()}
-  else:
-    p = pathlib.Path(path)
-    if (p / "checkpoints").is_dir() or any(x.name.isdigit() for x in p.glob("*")):
-      loaded, path = _latest_params_from_workdir(p)
-    else:
-      _, params = convert.load(path)
-      loaded = {k: np.asarray(v) for k, v in _flat(params).items()}
-  if config is not None:
-    from ufm_jax.models import scan
-    tree = traverse_util.unflatten_dict(loaded, sep="/")
-    loaded = _flat(scan.to_layout(tree, config))
-  params, report = merge_into(template, loaded, f"{kind}:{path}")
-  logging.info("%s", report.summary())
-  return params, report

@@ -18,14 +18,16 @@ as `ufm-jax`).
   python -m ufm_jax demo --checkpoint DIR [--port 7860] [--host 127.0.0.1] [--max-side 2048] [--share]
       A local Gradio page: flow, covisibility, warp and matches (see `ufm_jax.demo`; [demo] extra).
   python -m ufm_jax convert SNAPSHOT_DIR OUT_DIR ...
-      Converts an official Hugging Face snapshot (see `ufm_jax.convert`).
+      Converts an official Hugging Face snapshot into our checkpoint (see `ufm_jax.model_io`).
   python -m ufm_jax to-official CHECKPOINT OUT_DIR [--step N]
       The inverse: a converted checkpoint or a train.py workdir (newest step, or step N) -> an
       official snapshot (config.json, model.safetensors, README.md; `ufm_jax.save_official`).
 
 `--checkpoint` takes a converted checkpoint (`python -m ufm_jax convert`), a train.py workdir
 (latest step) or, with `--snapshot` (or when the folder holds config.json + model.safetensors),
-an official snapshot.
+an official snapshot: a folder or a Hugging Face model ID such as infinity1096/UFM-Base (the
+standard Hugging Face cache; HF_HUB_OFFLINE=1 reads only the cache; `--revision` picks a
+branch, tag or commit).
 """
 
 from __future__ import annotations
@@ -35,60 +37,8 @@ import os
 import pathlib
 import sys
 
-import numpy as np
-
-from ufm_jax import compile_cache
-
-
-def is_snapshot(path: str | os.PathLike) -> bool:
-  """A Hugging Face snapshot folder as written by `save_pretrained`."""
-  p = pathlib.Path(path)
-  return (p / "config.json").is_file() and (p / "model.safetensors").is_file()
-
-
-def is_workdir(path: str | os.PathLike) -> bool:
-  """A train.py workdir: its config.json plus orbax steps under checkpoints/."""
-  p = pathlib.Path(path)
-  return (p / "config.json").is_file() and (p / "checkpoints").is_dir()
-
-
-def load_workdir(path: str | os.PathLike, step: int | None = None):
-  """(model, params) of the latest (or given) checkpoint step of a train.py workdir."""
-  import importlib
-  import json
-
-  from ufm_jax import checkpoint
-
-  p = pathlib.Path(path)
-  cfg = json.loads((p / "config.json").read_text())
-  model_kw = dict(cfg.get("model") or {})
-  if cfg.get("model_fn"):
-    import ml_collections
-    module, attr = cfg["model_fn"].split(":")
-    model = getattr(importlib.import_module(module), attr)(ml_collections.ConfigDict(model_kw))
-  else:
-    if not cfg.get("model_name"):
-      raise ValueError(f"{p / 'config.json'}: neither model_fn nor model_name; cannot rebuild the model")
-    from ufm_jax.models import variants
-    model = variants.build_model(cfg["model_name"], **model_kw)
-  state, _ = checkpoint.read_state_numpy(p, step)
-  return model, state["params"]
-
-
-def load_model(path: str | os.PathLike, snapshot: bool = False):
-  """(model, params) from an official snapshot, a train.py workdir or a converted checkpoint."""
-  p = pathlib.Path(path)
-  if not p.is_dir():
-    raise FileNotFoundError(f"checkpoint directory not found: {p}")
-  import ufm_jax
-  if snapshot or is_snapshot(p):
-    if not is_snapshot(p):
-      raise FileNotFoundError(f"{p} is not a Hugging Face snapshot: expected config.json and "
-                              "model.safetensors in it")
-    return ufm_jax.load_official(p)
-  if is_workdir(p):
-    return load_workdir(p)
-  return ufm_jax.load(p)
+from ufm_jax import compile_cache, model_io
+from ufm_jax.model_io import load_model
 
 
 def _to_official_main(args) -> int:
@@ -99,8 +49,8 @@ def _to_official_main(args) -> int:
   if pathlib.Path(args.out_dir).exists():  # before loading: the export never overwrites
     raise FileExistsError(f"{args.out_dir} already exists; refusing to overwrite it")
   step = None
-  if is_workdir(p):
-    model, params = load_workdir(p, args.step)
+  if model_io.what_is(p) == model_io.WORKDIR:
+    model, params = model_io.load_workdir(p, args.step)
     step = args.step if args.step is not None else checkpoint.checkpoint_steps(p)[-1]
   elif args.step is not None:
     raise ValueError(f"--step {args.step}: {p} is not a train.py workdir (config.json + "
@@ -114,34 +64,10 @@ def _to_official_main(args) -> int:
   return 0
 
 
-def write_direction(out_dir: pathlib.Path, name: str, source, target, pred) -> list[pathlib.Path]:
-  """Writes the files of one direction (atomically); returns their paths."""
-  from ufm_jax import viz
-  from ufm_jax.data import io
-
-  flow = np.asarray(pred["flow"], np.float32)
-  covis = np.asarray(pred["covisibility"], np.float32)
-  paths = {k: out_dir / f"{name}{suffix}" for k, suffix in (
-      ("flo", ".flo"), ("npy", "_flow.npy"), ("cnpy", "_covisibility.npy"),
-      ("cpng", "_covisibility.png"), ("panel", "_panel.png"))}
-  io.write_flo(paths["flo"], flow)
-  _save_npy(paths["npy"], flow)
-  _save_npy(paths["cnpy"], covis)
-  io.write_image(paths["cpng"], viz.covisibility_to_image(covis))
-  io.write_image(paths["panel"], viz.panel(source, target, flow, covis))
-  return list(paths.values())
-
-
-def _save_npy(path: pathlib.Path, array: np.ndarray) -> None:
-  tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-  with open(tmp, "wb") as f:
-    np.save(f, array)
-  os.replace(tmp, path)
-
-
 def run_infer(model, params, source_path, target_path, out_dir, bidirectional=False):
-  """Reads the two images, predicts, writes the outputs; returns the written paths."""
-  from ufm_jax import inference
+  """Reads the two images, predicts, writes every output of `ufm_jax.outputs`; returns their
+  paths."""
+  from ufm_jax import inference, outputs
   from ufm_jax.data import io
 
   source, target = io.read_image(source_path), io.read_image(target_path)
@@ -151,9 +77,9 @@ def run_infer(model, params, source_path, target_path, out_dir, bidirectional=Fa
     fwd, bwd = inference.predict(model, params, [source, target], [target, source])
   else:
     fwd, bwd = inference.predict(model, params, source, target), None
-  written = write_direction(out_dir, "forward", source, target, fwd)
+  written = outputs.write(outputs.paths(out_dir, "forward"), source, target, fwd)
   if bwd is not None:
-    written += write_direction(out_dir, "backward", target, source, bwd)
+    written += outputs.write(outputs.paths(out_dir, "backward"), target, source, bwd)
   return written
 
 
@@ -175,7 +101,7 @@ def _infer_many(args) -> int:
     pairs = sequence.list_pairs(args.pairs)
   else:
     pairs = sequence.video_frames(args.source, args.stride)
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   counts = sequence.run(model, params, pairs, args.out, batch=args.batch, save=save,
                         overwrite=args.overwrite)
   print(f"{args.out}: {counts['done']} pairs written, {counts['skipped']} already there, "
@@ -194,7 +120,7 @@ def _infer_main(args) -> int:
   for p in (args.source, args.target):
     if not os.path.isfile(p):
       raise FileNotFoundError(f"image not found: {p}")
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   written = run_infer(model, params, args.source, args.target, args.out, args.bidirectional)
   for p in written:
     print(p)
@@ -219,9 +145,13 @@ def _batch_arg(text: str):
 
 def _add_checkpoint_args(p) -> None:
   p.add_argument("--checkpoint", required=True,
-                 help="converted checkpoint, train.py workdir or HF snapshot folder")
+                 help="converted checkpoint, train.py workdir or HF snapshot folder; with "
+                      "--snapshot also a Hugging Face model ID (infinity1096/UFM-Base)")
   p.add_argument("--snapshot", action="store_true",
-                 help="--checkpoint is an official Hugging Face snapshot (config.json + safetensors)")
+                 help="--checkpoint is an official Hugging Face snapshot (config.json + safetensors): "
+                      "a folder or a model ID, read through the Hugging Face cache")
+  p.add_argument("--revision", default=None,
+                 help="with a model ID: the Hub branch, tag or commit (default: main)")
 
 
 def _add_infer_parser(sub) -> None:
@@ -262,11 +192,12 @@ def _add_export_parser(sub) -> None:
 
 def _export_main(args) -> int:
   from ufm_jax import export
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   outputs = [k.strip() for k in args.outputs.split(",") if k.strip()]
   written = export.export(model, params, args.size, args.out, fmt=args.format, batch=args.batch,
                           dtype=args.dtype, outputs=outputs,
-                          checkpoint=pathlib.Path(args.checkpoint).absolute())
+                          checkpoint=(pathlib.Path(args.checkpoint).absolute()
+                                      if os.path.exists(args.checkpoint) else args.checkpoint))
   for p in written:
     print(p)
   return 0
@@ -292,7 +223,7 @@ def _match_main(args) -> int:
   from ufm_jax import matching
   from ufm_jax.data import io
   source, target = io.read_image(args.source), io.read_image(args.target)
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   m = matching.match(model, params, source, target, num=args.num,
                      min_covisibility=args.min_covisibility, bidirectional=args.bidirectional,
                      max_fb_error_px=args.max_fb_error, seed=args.seed)
@@ -306,21 +237,53 @@ def _match_main(args) -> int:
 
 def _add_demo_parser(sub) -> None:
   from ufm_jax import demo
-  demo.add_parser(sub)
+  p = sub.add_parser("demo", help="local Gradio page: flow, covisibility, warp and matches of two "
+                     "images (the [demo] extra)", description=demo.__doc__.split("\n")[0])
+  _add_checkpoint_args(p)
+  p.add_argument("--port", type=int, default=7860)
+  p.add_argument("--host", default="127.0.0.1",
+                 help="address to bind; anything but a loopback address exposes the page to the "
+                      "network")
+  p.add_argument("--share", action="store_true",
+                 help="also open a PUBLIC gradio.live link (off unless given)")
+  p.add_argument("--max-side", "--max_side", dest="max_side", type=int,
+                 default=demo.DEFAULT_MAX_SIDE,
+                 help="refuse images with a side longer than this many px")
+  p.add_argument("--max-file-size", default=demo.DEFAULT_MAX_FILE_SIZE,
+                 help="refuse uploads over this size (gradio syntax: 20mb, 500kb)")
+  p.set_defaults(func=_demo_main)
+
+
+def _demo_main(args) -> int:
+  """Load the model, then serve the page until Ctrl-C (the [demo] extra checked first)."""
+  from ufm_jax import demo
+  try:
+    import gradio  # noqa: F401
+  except ImportError:
+    print(f"error: {demo.INSTALL_HINT}", file=sys.stderr)
+    return 2
+  if args.max_side < 14:
+    raise ValueError(f"--max-side {args.max_side}: must be at least the 14 px patch size")
+  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
+  demo.serve(model, params, host=args.host, port=args.port, share=args.share,
+             max_side=args.max_side, max_file_size=args.max_file_size)
+  return 0
 
 
 def _convert_main(args) -> int:
-  from ufm_jax import convert
-  print(convert.convert_snapshot(args.snapshot_dir, args.out_dir))
+  print(model_io.convert_snapshot(args.snapshot_dir, args.out_dir, revision=args.revision))
   return 0
 
 
 def _add_convert_parser(sub) -> None:
-  p = sub.add_parser("convert", help="official HF snapshot -> orbax checkpoint (ufm_jax.convert)",
+  p = sub.add_parser("convert", help="official HF snapshot -> orbax checkpoint (ufm_jax.model_io)",
                      description="Converts an official Hugging Face snapshot into an orbax "
                      "checkpoint that ufm_jax.load reads back.")
-  p.add_argument("snapshot_dir", help="Hugging Face snapshot (config.json + model.safetensors)")
+  p.add_argument("snapshot_dir", help="Hugging Face snapshot (config.json + model.safetensors): "
+                 "a folder or a model ID (infinity1096/UFM-Base)")
   p.add_argument("out_dir", help="new folder for the orbax params + model_config.json")
+  p.add_argument("--revision", default=None,
+                 help="with a model ID: the Hub branch, tag or commit (default: main)")
   p.set_defaults(func=_convert_main)
 
 

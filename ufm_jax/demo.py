@@ -1,4 +1,5 @@
-"""Local demo page: `python -m ufm_jax demo --checkpoint DIR [--snapshot] [--port 7860]`.
+"""Local demo page: `python -m ufm_jax demo --checkpoint DIR [--snapshot] [--port 7860]`
+(`serve(model, params, ...)` from Python).
 
 A Gradio app (the optional `[demo]` extra): upload two images (or pick the generated example
 pair) and see the flow in the Middlebury colour wheel, the covisibility, the target warped into
@@ -7,9 +8,10 @@ below it are greyed out and never matched) and the matches download as the `.npz
 `python -m ufm_jax match` writes. The forward pass is `ufm_jax.predict` (one jitted forward per
 inference shape); a changed threshold re-samples the cached prediction without running the model.
 
-It binds 127.0.0.1 unless --host says otherwise, refuses uploads over --max-file-size and images
-with a side over --max-side (with a message naming the limit and the image's size), and makes a
-public share link only with --share. Its API (`gradio_client`): `Client(url).predict(source,
+It binds 127.0.0.1 unless --host says otherwise, refuses uploads over --max-file-size, files that
+are no image, and images with a side over --max-side or under the model's minimum (`min_side`),
+with a message naming the limit and the image's size, and makes a public share link only with
+--share. Its API (`gradio_client`): `Client(url).predict(source,
 target, threshold, num, api_name="/analyse")` -> (flow colours, covisibility, warped target,
 matches drawing, matches.npz, summary).
 """
@@ -21,7 +23,6 @@ import hashlib
 import ipaddress
 import os
 import pathlib
-import sys
 import tempfile
 import threading
 import time
@@ -36,13 +37,49 @@ EXAMPLE_SIZE = (240, 320)  # (H, W): the 3:4 aspect of the released models' 420x
 MAX_LINES = 300            # matches drawn; the .npz holds all of them
 
 
-def check_size(image: np.ndarray, what: str, max_side: int) -> None:
-  """Refuses an image with a side over max_side, naming the limit and the image's size."""
+def min_side(model) -> int:
+  """The smallest image side the demo accepts for `model`: one image pixel per encoder patch.
+
+  `ufm_jax.predict` resizes both images to the model's inference resolution (420x560 for the
+  released models, 30x40 patches of 14 px). A side shorter than its number of patches is
+  stretched so that every image pixel covers more than a patch: the patches then carry no
+  texture of their own and the flow means nothing (a 1x1 image gives a constant field). So the
+  limit is ceil(inference side / patch size): 30 px for the released 420x560 models."""
+  from ufm_jax import inference
+  config = getattr(model, "config", None)
+  patch = getattr(getattr(config, "encoder", None), "patch_size", 14)
+  return max(-(-min(min(r) for r in inference.inference_resolutions(model)) // patch), 1)
+
+
+def check_size(image: np.ndarray, what: str, max_side: int, smallest: int = 1) -> None:
+  """Refuses an image with a side over max_side or under `smallest` (`min_side`), naming the
+  limit and the image's size."""
   h, w = image.shape[:2]
   if max(h, w) > max_side:
     raise ValueError(f"the {what} image is {h}x{w} px (HxW), over this demo's limit of {max_side} "
                      f"px per side (--max-side {max_side}); downscale it or restart the demo "
                      "with a larger --max-side")
+  if min(h, w) < smallest:
+    raise ValueError(f"the {what} image is {h}x{w} px (HxW), under this model's minimum of "
+                     f"{smallest} px per side (one image pixel per encoder patch at its inference "
+                     "resolution); use a larger image")
+
+
+def read_upload(payload, what: str) -> np.ndarray | None:
+  """An uploaded image (Gradio's file payload: a dict or object with a `path`, or an array) as
+  HWC uint8 RGB through the project's image reader; a file that is no readable image is refused
+  with a message that names the input, not the server's temp path."""
+  if payload is None or isinstance(payload, np.ndarray):
+    return payload
+  from ufm_jax.data import io
+  path = payload.get("path") if isinstance(payload, dict) else getattr(payload, "path", None)
+  if not path:
+    return None
+  try:
+    return io.read_image(path)
+  except (OSError, ValueError):
+    raise ValueError(f"the {what} file is not an image this demo can read (PNG, JPEG, WebP, BMP, "
+                     "TIFF, ...)") from None
 
 
 def example_pair(folder) -> list[str]:
@@ -73,6 +110,7 @@ class Analyser:
     self.model, self.params = model, params
     self.out_dir = pathlib.Path(out_dir)
     self.max_side = max_side
+    self.min_side = min_side(model)
     self.cache_size = cache_size
     self._cache: collections.OrderedDict = collections.OrderedDict()
     self._lock = threading.Lock()
@@ -97,11 +135,12 @@ class Analyser:
   def __call__(self, source, target, threshold: float = 0.5, num: int = DEFAULT_NUM):
     """-> (flow colours, covisibility, warped target, matches drawing, matches .npz path, summary)."""
     from ufm_jax import matching, viz
+    source, target = read_upload(source, "source"), read_upload(target, "target")
     if source is None or target is None:
       raise ValueError("upload a source and a target image (or pick the example pair)")
     source, target = np.asarray(source), np.asarray(target)
-    check_size(source, "source", self.max_side)
-    check_size(target, "target", self.max_side)
+    check_size(source, "source", self.max_side, self.min_side)
+    check_size(target, "target", self.max_side, self.min_side)
     key, pred, ms = self.predict(source, target)
     flow, covis = pred["flow"], pred["covisibility"]
     threshold, num = float(threshold), int(num)
@@ -133,8 +172,8 @@ def build_app(analyser: Analyser, examples: list[list[str]] | None = None):
     gr.Markdown("## UFM: dense flow and covisibility between two images\n"
                 "Upload a source and a target image. The flow is defined on the source's pixels "
                 "(where does each one land in the target); pixels below the covisibility "
-                f"threshold are greyed out and never matched. Images up to {analyser.max_side} px "
-                "per side.")
+                f"threshold are greyed out and never matched. Images from {analyser.min_side} to "
+                f"{analyser.max_side} px per side.")
     with gr.Row():
       source = gr.Image(type="numpy", image_mode="RGB", label="source", sources=["upload", "clipboard"])
       target = gr.Image(type="numpy", image_mode="RGB", label="target", sources=["upload", "clipboard"])
@@ -145,22 +184,29 @@ def build_app(analyser: Analyser, examples: list[list[str]] | None = None):
     if examples:
       gr.Examples(examples=examples, inputs=[source, target], label="example pair (synthetic)")
     summary = gr.Textbox(label="summary", interactive=False)
+    gr.Markdown("Flow colours: hue = direction, saturation = magnitude (see the key). "
+                "Covisibility: white = also seen in the target.")
     with gr.Row():
-      flow = gr.Image(format="png", label="flow (hue: direction, saturation: magnitude)",
-                      interactive=False)
-      gr.Image(value=colour_key(), format="png", label="colour key", interactive=False,
+      # Short labels: a panel's label is cut to the panel's width.
+      flow = gr.Image(format="png", label="flow", interactive=False)
+      gr.Image(value=colour_key(), format="png", label="key", interactive=False,
                show_label=True, width=120, height=120)
-      covis = gr.Image(format="png", label="covisibility (white: seen in the target)",
-                       interactive=False)
-      warped = gr.Image(format="png", label="target warped into the source", interactive=False)
+      covis = gr.Image(format="png", label="covisibility", interactive=False)
+      warped = gr.Image(format="png", label="warped target", interactive=False)
     drawing = gr.Image(format="png", label="sampled matches", interactive=False)
     npz = gr.File(label="matches.npz (keypoints0, keypoints1, confidence)", interactive=False)
     outputs = [flow, covis, warped, drawing, npz, summary]
     inputs = [source, target, threshold, num]
-    run.click(analyse, inputs, outputs, api_name="analyse")
-    # The sliders re-sample the cached prediction; only the button is the public API.
+    # preprocess=False: the uploads reach `analyse` as files and go through the project's image
+    # reader (read_upload), so a file that is no image gets our message, not Gradio's (which
+    # names the server's temp path).
+    run.click(analyse, inputs, outputs, api_name="analyse", preprocess=False)
+    # The sliders re-sample the cached prediction; only the button is the public API. `input`
+    # fires on drags, arrow keys and typing in the number box alike (`release` only on a mouse
+    # release); always_last drops the intermediate values of a drag.
     for s in (threshold, num):
-      s.release(analyse, inputs, outputs, api_visibility="private")
+      s.input(analyse, inputs, outputs, api_visibility="private", preprocess=False,
+              trigger_mode="always_last")
   return app
 
 
@@ -173,43 +219,18 @@ def is_loopback(host: str) -> bool:
     return False
 
 
-def add_parser(sub) -> None:
-  from ufm_jax.cli import _add_checkpoint_args
-  p = sub.add_parser("demo", help="local Gradio page: flow, covisibility, warp and matches of two "
-                     "images (the [demo] extra)", description=__doc__.split("\n")[0])
-  _add_checkpoint_args(p)
-  p.add_argument("--port", type=int, default=7860)
-  p.add_argument("--host", default="127.0.0.1",
-                 help="address to bind; anything but a loopback address exposes the page to the "
-                      "network")
-  p.add_argument("--share", action="store_true",
-                 help="also open a PUBLIC gradio.live link (off unless given)")
-  p.add_argument("--max-side", "--max_side", dest="max_side", type=int, default=DEFAULT_MAX_SIDE,
-                 help="refuse images with a side longer than this many px")
-  p.add_argument("--max-file-size", default=DEFAULT_MAX_FILE_SIZE,
-                 help="refuse uploads over this size (gradio syntax: 20mb, 500kb)")
-  p.set_defaults(func=main)
-
-
-def main(args) -> int:
-  """The `demo` subcommand: load the model, warm it up on the example pair, serve until Ctrl-C."""
-  try:
-    import gradio  # noqa: F401
-  except ImportError:
-    print(f"error: {INSTALL_HINT}", file=sys.stderr)
-    return 2
-  from ufm_jax.cli import load_model
-  if args.max_side < 14:
-    raise ValueError(f"--max-side {args.max_side}: must be at least the 14 px patch size")
+def serve(model, params, *, host: str = "127.0.0.1", port: int = 7860, share: bool = False,
+          max_side: int = DEFAULT_MAX_SIDE, max_file_size: str = DEFAULT_MAX_FILE_SIZE) -> None:
+  """Warms the model up on the example pair, then serves the page until Ctrl-C (needs gradio).
+  `python -m ufm_jax demo` parses its arguments and calls this."""
   os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")  # no calls home from a local tool
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot)
   with tempfile.TemporaryDirectory(prefix="ufm_jax_demo_") as tmp:
     examples_dir, out_dir = pathlib.Path(tmp, "examples"), pathlib.Path(tmp, "out")
     examples_dir.mkdir()
     out_dir.mkdir()
-    analyser = Analyser(model, params, out_dir, max_side=args.max_side)
+    analyser = Analyser(model, params, out_dir, max_side=max_side)
     pair = example_pair(examples_dir)
-    if max(EXAMPLE_SIZE) <= args.max_side:
+    if max(EXAMPLE_SIZE) <= max_side:
       from ufm_jax.data import io
       t0 = time.perf_counter()
       analyser(io.read_image(pair[0]), io.read_image(pair[1]))  # compiles before the first visitor
@@ -217,12 +238,16 @@ def main(args) -> int:
     else:
       pair = None
     app = build_app(analyser, [pair] if pair else None)
-    if not is_loopback(args.host):
-      print(f"warning: binding {args.host}: the demo is reachable from other machines", flush=True)
-    if args.share:
+    if not is_loopback(host):
+      print(f"warning: binding {host}: the demo is reachable from other machines", flush=True)
+    if share:
       print("warning: --share makes the demo reachable by anyone with the public link", flush=True)
+    # quiet: Gradio's own lines name its launch() arguments (`share=True`); ours name the flags.
     app.queue(default_concurrency_limit=1).launch(
-        server_name=args.host, server_port=args.port, share=args.share,
-        max_file_size=args.max_file_size, allowed_paths=[str(examples_dir), str(out_dir)],
-        show_error=True, ssr_mode=False, inbrowser=False)
-  return 0
+        server_name=host, server_port=port, share=share, max_file_size=max_file_size,
+        allowed_paths=[str(examples_dir), str(out_dir)], show_error=True, ssr_mode=False,
+        inbrowser=False, quiet=True, prevent_thread_lock=True)
+    # (with --share Gradio prints the public URL itself, quiet or not)
+    print(f"* Running on local URL:  {app.local_url}" + (
+        "" if share else "   (python -m ufm_jax demo --share also opens a public link)"), flush=True)
+    app.block_thread()

@@ -26,8 +26,6 @@ import dataclasses
 import json
 import os
 import pathlib
-import shutil
-import tempfile
 from typing import Sequence
 
 import numpy as np
@@ -60,6 +58,7 @@ def _prepare(model, params, size, dtype, outputs, attention_impl=None):
   import jax
   import jax.numpy as jnp
 
+  from ufm_jax.models import ufm
   if dtype not in DTYPES:
     raise ExportError(f"--dtype {dtype!r}; expected one of {', '.join(DTYPES)}")
   cfg = model.config
@@ -73,14 +72,14 @@ def _prepare(model, params, size, dtype, outputs, attention_impl=None):
                       f"{patch} (e.g. {max(patch, h // patch * patch)}x{max(patch, w // patch * patch)})")
   outputs = tuple(outputs)
   spec = jax.ShapeDtypeStruct((1, h, w, 3), jnp.uint8)
-  available = jax.eval_shape(lambda s, t: model.apply({"params": params}, s, t), spec, spec)
+  available = jax.eval_shape(lambda s, t: model.apply(ufm.variables(params), s, t), spec, spec)
   missing = [k for k in outputs if k not in available]
   if missing or not outputs:
     raise ExportError(f"outputs {missing or list(outputs)} not produced by {type(model).__name__}; "
                       f"it returns {', '.join(sorted(available))}")
 
   def forward(source, target):
-    out = model.apply({"params": params}, source, target)
+    out = model.apply(ufm.variables(params), source, target)
     return {k: out[k] for k in outputs}
 
   return forward, model, outputs
@@ -116,80 +115,75 @@ def _jax2onnx():
   return jax2onnx
 
 
-def _module_path(obj) -> str | None:
-  """'UFM/encoder/blocks_0' for a bound Flax module, else None."""
-  scope = getattr(obj, "scope", None)
-  if scope is None or not hasattr(scope, "path"):
-    return None
-  return "/".join((type(obj).__name__,) + tuple(scope.path))
+def _equations(jaxpr, scope: str = ""):
+  """(equation, its name stack) for every equation of a jaxpr and of its sub-jaxprs (jit, scan,
+  cond, ...); a sub-jaxpr's name stacks continue its parent equation's."""
+  for eqn in jaxpr.eqns:
+    where = "/".join(p for p in (scope, str(eqn.source_info.name_stack)) if p)
+    yield eqn, where
+    for value in eqn.params.values():
+      for sub in value if isinstance(value, (list, tuple)) else (value,):
+        inner = getattr(sub, "jaxpr", sub)   # ClosedJaxpr -> Jaxpr
+        if hasattr(inner, "eqns"):
+          yield from _equations(inner, where)
 
 
-def _library_file(filename: str) -> bool:
-  return ("site-packages" in filename or "dist-packages" in filename
-          or filename == os.path.abspath(__file__) or filename.startswith("<"))
+def onnx_failure(exc: BaseException, fn, specs) -> str | None:
+  """'primitive X in model part Y' for a jax2onnx conversion failure, else None.
 
+  The op is the primitive the converter's message names, else the jax2onnx plugin module the
+  error came from (`plugins/.../svd.py`: plugins are named after their op); the model part is
+  the Flax module path of that primitive's first equation in `jax.make_jaxpr(fn)(*specs)`.
+  Public APIs only (the message, traceback file names, the jaxpr)."""
+  import re
+  import traceback
 
-def onnx_failure(exc: BaseException) -> str | None:
-  """'primitive X in model part Y (file:line)' for a jax2onnx conversion failure, else None.
+  import jax
 
-  Lowering failures: jax2onnx lowers one jaxpr equation at a time with the equation in a local
-  named `eqn`; the innermost such frame failed, and Flax put the module path in its name stack.
-  Tracing failures (jax2onnx swaps some jnp/flax functions for its own while tracing): the
-  innermost jax2onnx plugin names the op, the innermost frame of our code the model part.
-  """
-  from jax._src import source_info_util
-
-  eqns, plugin, user = [], None, None
-  tb = exc.__traceback__
-  while tb is not None:
-    frame = tb.tb_frame
-    e = frame.f_locals.get("eqn")
-    if e is not None and hasattr(e, "primitive") and hasattr(e, "source_info"):
-      eqns.append(e)
-    name = frame.f_code.co_filename.replace(os.sep, "/")
-    if "/jax2onnx/plugins/" in name:
-      plugin = name.split("/jax2onnx/plugins/", 1)[1].removesuffix(".py").replace("/", ".")
-    elif not _library_file(frame.f_code.co_filename):
-      user = (frame, tb.tb_lineno)
-    tb = tb.tb_next
-  if eqns:
-    part = next((str(e.source_info.name_stack) for e in reversed(eqns)
-                 if str(e.source_info.name_stack)), "") or "(top level)"
-    where = source_info_util.summarize(eqns[-1].source_info)
-    return (f"primitive {eqns[-1].primitive.name!r} in model part {part}"
-            + (f" ({where})" if where else ""))
-  if plugin is None or user is None:
-    return None
-  frame, line = user
-  part = _module_path(frame.f_locals.get("self")) or frame.f_code.co_name
-  return (f"op {plugin!r} in model part {part} "
-          f"({frame.f_code.co_filename}:{line} in {frame.f_code.co_name})")
+  m = re.search(r"primitive '([^']+)'", str(exc))
+  if m is not None:
+    name = m.group(1)
+  else:
+    plugins = [f.filename.replace(os.sep, "/").split("/jax2onnx/plugins/", 1)[1]
+               for f in traceback.extract_tb(exc.__traceback__)
+               if "/jax2onnx/plugins/" in f.filename.replace(os.sep, "/")]
+    if not plugins:
+      return None
+    name = plugins[-1].rsplit("/", 1)[-1].removesuffix(".py")
+  import flax.linen as nn
+  try:
+    with nn.override_named_call(True):   # Flax module paths in the equations' name stacks
+      jaxpr = jax.make_jaxpr(fn)(*specs).jaxpr
+  except Exception:  # noqa: BLE001 - the op's name alone is still worth saying
+    return f"op {name!r}"
+  parts = [where for e, where in _equations(jaxpr) if e.primitive.name == name]
+  if not parts:
+    return f"op {name!r}"
+  part = next((p for p in parts if p), "(top level)")
+  return f"primitive {name!r} in model part {part}"
 
 
 def write_onnx(fn, specs, input_names, output_names, path) -> None:
   """jax2onnx conversion of fn(*specs) -> tuple to `path`, written whole or not at all; an
   ExportError names the primitive and the model part that could not be converted."""
+  from ufm_jax.data import io
   jax2onnx = _jax2onnx()
   path = pathlib.Path(path).absolute()
-  path.parent.mkdir(parents=True, exist_ok=True)
   # Large graphs spill weights into a data file that the graph names: convert in a temp folder
   # under the final file name, then move both.
-  tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
-  try:
+  with io.staging_dir(path) as tmp:
     try:
       jax2onnx.to_onnx(fn, list(specs), input_names=list(input_names),
                        output_names=list(output_names), model_name=path.stem,
                        return_mode="file", output_path=str(tmp / path.name))
     except Exception as e:  # noqa: BLE001 - any converter failure: say where, keep the cause
-      what = onnx_failure(e)
+      what = onnx_failure(e, fn, specs)
       if what is None:
         raise
       raise ExportError(f"ONNX export: jax2onnx cannot convert {what}: "
                         f"{type(e).__name__}: {str(e)[:300]}") from e
     for f in sorted(tmp.iterdir(), key=lambda f: f.name == path.name):  # the graph last
       os.replace(f, path.parent / f.name)
-  finally:
-    shutil.rmtree(tmp, ignore_errors=True)
 
 
 def export_onnx(model, params, size, path, *, batch=1, dtype="float32",
@@ -216,11 +210,8 @@ def _sidecar(fmt, model, size, batch, dtype, outputs, shapes, checkpoint, platfo
   import jax
 
   import ufm_jax
-  try:
-    from ufm_jax.convert import CLASS_NAMES
-    class_name = CLASS_NAMES.get(type(model), type(model).__name__)
-  except ImportError:
-    class_name = type(model).__name__
+  from ufm_jax.official import config as official_config
+  class_name = official_config.CLASS_NAMES.get(type(model), type(model).__name__)
   h, w = size
   b = batch if batch == "dynamic" else int(batch)
   return {
@@ -240,15 +231,6 @@ def _sidecar(fmt, model, size, batch, dtype, outputs, shapes, checkpoint, platfo
   }
 
 
-def _write_atomic(path: pathlib.Path, data: bytes) -> None:
-  tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-  try:
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-  finally:
-    tmp.unlink(missing_ok=True)
-
-
 def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32",
            outputs: Sequence[str] = DEFAULT_OUTPUTS, checkpoint=None,
            platforms=PLATFORMS) -> list[pathlib.Path]:
@@ -256,6 +238,8 @@ def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32
   import jax
   import jax.numpy as jnp
 
+  from ufm_jax.data import io
+  from ufm_jax.models import ufm
   if fmt not in FORMATS:
     raise ExportError(f"--format {fmt!r}; expected one of {', '.join(FORMATS)}")
   out = pathlib.Path(out)
@@ -264,20 +248,20 @@ def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32
   if fmt == "stablehlo":
     exp, model = export_stablehlo(model, params, size, batch=batch, dtype=dtype, outputs=outputs,
                                   platforms=platforms)
-    _write_atomic(out, bytes(exp.serialize()))
+    with io.atomic_file(out) as tmp:
+      pathlib.Path(tmp).write_bytes(bytes(exp.serialize()))
     written = [out]
   else:
     model = export_onnx(model, params, size, out, batch=batch, dtype=dtype, outputs=outputs)
     written = [out] + ([out.with_name(out.name + ".data")] if out.with_name(out.name + ".data")
                        .exists() else [])
   spec = jax.ShapeDtypeStruct((1,) + size + (3,), jnp.uint8)
-  avals = jax.eval_shape(lambda s, t: model.apply({"params": params}, s, t), spec, spec)
+  avals = jax.eval_shape(lambda s, t: model.apply(ufm.variables(params), s, t), spec, spec)
   shapes = {}
   for k in outputs:
     shapes[k], shapes[k + ":dtype"] = tuple(avals[k].shape), str(avals[k].dtype)
   meta = _sidecar(fmt, model, size, batch, dtype, outputs, shapes, checkpoint, platforms)
   side = sidecar_path(out)
-  from ufm_jax.data import io
   io.write_json_atomic(side, meta)
   return written + [side]
 

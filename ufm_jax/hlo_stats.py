@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import json
 import re
 
 KINDS = ("all-gather", "all-reduce", "reduce-scatter", "all-to-all", "collective-permute")
@@ -135,7 +134,3 @@ def format_summary(s: dict) -> str:
     for b, shape in v["largest"]:
       lines.append(f"      {b / 2**20:10.2f} MiB  {shape}")
   return "\n".join(lines) if lines else "  (no collectives)"
-
-
-def to_json(s: dict) -> str:
-  return json.dumps({k: v["bytes"] for k, v in s.items()})

@@ -212,8 +212,10 @@ def _forward_fn(model):
   if entry is None or entry[0] is not model:
     from ufm_jax import compile_cache
     compile_cache.enable()  # a new process on the same shapes loads the executable from disk
+    from ufm_jax.models import ufm
+
     def fwd(params, source, target):
-      out = model.apply({"params": params}, source, target)
+      out = model.apply(ufm.variables(params), source, target)
       return {"flow": out["flow"], "covisibility": out["covisibility"]}
     entry = (model, jax.jit(fwd), set())
     _FORWARDS[id(model)] = entry

@@ -11,12 +11,12 @@ KDE-balanced), so matches fed to a solver here are distributed as in the paper's
 
 from __future__ import annotations
 
-import os
 import pathlib
 
 import numpy as np
 
 from ufm_jax import metrics
+from ufm_jax.data import io
 
 
 def forward_backward_error(flow: np.ndarray, backward: np.ndarray) -> np.ndarray:
@@ -70,9 +70,8 @@ def save_matches(path, m: dict, image0_hw, image1_hw) -> pathlib.Path:
   atomically, creating the folder; the file `python -m ufm_jax match --out` writes."""
   path = pathlib.Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
-  tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.npz")  # np.savez appends .npz otherwise
-  np.savez(tmp, **m, image0_hw=np.array(image0_hw[:2]), image1_hw=np.array(image1_hw[:2]))
-  os.replace(tmp, path)
+  with io.atomic_file(path, ".npz") as tmp:  # np.savez appends .npz otherwise
+    np.savez(tmp, **m, image0_hw=np.array(image0_hw[:2]), image1_hw=np.array(image1_hw[:2]))
   return path
 
 

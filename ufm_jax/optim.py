@@ -221,7 +221,7 @@ def apply_gradients(state: TrainState, grads, loss, tx) -> tuple[TrainState, jnp
 
   The wrapper's state is rebuilt around `state.opt_state` on each call, so the TrainState and its
   checkpoints keep the plain optimizer's layout. It never gives up and applies a non-finite
-  update: stopping after too many skips in a row is the train loop's job (checkpoint.Keeper,
+  update: stopping after too many skips in a row is the train loop's job (loop_control.SaveAndStop,
   config.max_nonfinite_steps). Returns (new_state, ok).
   """
   # apply_if_finite looks at the gradients only: a non-finite loss counts as non-finite gradients.

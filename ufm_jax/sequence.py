@@ -4,14 +4,16 @@ Pairs come from `--frames DIR` (consecutive frames in natural sort order, `--str
 `--pairs LIST.txt` (two paths per line, relative to the list) or a video file (OpenCV). They go
 through `ufm_jax.predict` `--batch` at a time; the last batch is padded with its last pair so the
 compiled forward sees one shape. Reading and writing run in a small thread pool beside the
-device. Outputs per pair under OUT/<name>: `.flo` always, `--save npy,covis,panel` adds more;
-OUT/manifest.jsonl gets one line per pair (pair, files, mean covisibility, ms, or the error of an
+device. Outputs per pair under OUT/<name> (`ufm_jax.outputs`): `.flo` always, `--save
+npy,covis,panel` adds more; OUT/manifest.jsonl gets one line per pair (pair, files, mean covisibility, ms, or the error of an
 unreadable image, which is skipped). Existing outputs are skipped unless `overwrite`.
 """
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
+import itertools
 import json
 import pathlib
 import re
@@ -19,9 +21,11 @@ import time
 
 import numpy as np
 
+from ufm_jax import outputs
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".tif", ".tiff", ".webp")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
-SAVE_CHOICES = ("npy", "covis", "panel")
+SAVE_CHOICES = tuple(outputs.SAVE_CHOICES)
 
 
 def natural_key(name: str):
@@ -50,55 +54,39 @@ def list_pairs(list_file) -> list[tuple[str, str]]:
 
 
 def video_frames(path, stride: int = 1):
-  """Frames of a video as RGB uint8 arrays (OpenCV), as (name, image) with name frame_%06d."""
+  """Pairs (frame i, frame i + stride) of a video, each frame (name, RGB uint8 image) with name
+  frame_%06d, decoded as they are consumed (OpenCV): only stride + 1 frames are held at once."""
   import cv2
   cap = cv2.VideoCapture(str(path))
   if not cap.isOpened():
     raise ValueError(f"{path}: OpenCV cannot open this video")
-  frames, i = [], 0
-  while True:
-    ok, bgr = cap.read()
-    if not ok:
-      break
-    frames.append((f"frame_{i:06d}", cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)))
-    i += 1
-  cap.release()
-  return [(frames[i], frames[i + stride]) for i in range(len(frames) - stride)]
+
+  def pairs():
+    window = collections.deque(maxlen=stride + 1)
+    try:
+      i = 0
+      while True:
+        ok, bgr = cap.read()
+        if not ok:
+          return
+        window.append((f"frame_{i:06d}", cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)))
+        i += 1
+        if len(window) == stride + 1:
+          yield window[0], window[-1]
+    finally:
+      cap.release()
+
+  return pairs()
 
 
 def pair_name(a, b) -> str:
   return f"{pathlib.Path(a).stem}__{pathlib.Path(b).stem}"
 
 
-def _outputs(out_dir: pathlib.Path, name: str, save) -> dict[str, pathlib.Path]:
-  files = {"flo": out_dir / f"{name}.flo"}
-  if "npy" in save:
-    files.update(npy=out_dir / f"{name}_flow.npy", cnpy=out_dir / f"{name}_covisibility.npy")
-  if "covis" in save:
-    files["cpng"] = out_dir / f"{name}_covisibility.png"
-  if "panel" in save:
-    files["panel"] = out_dir / f"{name}_panel.png"
-  return files
-
-
-def _write(files, source, target, pred):
-  from ufm_jax import viz
-  from ufm_jax.cli import _save_npy
-  from ufm_jax.data import io
-  flow, covis = pred["flow"], pred["covisibility"]
-  if "npy" in files:
-    _save_npy(files["npy"], flow)
-    _save_npy(files["cnpy"], covis)
-  if "cpng" in files:
-    io.write_image(files["cpng"], viz.covisibility_to_image(covis))
-  if "panel" in files:
-    io.write_image(files["panel"], viz.panel(source, target, flow, covis))
-  io.write_flo(files["flo"], flow)  # last: its presence marks the pair done (resume)
-
-
 def run(model, params, pairs, out_dir, *, batch: int = 1, save=(), overwrite=False,
         workers: int = 4, progress=True) -> dict:
-  """pairs: (source, target) of paths or of (name, image). Returns counts (done/skipped/failed)."""
+  """pairs: an iterable of (source, target), each a path or a (name, image); consumed as it goes
+  (a video is never decoded whole). Returns counts (done/skipped/failed) and seconds."""
   from tqdm import tqdm
 
   from ufm_jax import inference
@@ -106,33 +94,47 @@ def run(model, params, pairs, out_dir, *, batch: int = 1, save=(), overwrite=Fal
 
   out_dir = pathlib.Path(out_dir)
   out_dir.mkdir(parents=True, exist_ok=True)
-  todo, counts = [], {"done": 0, "skipped": 0, "failed": 0}
-  for a, b in pairs:
-    na, nb = (a[0] if isinstance(a, tuple) else a), (b[0] if isinstance(b, tuple) else b)
-    name = pair_name(na, nb)
-    files = _outputs(out_dir, name, save)
-    if not overwrite and all(f.exists() for f in files.values()):
-      counts["skipped"] += 1
-      continue
-    todo.append((a, b, str(na), str(nb), name, files))
-  manifest = open(out_dir / "manifest.jsonl", "a")
+  counts = {"done": 0, "skipped": 0, "failed": 0}
+  outputs.paths(out_dir, "check", save)  # an unknown --save choice fails before any work
+
+  def todo():
+    for a, b in pairs:
+      na, nb = (a[0] if isinstance(a, tuple) else a), (b[0] if isinstance(b, tuple) else b)
+      name = pair_name(na, nb)
+      files = outputs.paths(out_dir, name, save)
+      if not overwrite and all(f.exists() for f in files.values()):
+        counts["skipped"] += 1
+        continue
+      yield a, b, str(na), str(nb), name, files
 
   def load(item):
     a, b = item[0], item[1]
     try:
-      return (a[1] if isinstance(a, tuple) else io.read_image(a),
-              b[1] if isinstance(b, tuple) else io.read_image(b), None)
+      return item, (a[1] if isinstance(a, tuple) else io.read_image(a),
+                    b[1] if isinstance(b, tuple) else io.read_image(b), None)
     except (OSError, ValueError) as e:
-      return None, None, str(e)
+      return item, (None, None, str(e))
 
+  # Reads run `ahead` pairs in front of the device and writes trail behind it, both bounded, so
+  # memory stays flat however many pairs come.
+  ahead = max(2 * batch, workers)
   pool = concurrent.futures.ThreadPoolExecutor(workers)
-  writes = []
-  bar = tqdm(total=len(todo), disable=not progress, unit="pair")
+  loads, writes = collections.deque(), collections.deque()
+  manifest = open(out_dir / "manifest.jsonl", "a")
+  bar = tqdm(total=len(pairs) if hasattr(pairs, "__len__") else None, disable=not progress,
+             unit="pair")
   t_start = time.perf_counter()
   try:
-    loads = [pool.submit(load, it) for it in todo]
-    for s in range(0, len(todo), batch):
-      chunk = [(todo[i], loads[i].result()) for i in range(s, min(s + batch, len(todo)))]
+    items = todo()
+    for it in itertools.islice(items, ahead):
+      loads.append(pool.submit(load, it))
+    while loads:
+      chunk = []
+      while loads and len(chunk) < batch:
+        chunk.append(loads.popleft().result())
+        nxt = next(items, None)
+        if nxt is not None:
+          loads.append(pool.submit(load, nxt))
       good = [(it, (x, y)) for it, (x, y, err) in chunk if err is None]
       for it, (_, _, err) in chunk:
         if err is not None:
@@ -146,16 +148,19 @@ def run(model, params, pairs, out_dir, *, batch: int = 1, save=(), overwrite=Fal
         preds = inference.predict(model, params, srcs, tgts, batch_size=batch)[:len(good)]
         ms = 1e3 * (time.perf_counter() - t0) / len(good)
         for (it, (x, y)), pred in zip(good, preds):
-          writes.append(pool.submit(_write, it[5], x, y, pred))
+          writes.append(pool.submit(outputs.write, it[5], x, y, pred))
           manifest.write(json.dumps({"pair": [it[2], it[3]], "name": it[4],
                                      "files": [str(f) for f in it[5].values()],
                                      "mean_covisibility": float(np.mean(pred["covisibility"])),
                                      "ms": round(ms, 2)}) + "\n")
           counts["done"] += 1
-      bar.update(len(chunk))
+      while len(writes) > ahead:
+        writes.popleft().result()
+      bar.update(counts["done"] + counts["failed"] + counts["skipped"] - bar.n)
       bar.set_postfix(pairs_per_s=f"{counts['done'] / (time.perf_counter() - t_start):.2f}")
-    for w in writes:
-      w.result()
+    while writes:
+      writes.popleft().result()
+    bar.update(counts["done"] + counts["failed"] + counts["skipped"] - bar.n)
   finally:
     bar.close()
     pool.shutdown(wait=True)

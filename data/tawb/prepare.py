@@ -25,7 +25,6 @@ root) and runs from any directory.
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 import os
 
@@ -33,7 +32,7 @@ import cv2
 import h5py
 import numpy as np
 
-from ufm_jax.data.sources import exr, posed
+from ufm_jax.data.sources import exr, posed, tawb
 
 CONDITIONS = ("SummerNight", "WinterNight", "Autumn", "Spring", "Winter", "Day", "Night", "Fall",
               "Summer")
@@ -46,25 +45,6 @@ def geometry_env(env: str) -> str:
     if env.endswith(c) and len(env) > len(c):
       return env[:-len(c)].rstrip("_")
   return env
-
-
-def _index_maps(split_dir):
-  entries = {}
-  for path in sorted(glob.glob(os.path.join(split_dir, "*.json"))):
-    with open(path) as f:
-      try:
-        m = json.load(f)
-      except ValueError as e:
-        raise ValueError(f"{path}: not JSON ({e})") from e
-    if "forward_match_errors" in m:
-      continue
-    for k, v in m.items():
-      if isinstance(v, dict):
-        v = [v["file_name"], v["file_index"]]
-      entries[int(k)] = (str(v[0]), int(v[1]))
-  if not entries:
-    raise FileNotFoundError(f"{split_dir}: no index-map JSON (pair -> [h5 file, index])")
-  return entries
 
 
 def _read_pair(h5, index, path):
@@ -103,7 +83,7 @@ def prepare(download, out, split, progress=True):
     envs = {int(i): row[col] for i, row in zip(index, table["data"])}
   except (KeyError, ValueError) as e:
     raise ValueError(f"{meta_path}: expected a split-oriented table with column img1_env") from e
-  entries = _index_maps(split_dir)
+  entries = tawb.read_index_maps(split_dir)
   open_files, written = {}, 0
   try:
     for pair, (fname, idx) in tqdm.tqdm(sorted(entries.items()), desc=split, disable=not progress):

@@ -1,16 +1,32 @@
-"""Label-consistent training augmentation: random scale + crop to a fixed shape, flips, colour jitter.
+"""Training augmentation and labels after the crop, as the official UFM training code makes them.
 
-Each view v (source 0, target 1) gets its own affine pixel map, in the project's pixel-centre
-convention (pixel i covers [i-0.5, i+0.5]):
-  x' = s_v * (x + 0.5) - 0.5 - c_v          (resize by s_v, then crop at integer offset c_v)
-so a correspondence x -> y = x + flow(x) becomes x' -> A_1(y), i.e.
-  flow'(x') = A_1(x + flow(x)) - x'         with x = A_0^-1(x')
-which stays exact when the two views are scaled differently. Labels are point-sampled at x:
-flow bilinearly (only where all four neighbours are valid), masks by nearest neighbour; images are
-resampled with area averaging when shrinking. Colour jitter touches the images only.
+The official code (train branch, d8c421e) has three pathways; each dataset takes one:
 
-The training shape is one of a few (H, W) pairs, all multiples of 14, picked per batch from
-(seed, step) so that jit compiles one program per shape.
+* static (depth + poses: BlendedMVS, MegaDepth, ScanNet++, StaticThings, Habitat): each view is
+  cropped (intrinsics shift) BEFORE labelling, then flow and masks are computed from the cropped
+  depth maps and cameras (`ufm_jax.geometry.official_labels`), so a pixel whose match leaves the
+  other view's crop is out of fov, not covisible and not supervised as flow
+  (base/flow_postprocessing.py:556-714). Crops: `static_crop_pair` (aug_crop='auto_crop_asis')
+  or, without augmentation and for `no_crop_datasets`, `resize_cover_center_crop`.
+* flow (labels stored per pixel: FlyingThings3D, Monkaa, FlyingChairs, Spring, HD1K, TA-WB and
+  our TartanAir V2): resize so the short side covers U(1, 1.2) x the training shape, the same
+  random crop offset in both views, flow and masks resized by nearest neighbour; covisibility and
+  the occlusion-supervision mask are AND-ed with "the match stays inside the crop"
+  (utils/flow_manipulation.py:488-503, 741-874, base_optical_flow_dataset.py:64-106).
+* kubric (Kubric-4D): labels at the stored size, then the same resize and an independent crop per
+  view chosen among 10 x 10 candidates by the covisible pixels they keep
+  (flow_postprocessing.py:252-392, flow_manipulation.py:505-738).
+
+Colour (per image, independently): torchvision ColorJitter(0.5, 0.5, 0.5, 0.1), grayscale 5 %,
+Gaussian blur 5 % and, for `low_light_datasets`, darkening 1 % (base_stereo_view_dataset.py:92-95,
+361-374; base_optical_flow_dataset.py:29-30, 114-124). Static pairs become identical-view pairs
+with probability 0.005 (aug_monocular, base_stereo_view_dataset.py:387-389).
+
+`official_no_aug` is the deterministic path (aug_crop=False, transform='imgnorm'). Every option
+that deviates from the official code, and every official quirk, is a named key of `AugmentConfig`
+(`config.input.augment`).
+
+Pixel convention: integer (u, v) is a pixel centre (OpenCV), as in all official label code.
 """
 
 from __future__ import annotations
@@ -20,11 +36,19 @@ from typing import Any, Mapping, Sequence
 
 import cv2
 import numpy as np
+from PIL import Image, ImageEnhance
+
+from ufm_jax import geometry
 
 PATCH = 14
 # Width:height ratios between 3:1 and 1:1 (paper sec. 3.3); landscape, as in the paper.
 DEFAULT_ASPECT_RATIOS = (3.0, 2.0, 16 / 9, 4 / 3, 1.0)
 LABEL_KEYS = ("flow", "covisibility", "flow_valid", "covis_valid")
+# The official training shapes (H, W), drawn uniformly per batch (BatchedRandomSampler,
+# base/batched_sampler.py:55): configs/dataset/resolution_options/default.yaml.
+SHAPES_560 = ((420, 560), (364, 560), (308, 560), (280, 560), (168, 560))  # 560_many_non_square_ar
+SHAPES_560_SQUARE = ((560, 560),) + SHAPES_560                              # 560_many_ar (refine)
+SHAPES_980 = ((644, 980), (560, 980), (490, 980), (308, 980))             # 980_many_opticalflow_ar
 
 
 def training_shapes(longest_side: int, aspect_ratios: Sequence[float] = DEFAULT_ASPECT_RATIOS,
@@ -42,288 +66,790 @@ def training_shapes(longest_side: int, aspect_ratios: Sequence[float] = DEFAULT_
   return tuple(shapes)
 
 
+def check_shapes(shapes, patch: int = PATCH) -> tuple[tuple[int, int], ...]:
+  """Explicit (H, W) training shapes: landscape or square, multiples of `patch`."""
+  out = tuple((int(h), int(w)) for h, w in shapes)
+  if not out:
+    raise ValueError("input.shapes is empty")
+  for h, w in out:
+    if h % patch or w % patch or h > w or h <= 0:
+      raise ValueError(f"input.shapes: ({h}, {w}) must be (H, W) with H <= W, both multiples of "
+                       f"{patch}")
+  return out
+
+
 def shape_for_step(shapes: Sequence[tuple[int, int]], seed: int, step: int) -> tuple[int, int]:
-  """The training shape of global batch `step`; the same on every host and after a resume."""
+  """The training shape of global batch `step` (uniform over `shapes`, as the official sampler);
+  the same on every host and after a resume."""
   rng = np.random.default_rng([seed, step, 0x5A9E])
   return tuple(shapes[int(rng.integers(len(shapes)))])
 
 
 @dataclasses.dataclass(frozen=True)
 class AugmentConfig:
-  """Ranges of the random augmentation; `AugmentConfig.from_dict(config.input.augment)`."""
-  zoom: tuple[float, float] = (1.0, 1.3)    # shared zoom on top of the smallest covering scale
-  view_scale_jitter: float = 0.05           # per-view extra log-scale in [-j, j]
-  crop_shift: float = 0.0                   # independent target-crop shift, fraction of out size
-  hflip_prob: float = 0.0                   # mirror BOTH views (u negated)
-  brightness: float = 0.2                   # multiplicative factor in [1-b, 1+b]
-  contrast: float = 0.2
-  saturation: float = 0.2
-  hue: float = 0.02                         # fraction of the hue circle
-  asymmetric_color_prob: float = 0.2        # jitter the two images with independent draws
-  color_prob: float = 0.8                   # probability that any colour jitter is applied
+  """`config.input.augment`: the official augmentation by default; each key says what it changes.
+
+  enabled: False gives `official_no_aug` for every pair (aug_crop=False, transform='imgnorm').
+  no_crop_datasets: static datasets without crop augmentation (resize to cover + centre crop),
+    as the 560 recipe's Habitat (configs/dataset/ufm_560_all.yaml: `override habitat: default`).
+  flow_pathway_datasets: datasets labelled from depth here that the official code reads as a flow
+    set (TartanAir: the official TA-WB shards ship flow and masks; tartanair_assembled.py).
+  static_crop_candidates: crops drawn per view; the pair sharing most correspondences wins
+    (n_tentative_crops, base_stereo_view_dataset.py:54, 256-267).
+  static_correspondences: correspondences that score the crop pairs (target_n_corres=500, :229).
+  static_min_zoom: per-view zoom drawn log-uniformly in [1, 1 + max(f S, S (S - R) // R) / S]
+    (S: short side of the stored image, R: training height; aug_crop 'auto', :236-240,
+    cropping.py:352-369).
+  static_pil_sampling: quirk. True (official): the cropped image and depth are sampled where PIL
+    samples (output pixel x at input x_in = sx + (x + 0.5) / a - 0.5 for zoom a) while the
+    intrinsics say sx + x / a: labels are off by 0.5 (1 - a) output px. False: sampled where the
+    intrinsics say.
+  portrait_to_landscape: portrait views (H > 1.1 W) are cropped portrait and rotated 90 degrees
+    to landscape (base_stereo_view_dataset.py:246-254, 414-417).
+  square_random_portrait: near-square views (0.9 < H/W < 1.1) take a portrait crop (then rotated)
+    with probability 1/2 (:251-254).
+  identical_view_prob: static pairs replaced by two copies of the first view (aug_monocular
+    0.005 in every static dataset yaml).
+  expansion: flow and Kubric pathways resize so the short side covers U(lo, hi) x the training
+    shape (base_optical_flow_dataset.py:70, flow_postprocessing.py:338).
+  kubric_crop_candidates, kubric_covisible_samples: CovisibleGuidedCropManipulation(N_crop=10)
+    and its num_covisible_sample=2048 (flow_manipulation.py:505-530).
+  kubric_score_quirk: True (official): the backward term of a crop pair's score is read with the
+    two crop indices swapped (flow_manipulation.py:606-630); False scores matching pairs.
+  brightness, contrast, saturation, hue: torchvision ColorJitter(0.5, 0.5, 0.5, 0.1), each image
+    independently, the four in random order.
+  grayscale_prob, blur_prob, blur_sigma, blur_kernel: RandomGrayscale(0.05),
+    RandomApply(GaussianBlur(5, (0.1, 1.0)), 0.05) (not on Kubric, which only jitters colours).
+  low_light_prob, low_light_datasets: darkening + 16-level quantisation + noise, per image
+    (aug_low_light=True in the FlyingChairs yaml and Habitat's `cropping` yaml).
+  fast_image_ops: deviation. True: OpenCV instead of PIL for the static crops' bicubic warp
+    (kernel a = -0.75 instead of -0.5, positions in 1/32 px) and the hue jitter's HSV round trip
+    (rounding), and Kubric's colour jitter on uint8 like the other sets' instead of torch's
+    float one; labels are unchanged. Host CPU: docs/host_input.md.
+  """
+  enabled: bool = True
+  no_crop_datasets: tuple[str, ...] = ("habitat",)
+  flow_pathway_datasets: tuple[str, ...] = ("tartanair_v2", "tartanair")
+  static_crop_candidates: int = 4
+  static_correspondences: int = 500
+  static_min_zoom: float = 0.1
+  static_pil_sampling: bool = True
+  portrait_to_landscape: bool = True
+  square_random_portrait: bool = True
+  identical_view_prob: float = 0.005
+  expansion: tuple[float, float] = (1.0, 1.2)
+  kubric_crop_candidates: int = 10
+  kubric_covisible_samples: int = 2048
+  kubric_score_quirk: bool = True
+  brightness: float = 0.5
+  contrast: float = 0.5
+  saturation: float = 0.5
+  hue: float = 0.1
+  grayscale_prob: float = 0.05
+  blur_prob: float = 0.05
+  blur_sigma: tuple[float, float] = (0.1, 1.0)
+  blur_kernel: int = 5
+  low_light_prob: float = 0.01
+  low_light_datasets: tuple[str, ...] = ("flyingchairs",)
+  fast_image_ops: bool = False
 
   @classmethod
   def from_dict(cls, d: Mapping[str, Any] | None) -> "AugmentConfig":
     d = dict(d or {})
-    unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(d) - set(fields)
     if unknown:
-      raise KeyError(f"unknown augment keys {sorted(unknown)}; known: "
-                     f"{[f.name for f in dataclasses.fields(cls)]}")
-    if "zoom" in d:
-      d["zoom"] = tuple(d["zoom"])
-    return cls(**d)
+      raise KeyError(f"unknown input.augment keys {sorted(unknown)}; known: {sorted(fields)}")
+    for k, v in d.items():
+      if isinstance(getattr(cls, k, None), tuple) or str(fields[k].type).startswith("tuple"):
+        d[k] = tuple(v)
+    cfg = cls(**d)
+    if not 1 <= cfg.expansion[0] <= cfg.expansion[1]:
+      raise ValueError(f"input.augment.expansion={cfg.expansion}: need 1 <= lo <= hi")
+    if cfg.blur_kernel % 2 != 1:
+      raise ValueError(f"input.augment.blur_kernel={cfg.blur_kernel} must be odd")
+    return cfg
 
 
-@dataclasses.dataclass(frozen=True)
-class View:
-  """x' = sx * (x + 0.5) - 0.5 - cx (same for y) maps original pixels of one view to output pixels."""
-  sx: float
-  sy: float
-  cx: int
-  cy: int
-  resized_hw: tuple[int, int]   # full resized image size before the crop
+# ------------------------------------------------------------------ resampling (official ops)
 
-  def matrix(self) -> np.ndarray:
-    """2x3 affine map original -> output, for cv2.warpAffine."""
-    return np.array([[self.sx, 0.0, 0.5 * self.sx - 0.5 - self.cx],
-                     [0.0, self.sy, 0.5 * self.sy - 0.5 - self.cy]], np.float64)
-
-  def inverse_matrix(self) -> np.ndarray:
-    """2x3 affine map output -> original (what cv2.WARP_INVERSE_MAP wants)."""
-    return np.array([[1 / self.sx, 0.0, (self.cx + 0.5) / self.sx - 0.5],
-                     [0.0, 1 / self.sy, (self.cy + 0.5) / self.sy - 0.5]], np.float64)
+def _trunc_u8(x: np.ndarray) -> np.ndarray:
+  """float -> uint8 as torch's `.to(torch.uint8)` on values clamped to [0, 255]: truncation."""
+  return np.clip(x, 0, 255).astype(np.uint8)
 
 
-@dataclasses.dataclass(frozen=True)
-class Params:
-  view0: View
-  view1: View
-  hflip: bool
-  color0: tuple[float, float, float, float] | None  # brightness, contrast, saturation, hue
-  color1: tuple[float, float, float, float] | None
+def resize_bilinear_aa(image: np.ndarray, size_hw, box_hw=None) -> np.ndarray:
+  """torch `F.interpolate(bilinear, align_corners=False, antialias=True)` of a uint8 image in
+  float, cast back with `.to(uint8)` (truncation): the official flow-set image resize.
+
+  box_hw = (top, left, h, w): only that window of the `size_hw` result (PIL's identical
+  antialiased bilinear, in float, on the source region of the window: the same pixels as resizing
+  all and cropping)."""
+  image = np.asarray(image)
+  H, W = image.shape[:2]
+  h, w = (int(s) for s in size_hw)
+  top, left, oh, ow = box_hw if box_hw is not None else (0, 0, h, w)
+  sy, sx = H / h, W / w
+  box = (left * sx, top * sy, min((left + ow) * sx, W), min((top + oh) * sy, H))
+  out = np.empty((oh, ow, 3), np.float32)
+  for c in range(3):
+    plane = Image.fromarray(np.ascontiguousarray(image[..., c], np.float32), "F")
+    out[..., c] = np.asarray(plane.resize((ow, oh), Image.BILINEAR, box=box))
+  return _trunc_u8(out)
 
 
-def _resized_size(hw, scale, out_hw):
-  h, w = hw
-  return max(out_hw[0], int(round(h * scale))), max(out_hw[1], int(round(w * scale)))
+def nearest_index(in_size: int, out_size: int) -> np.ndarray:
+  """Source index of each output index of torch's legacy 'nearest' resize (float32 arithmetic)."""
+  if in_size == out_size:
+    return np.arange(out_size)
+  if out_size == 2 * in_size:
+    return np.arange(out_size) >> 1
+  scale = np.float32(in_size) / np.float32(out_size)
+  idx = np.floor(np.arange(out_size, dtype=np.float32) * scale).astype(np.int64)
+  return np.minimum(idx, in_size - 1)
 
 
-def _color_draw(rng, cfg: AugmentConfig):
-  u = lambda r: float(rng.uniform(1 - r, 1 + r)) if r > 0 else 1.0
-  return (u(cfg.brightness), u(cfg.contrast), u(cfg.saturation),
-          float(rng.uniform(-cfg.hue, cfg.hue)) if cfg.hue > 0 else 0.0)
+def resize_short_axis_size(hw, min_hw) -> tuple[int, int]:
+  """ResizeShortAxisManipulation(min_hw).output_shape (flow_manipulation.py:492-499)."""
+  H, W = hw
+  ratio = max(min_hw[0] / H + 1e-8, min_hw[1] / W + 1e-8)
+  return int(H * ratio), int(W * ratio)
 
 
-def sample_params(rng: np.random.Generator, hw0: tuple[int, int], hw1: tuple[int, int],
-                  out_hw: tuple[int, int], cfg: AugmentConfig) -> Params:
-  """Draws the geometric and photometric parameters of one pair."""
-  out_h, out_w = out_hw
-  zoom = float(np.exp(rng.uniform(np.log(cfg.zoom[0]), np.log(cfg.zoom[1]))))
-  views = []
-  for hw in (hw0, hw1):
-    cover = max(out_h / hw[0], out_w / hw[1])
-    jitter = float(np.exp(rng.uniform(-cfg.view_scale_jitter, cfg.view_scale_jitter)))
-    rh, rw = _resized_size(hw, cover * max(1.0, zoom * jitter), out_hw)
-    views.append((rh / hw[0], rw / hw[1], (rh, rw)))
-  (sy0, sx0, r0), (sy1, sx1, r1) = views
-  cy0 = int(rng.integers(0, r0[0] - out_h + 1))
-  cx0 = int(rng.integers(0, r0[1] - out_w + 1))
-  # The target crop looks at the same original region (so small-motion pairs keep small flow),
-  # optionally shifted.
-  centre_y = (cy0 + out_h / 2) / sy0
-  centre_x = (cx0 + out_w / 2) / sx0
-  shift_y = rng.uniform(-cfg.crop_shift, cfg.crop_shift) * out_h
-  shift_x = rng.uniform(-cfg.crop_shift, cfg.crop_shift) * out_w
-  cy1 = int(np.clip(round(centre_y * sy1 - out_h / 2 + shift_y), 0, r1[0] - out_h))
-  cx1 = int(np.clip(round(centre_x * sx1 - out_w / 2 + shift_x), 0, r1[1] - out_w))
-  hflip = bool(rng.uniform() < cfg.hflip_prob)
-  color0 = color1 = None
-  if rng.uniform() < cfg.color_prob:
-    color0 = _color_draw(rng, cfg)
-    color1 = _color_draw(rng, cfg) if rng.uniform() < cfg.asymmetric_color_prob else color0
-  return Params(View(sx0, sy0, cx0, cy0, r0), View(sx1, sy1, cx1, cy1, r1), hflip, color0, color1)
-
-
-def _warp(a: np.ndarray, view: View, out_hw, interpolation) -> np.ndarray:
-  return cv2.warpAffine(np.ascontiguousarray(a), view.inverse_matrix(), (out_hw[1], out_hw[0]),
-                        flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
-
-
-def warp_image(image: np.ndarray, view: View, out_hw) -> np.ndarray:
-  """Resamples one image into the output window (area averaging when shrinking)."""
-  if view.sx < 1 or view.sy < 1:
-    rh, rw = view.resized_hw
-    resized = cv2.resize(image, (rw, rh), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(resized[view.cy:view.cy + out_hw[0], view.cx:view.cx + out_hw[1]])
-  return _warp(image, view, out_hw, cv2.INTER_LINEAR)
-
-
-def _taps(coord: np.ndarray, size: int):
-  """Bilinear taps along one axis (clamped at the border); the upper tap collapses when w == 0."""
-  coord = np.clip(coord, 0, size - 1)
-  lo = np.floor(coord).astype(np.int64)
-  w = (coord - lo).astype(np.float32)
-  hi = np.where(w > 0, np.minimum(lo + 1, size - 1), lo)
-  nearest = np.floor(coord + 0.5).astype(np.int64)
-  return lo, hi, w, nearest
-
+# -------------------------------------------------------------------------- the flow pathway
 
 @dataclasses.dataclass(frozen=True)
-class LabelGrid:
-  """The pixels of an original image (size hw) that `warp_labels` reads for one view: rows x cols
-  (sorted, unique). Labels computed on this grid alone give the same output as full ones."""
-  rows: np.ndarray
-  cols: np.ndarray
+class FlowCrop:
+  """Resize both views to `resized_hw` (from `hw`), then crop `out_hw` at (top, left) per view."""
   hw: tuple[int, int]
+  resized_hw: tuple[int, int]
+  out_hw: tuple[int, int]
+  crop0: tuple[int, int]    # (top, left) in view 0
+  crop1: tuple[int, int]    # (top, left) in view 1
+
+  def source_grid(self, view: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the stored pixels the crop of `view` reads (nearest taps), sorted."""
+    (top, left) = self.crop0 if view == 0 else self.crop1
+    rows = nearest_index(self.hw[0], self.resized_hw[0])[top:top + self.out_hw[0]]
+    cols = nearest_index(self.hw[1], self.resized_hw[1])[left:left + self.out_hw[1]]
+    return rows, cols
 
 
-def _output_in_original(view: View, out_hw):
-  """Original coordinates of the output pixel centres along x and y (float64)."""
-  x = (np.arange(out_hw[1], dtype=np.float64) + view.cx + 0.5) / view.sx - 0.5
-  y = (np.arange(out_hw[0], dtype=np.float64) + view.cy + 0.5) / view.sy - 0.5
-  return x, y
+def center_flow_crop(hw, out_hw) -> FlowCrop:
+  """ResizeShortAxisManipulation(out_hw) + CenterCropManipulation(out_hw)."""
+  rh, rw = resize_short_axis_size(hw, out_hw)
+  c = ((rh - out_hw[0]) // 2, (rw - out_hw[1]) // 2)
+  return FlowCrop(tuple(hw), (rh, rw), tuple(out_hw), c, c)
 
 
-def label_grid(view: View, hw: tuple[int, int], out_hw) -> LabelGrid:
-  """The grid of original pixels (image size hw) whose labels `warp_labels` reads for `view`:
-  the bilinear and nearest taps of the output pixels. Labelling only these (e.g. depth
-  reprojection on a sub-grid) skips the pixels the crop drops or an upscale never touches."""
-  def read(coord, size):
-    lo, hi, _, nearest = _taps(coord, size)
-    return np.unique(np.concatenate([lo, hi, nearest]))
-  x, y = _output_in_original(view, out_hw)
-  return LabelGrid(read(y, hw[0]), read(x, hw[1]), (int(hw[0]), int(hw[1])))
+def random_flow_crop(hw, out_hw, rng, cfg: AugmentConfig) -> FlowCrop:
+  """Short side x U(expansion), the same random offset in both views (RandomEqualCrop):
+  offsets from randint(0, range), whose upper end is exclusive."""
+  e = rng.uniform(*cfg.expansion)
+  rh, rw = resize_short_axis_size(hw, (int(out_hw[0] * e), int(out_hw[1] * e)))
+  top = int(rng.integers(0, rh - out_hw[0])) if rh > out_hw[0] else 0
+  left = int(rng.integers(0, rw - out_hw[1])) if rw > out_hw[1] else 0
+  return FlowCrop(tuple(hw), (rh, rw), tuple(out_hw), (top, left), (top, left))
 
 
-def warp_labels(sample: Mapping[str, np.ndarray], view0: View, view1: View, out_hw,
-                grid: LabelGrid | None = None) -> dict:
-  """Flow and masks of a (source view0 -> target view1) sample, in output pixels.
-
-  Sampled in float64 coordinates with numpy (not cv2's 1/32-pixel fixed point) so labels stay
-  exact to float precision. With `grid`, the sample's label arrays hold only the pixels of
-  `label_grid(view0, ...)` (the output is the same as with full-size labels).
-  """
-  out_h, out_w = out_hw
-  valid = np.asarray(sample["flow_valid"], bool)
-  flow = np.asarray(sample["flow"], np.float32)
-  h, w = valid.shape if grid is None else grid.hw
-  xp = np.arange(out_w, dtype=np.float64)
-  yp = np.arange(out_h, dtype=np.float64)
-  x, y = _output_in_original(view0, out_hw)
-  x0, x1, wx, xn = _taps(x, w)
-  y0, y1, wy, yn = _taps(y, h)
-  if grid is not None:  # original pixel -> its place in the grid (every tap is on it)
-    x0, x1, xn = (np.searchsorted(grid.cols, t) for t in (x0, x1, xn))
-    y0, y1, yn = (np.searchsorted(grid.rows, t) for t in (y0, y1, yn))
-
-  # The flow stays interleaved [.., W, 2]: rows are gathered as contiguous copies, columns move
-  # each (u, v) pair as one 8-byte item (a complex64 view), and every weight is broadcast along a
-  # contiguous run (a per-row scalar over the row, a per-column weight repeated for u and v):
-  # numpy is several times slower broadcasting over a trailing axis of 2 or gathering 4-byte
-  # items of a strided view.
-  flow = np.ascontiguousarray(flow)
-  # Flow is nearly always finite everywhere (one fast whole-array test); then the validity mask
-  # alone decides which taps are zeroed.
-  all_finite = bool(np.isfinite(flow).all())
-
-  def tap_rows(rows):  # only the rows the output reads are cleaned
-    f = flow.take(rows, 0)
-    m = valid.take(rows, 0)
-    if all_finite:
-      np.copyto(f.view(np.complex64)[..., 0], 0, where=~m)
-      return f, m
-    return np.where(m[..., None] & np.isfinite(f), f, np.float32(0)), m
-
-  # Separable: blend the two source rows, then the two columns (np.take, not fancy indexing).
-  # In place, in the same operation order as a * (1 - w) + b * w.
-  wy = wy[:, None, None]
-  rows, v0 = tap_rows(y0)
-  lower, v1 = tap_rows(y1)
-  rows *= 1 - wy
-  lower *= wy
-  rows += lower
-  pairs = rows.view(np.complex64)[..., 0]
-  flow_r = pairs.take(x0, 1).view(np.float32)   # [out_h, 2 * out_w]: u, v, u, v, ...
-  right = pairs.take(x1, 1).view(np.float32)
-  flow_r *= np.repeat(1 - wx, 2)
-  right *= np.repeat(wx, 2)
-  flow_r += right
-  # A label is valid only if every bilinear tap with weight was valid (no blending with garbage).
-  vrows = v0 & v1
-  flow_valid = vrows.take(x0, 1)
-  flow_valid &= vrows.take(x1, 1)
-  # The three nearest-tap masks packed in one uint8 for a single column gather.
-  near = valid.take(yn, 0).view(np.uint8).copy()
-  for bit, key in ((1, "covisibility"), (2, "covis_valid")):
-    near |= np.asarray(sample[key], bool).take(yn, 0).view(np.uint8) << bit
-  near = near.take(xn, 1)
-  flow_valid &= (near & 1).view(bool)
-  # flow' = A1(x + flow) - x' = s1 * flow + (s1 * x + b1 - x'); the bracket is 1-D, in float64.
-  a1 = view1.matrix()
-  off_x = (a1[0, 0] * x + a1[0, 2] - xp).astype(np.float32)
-  off_y = (a1[1, 1] * y + a1[1, 2] - yp).astype(np.float32)
-  shift = np.zeros(2 * out_w, np.float32)
-  shift[0::2] = off_x
-  flow_r *= np.tile(np.float32([a1[0, 0], a1[1, 1]]), out_w)
-  flow_r += shift
-  flow_r = flow_r.reshape(out_h, out_w, 2)
-  flow_r[..., 1] += off_y[:, None]
-  return {"flow": flow_r, "flow_valid": flow_valid, "covisibility": (near & 2) != 0,
-          "covis_valid": (near & 4) != 0}
-
-
-def hflip_labels(labels: dict) -> dict:
-  out = {k: np.ascontiguousarray(v[:, ::-1]) for k, v in labels.items()}
-  out["flow"][..., 0] *= -1
+def flow_crop_images(image0, image1, crop: FlowCrop):
+  out = []
+  for image, (top, left) in ((image0, crop.crop0), (image1, crop.crop1)):
+    out.append(resize_bilinear_aa(image, crop.resized_hw, (top, left) + crop.out_hw))
   return out
 
 
-def color_jitter(image: np.ndarray, params) -> np.ndarray:
-  """Brightness, contrast, saturation (factors) and hue (circle fraction) on a uint8 RGB image."""
+def _in_crop(flow: np.ndarray) -> np.ndarray:
+  """x + u in [0, W), y + v in [0, H) (float32, integer pixel index; NaN flow passes, as the
+  official `fov_mask[(x < 0) | ...] = False`)."""
+  h, w = flow.shape[:2]
+  x = np.arange(w, dtype=np.float32)[None, :] + flow[..., 0]
+  y = np.arange(h, dtype=np.float32)[:, None] + flow[..., 1]
+  with np.errstate(invalid="ignore"):
+    return ~((x < 0) | (y < 0) | (x >= w) | (y >= h))
+
+
+def flow_crop_labels(labels: Mapping[str, Any], crop: FlowCrop, view: int, mask_rule: str,
+                     grid: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+  """Labels of the pair whose source is `view`, resized (nearest) and cropped like its image.
+
+  mask_rule 'in_crop' (random crops, flow_manipulation.py:682-704, 841-863): covisibility and
+  covis_valid (and fov_mask) are AND-ed with "the match stays inside the other crop".
+  'center_forward' / 'center_backward' (CenterCropManipulation, :292-313): covisibility is, and
+  covis_valid / fov_mask are AND-ed with the covisibility from before that test (forward) or
+  after it (backward). flow_valid (where the flow is defined) is only resized and cropped.
+  grid: the labels hold only the stored pixels rows x cols (`FlowCrop.source_grid`).
+  """
+  rows, cols = crop.source_grid(view)
+  if grid is not None:
+    rows, cols = np.searchsorted(grid[0], rows), np.searchsorted(grid[1], cols)
+  (h, w), (rh, rw) = crop.hw, crop.resized_hw
+  (top, left), (otop, oleft) = ((crop.crop0, crop.crop1) if view == 0 else
+                                (crop.crop1, crop.crop0))
+  oh, ow = len(rows), len(cols)
+  # Rows gathered as contiguous copies, columns as 8-byte (u, v) items; the scale and shift per
+  # interleaved (u, v) column (numpy is slow broadcasting over a trailing axis of 2).
+  flow = np.ascontiguousarray(labels["flow"], np.float32).take(rows, 0)
+  flow = flow.view(np.complex64)[..., 0].take(cols, 1).view(np.float32)
+  flow *= np.tile(np.float32([rw / w, rh / h]), ow)
+  if (top, left) != (otop, oleft):
+    flow += np.tile(np.float32([left - oleft, top - otop]), ow)
+  flow = flow.reshape(oh, ow, 2)
+  # The masks packed as bits of one uint8 plane: one gather for all.
+  masks = [k for k in ("covisibility", "flow_valid", "covis_valid", "fov_mask") if k in labels]
+  packed = np.zeros(np.shape(labels[masks[0]]), np.uint8)
+  for bit, k in enumerate(masks):
+    packed |= np.asarray(labels[k], bool).view(np.uint8) << bit
+  packed = packed.take(rows, 0).take(cols, 1)
+  out = {"flow": flow}
+  for bit, k in enumerate(masks):
+    out[k] = (packed & (1 << bit)) != 0
+  inside = _in_crop(flow)
+  before = out["covisibility"]
+  out["covisibility"] = before & inside
+  extra = {"in_crop": inside, "center_forward": before,
+           "center_backward": out["covisibility"]}[mask_rule]
+  for k in ("covis_valid", "fov_mask"):
+    if k in out:
+      out[k] = out[k] & extra
+  return out
+
+
+def covisible_guided_crops(fwd: Mapping[str, Any], bwd: Mapping[str, Any], hw, out_hw, rng,
+                           cfg: AugmentConfig) -> FlowCrop:
+  """Kubric: short side x U(expansion), then per view the crop among `kubric_crop_candidates`
+  random ones whose pair keeps most sampled covisible matches in both directions
+  (CovisibleGuidedCropManipulation, flow_manipulation.py:520-641)."""
+  e = rng.uniform(*cfg.expansion)
+  rh, rw = resize_short_axis_size(hw, (int(out_hw[0] * e), int(out_hw[1] * e)))
+  oh, ow = out_hw
+  ri, ci = nearest_index(hw[0], rh), nearest_index(hw[1], rw)
+  n = cfg.kubric_crop_candidates
+
+  def draw(extent, size):
+    return rng.integers(0, extent - size, n) if extent > size else np.zeros(n, np.int64)
+
+  pairs = []
+  for labels in (fwd, bwd):
+    covis = np.asarray(labels["covisibility"], bool).take(ri, 0).take(ci, 1)
+    flat = np.flatnonzero(covis)
+    keep = rng.random(len(flat)) < cfg.kubric_covisible_samples / (len(flat) + 1e-8)
+    flat = flat[keep]
+    y, x = np.divmod(flat, rw)
+    flow = np.asarray(labels["flow"], np.float32)[ri[y], ci[x]]
+    scale = np.array([np.float32(rw / hw[1]), np.float32(rh / hw[0])], np.float32)
+    tx, ty = (x + np.rint(flow[:, 0] * scale[0]).astype(np.int64),
+              y + np.rint(flow[:, 1] * scale[1]).astype(np.int64))
+    pairs.append((x, y, tx, ty))
+  crops = [(draw(rh, oh), draw(rw, ow)) for _ in range(2)]   # view -> (tops, lefts)
+
+  def inside(x, y, view):
+    tops, lefts = crops[view]
+    return ((lefts[None, :] <= x[:, None]) & (x[:, None] < lefts[None, :] + ow)
+            & (tops[None, :] <= y[:, None]) & (y[:, None] < tops[None, :] + oh))
+
+  scores = []
+  for src, (x, y, tx, ty) in enumerate(pairs):   # src 0: forward, 1: backward
+    a = inside(x, y, src).astype(np.float32)
+    b = inside(tx, ty, 1 - src).astype(np.float32)
+    scores.append((a.T @ b) / np.float32(oh * ow))   # [own candidate, other candidate]
+  fwd_s, bwd_s = scores
+  if not cfg.kubric_score_quirk:
+    bwd_s = bwd_s.T
+  iou = fwd_s * bwd_s / (fwd_s + bwd_s + np.float32(1e-8)) * 2
+  i, j = np.unravel_index(int(np.argmax(iou)), iou.shape)
+  return FlowCrop(tuple(hw), (rh, rw), tuple(out_hw),
+                  (int(crops[0][0][i]), int(crops[0][1][i])),
+                  (int(crops[1][0][j]), int(crops[1][1][j])))
+
+
+# ------------------------------------------------------------------------ the static pathway
+
+@dataclasses.dataclass
+class StaticView:
+  image: np.ndarray       # [H, W, 3] uint8
+  depth: np.ndarray       # [H, W] z-depth, 0 = invalid
+  K: np.ndarray           # [3, 3] OpenCV
+  cam2world: np.ndarray   # [4, 4]
+
+
+def _portrait_resolution(hw, out_hw, rng, random_square: bool):
+  """Official per-view choice of the crop orientation: (h, w) to crop, and whether it is the
+  transposed (portrait) one that `rotate_to_landscape` later turns."""
+  H, W = hw
+  oh, ow = out_hw
+  if H > 1.1 * W:
+    return (ow, oh), True
+  if 0.9 < H / W < 1.1 and oh != ow and random_square and rng is not None and rng.integers(2):
+    return (ow, oh), True
+  return (oh, ow), False
+
+
+def rotate_to_landscape(v: StaticView) -> StaticView:
+  """rotate_90(k=1) (base_stereo_view_dataset.py:492-529): the image turned counter-clockwise,
+  K and the pose so that the turned view sees the same rays: u' = v, v' = W - 1 - u."""
+  h, w = v.depth.shape
+  K = np.asarray(v.K, np.float64)
+  K2 = np.array([[K[1, 1], 0.0, K[1, 2]], [0.0, K[0, 0], w - 1 - K[0, 2]], [0.0, 0.0, 1.0]])
+  rz = np.eye(4)
+  rz[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+  return StaticView(np.ascontiguousarray(np.rot90(v.image)),
+                    np.ascontiguousarray(np.rot90(v.depth)), K2,
+                    np.asarray(v.cam2world, np.float64) @ rz)
+
+
+def resize_cover_center_crop(v: StaticView, out_hw, landscape: bool = True) -> StaticView:
+  """`_crop_resize_if_necessary` (base_stereo_view_dataset.py:183-211, cropping.py:60-132):
+  rescale so the image covers the (orientation-matched) shape (PIL Lanczos when shrinking,
+  bicubic otherwise; depth cv2 nearest; K through the +0.5 COLMAP convention), crop the centre
+  (offsets rounded half-to-even), then turn a portrait view to landscape."""
+  (oh, ow), portrait = _portrait_resolution(v.depth.shape, out_hw, None, False)
+  H, W = v.depth.shape
+  size = np.array([W, H])
+  scale = max(np.array([ow, oh]) / size) + 1e-8
+  new = np.floor(size * scale).astype(int)
+  image = Image.fromarray(np.asarray(v.image)).resize(
+      tuple(int(s) for s in new), Image.LANCZOS if scale < 1 else Image.BICUBIC)
+  depth = cv2.resize(np.asarray(v.depth, np.float32), (int(new[0]), int(new[1])),
+                     interpolation=cv2.INTER_NEAREST)
+  # The official numpy operations, in K's own dtype (cropping.py:93-132), so that the rounded
+  # crop offset ties break as there.
+  K = _camera_matrix_of_crop(np.asarray(v.K), size, new, scale)
+  left, top = np.int32(np.round(K[:2, 2] - _camera_matrix_of_crop(K, new, np.array([ow, oh]),
+                                                                   1)[:2, 2]))
+  K = K.copy()
+  K[0, 2] -= left
+  K[1, 2] -= top
+  out = StaticView(np.ascontiguousarray(np.asarray(image)[top:top + oh, left:left + ow]),
+                   np.ascontiguousarray(depth[top:top + oh, left:left + ow]), K,
+                   np.asarray(v.cam2world, np.float64))
+  return rotate_to_landscape(out) if portrait and landscape else out
+
+
+def _camera_matrix_of_crop(K, in_res, out_res, scaling):
+  """cropping.camera_matrix_of_crop with offset_factor 0.5 (through the COLMAP +0.5 frame)."""
+  offset = 0.5 * (np.asarray(in_res) * scaling - out_res)
+  K = K.copy()
+  K[0, 2] += 0.5
+  K[1, 2] += 0.5
+  K[:2, :] *= scaling
+  K[:2, 2] -= offset
+  K[0, 2] -= 0.5
+  K[1, 2] -= 0.5
+  return K
+
+
+def _project_pixels(v: StaticView, other: StaticView, idx=None) -> np.ndarray:
+  """Flat index of the other view's pixel each pixel of v (or its flat indices idx) lands on:
+  rounded half-to-even, clipped to the image, as cropping.reproject / ravel_xy (:201-223); in
+  float32, as the official point maps."""
+  h, w = v.depth.shape
+  h2, w2 = other.depth.shape
+  rel = geometry.invert_pose(other.cam2world) @ np.asarray(v.cam2world, np.float64)
+  Kinv = np.linalg.inv(np.asarray(v.K, np.float64))
+  M = (np.asarray(other.K, np.float64) @ rel[:3, :3] @ Kinv).astype(np.float32)
+  t = (np.asarray(other.K, np.float64) @ rel[:3, 3]).astype(np.float32)
+  depth = np.asarray(v.depth, np.float32)
+  if idx is None:
+    u = np.arange(w, dtype=np.float32)[None, :]
+    vv = np.arange(h, dtype=np.float32)[:, None]
+  else:
+    u, vv = (idx % w).astype(np.float32), (idx // w).astype(np.float32)
+    depth = depth.ravel()[idx]
+  d = np.where(np.isfinite(depth), depth, np.float32(0))
+  p = [(M[i, 0] * u + (M[i, 1] * vv + M[i, 2])) * d + t[i] for i in range(3)]
+  with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+    inv = np.float32(1) / p[2]
+    x, y = np.rint(p[0] * inv), np.rint(p[1] * inv)
+  # ravel_xy: .round().astype(int32), clipped to the image; the int32 cast of NaN, inf and
+  # values beyond its range gives INT_MIN, i.e. 0 after the clip.
+  with np.errstate(invalid="ignore"):
+    x = np.where(np.abs(x) < 2**31, x, 0)   # NaN compares False
+    y = np.where(np.abs(y) < 2**31, y, 0)
+  x = np.clip(x, 0, w2 - 1).astype(np.int64)
+  y = np.clip(y, 0, h2 - 1).astype(np.int64)
+  return (x + w2 * y).ravel()
+
+
+def crop_correspondences(v0: StaticView, v1: StaticView, n: int, rng):
+  """extract_correspondences_from_pts3d(target_n_corres=n, nneg=0) (cropping.py:144-198):
+  n matches drawn uniformly from the reciprocal nearest-pixel matches (a pixel whose match maps
+  back onto it), topped up with random non-reciprocal pixels when there are fewer.
+  -> (xy0 [n, 2], xy1 [n, 2]) integer pixel coordinates.
+
+  Reciprocity is a per-pixel test, so a uniform sample of the reciprocal set is drawn by testing
+  random pixels until n pass (the same distribution as the official sample of all of them);
+  only when fewer than n pass among 16 n tried are all pixels tested (the official way)."""
+  w0, w1 = v0.depth.shape[1], v1.depth.shape[1]
+  size = v0.depth.size
+  tried = np.zeros(0, np.int64)
+  found = np.zeros(0, np.int64)
+  while len(tried) < min(size, 16 * n) and len(found) < n:
+    cand = np.unique(rng.integers(0, size, 2 * n))
+    cand = cand[~np.isin(cand, tried, assume_unique=True)]
+    cand = cand[rng.permutation(len(cand))]
+    tried = np.concatenate([tried, cand])
+    there = _project_pixels(v0, v1, cand)
+    back = _project_pixels(v1, v0, there)
+    found = np.concatenate([found, cand[back == cand]])
+  if len(found) >= n:
+    pos1 = found[:n]
+    pos2 = _project_pixels(v0, v1, pos1)
+    return (np.stack([pos1 % w0, pos1 // w0], -1), np.stack([pos2 % w1, pos2 // w1], -1))
+  c12, c21 = _project_pixels(v0, v1), _project_pixels(v1, v0)
+  recip1 = c21[c12] == np.arange(len(c12))
+  recip2 = c12[c21] == np.arange(len(c21))
+  pos1 = np.flatnonzero(recip1)
+  pos2 = c12[pos1]
+  n_pos = min(len(pos1), n)
+  n_neg = min(n - n_pos, int(min((~recip1).sum(), (~recip2).sum())))
+  if n_pos + n_neg != n:
+    n_pos = n - n_neg
+  if n_pos < len(pos1):
+    perm = rng.permutation(len(pos1))[:n_pos]
+    pos1, pos2 = pos1[perm], pos2[perm]
+  if n_neg > 0:
+    p1, p2 = (~recip1).astype(np.float64), (~recip2).astype(np.float64)
+    pos1 = np.r_[pos1, rng.choice(len(c12), n_neg, replace=False, p=p1 / p1.sum())]
+    pos2 = np.r_[pos2, rng.choice(len(c21), n_neg, replace=False, p=p2 / p2.sum())]
+  return (np.stack([pos1 % w0, pos1 // w0], -1), np.stack([pos2 % w1, pos2 // w1], -1))
+
+
+def static_zoom_range(hw, out_h: int, min_zoom: float = 0.1) -> float:
+  """Upper end of the per-view zoom: 1 + max(f S, S (S - R) // R) / S (the 'auto' aug_crop,
+  base_stereo_view_dataset.py:236-240)."""
+  S, R = min(hw), int(out_h)
+  aug = max(min_zoom * S, S * (S - R) // R)
+  return 1.0 + aug / S
+
+
+def random_crop_boxes(hw, n: int, crop_hw, zoom_max: float, rng) -> np.ndarray:
+  """gen_random_crops (cropping.py:352-369): n boxes (x0, y0, x1, y1) of the crop's aspect, all
+  of one zoom drawn log-uniformly in [1, zoom_max], placed uniformly on the zoomed image."""
+  size = np.array([hw[1], hw[0]], np.float64)
+  res = np.array([crop_hw[1], crop_hw[0]], np.float64)
+  crop = res * min(size / res)
+  scaling = float(np.exp(rng.uniform(0, np.log(zoom_max))))
+  size2 = np.floor(size * scaling).astype(np.int32)
+  topleft = rng.random((n, 2)) * (size2 - crop)
+  return np.c_[topleft, topleft + crop] / scaling
+
+
+def crop_view_affine(v: StaticView, box, crop_hw, pil_sampling: bool = True,
+                     fast: bool = False) -> StaticView:
+  """crop_to_homography_no_rotation (cropping.py:318-349) + the PIL image / depth warps
+  (base_stereo_view_dataset.py:269-303): the box (rounded) is mapped onto crop_hw with the
+  box corners at output 0 and W (H); bicubic image, nearest depth (0 outside the image).
+
+  The homography is a scale and shift per axis, so the depth is gathered per row and column
+  where PIL's nearest sampling reads it; fast=True warps the image with OpenCV's bicubic
+  (a = -0.75, positions in 1/32 px) instead of PIL's (a = -0.5)."""
+  sx, sy, ex, ey = np.round(np.asarray(box, np.float64))
+  ch, cw = crop_hw
+  ax, ay = cw / (ex - sx), ch / (ey - sy)
+  A = np.array([[ax, 0.0, -sx * ax], [0.0, ay, -sy * ay], [0.0, 0.0, 1.0]])
+  K = np.asarray(v.K, np.float64)
+  K2 = (A @ K).astype(np.float32)
+  Hm = (K.astype(np.float32) @ np.linalg.inv(K2)).astype(np.float32)   # output -> input
+  c = (Hm / Hm[2, 2]).ravel()[:8].astype(np.float64)
+  # PIL maps output pixel x to input position c0 (x + 0.5) + c2 in its frame (pixel i spans
+  # [i, i + 1]), i.e. pixel-centre coordinate c0 x + 0.5 c0 + c2 - 0.5; K2 says c0 x + c2.
+  shift = (0.5 * c[0] - 0.5, 0.5 * c[4] - 0.5) if pil_sampling else (0.0, 0.0)
+  x_in = c[0] * np.arange(cw) + c[2] + shift[0]   # pixel-centre input coordinates
+  y_in = c[4] * np.arange(ch) + c[5] + shift[1]
+  h, w = v.depth.shape
+  # Nearest: PIL reads pixel int(position in its frame) (-1, i.e. nothing, below 0).
+  xi, yi = np.floor(x_in + 0.5).astype(np.int64), np.floor(y_in + 0.5).astype(np.int64)
+  depth = np.asarray(v.depth, np.float32)[np.clip(yi, 0, h - 1)][:, np.clip(xi, 0, w - 1)]
+  depth[(yi < 0) | (yi >= h)] = 0
+  depth[:, (xi < 0) | (xi >= w)] = 0
+  if fast:
+    M = np.array([[c[0], 0.0, c[2] + shift[0]], [0.0, c[4], c[5] + shift[1]]])
+    image = cv2.warpAffine(np.ascontiguousarray(v.image), M, (cw, ch),
+                           flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_REPLICATE)
+  else:
+    data = tuple(float(x) for x in c)
+    if not pil_sampling:   # shift PIL's frame so that it samples where K2 says
+      data = (data[0], data[1], data[2] + 0.5 - 0.5 * data[0], data[3], data[4],
+              data[5] + 0.5 - 0.5 * data[4], data[6], data[7])
+    image = np.asarray(Image.fromarray(np.asarray(v.image)).transform(
+        (cw, ch), Image.PERSPECTIVE, data, resample=Image.BICUBIC))
+  return StaticView(image, depth, K2.astype(np.float64), np.asarray(v.cam2world, np.float64))
+
+
+def static_crop_pair(v0: StaticView, v1: StaticView, out_hw, rng, cfg: AugmentConfig):
+  """aug_crop='auto_crop_asis' (generate_crops_from_pair, base_stereo_view_dataset.py:228-303):
+  per view `static_crop_candidates` boxes of one random zoom; the pair of boxes that holds the
+  most correspondences (ties: the first) is cropped; portrait crops turned to landscape."""
+  corres = crop_correspondences(v0, v1, cfg.static_correspondences, rng)
+  boxes, shapes, inside = [], [], []
+  for v, xy in zip((v0, v1), corres):
+    hw = v.depth.shape
+    crop_hw, portrait = _portrait_resolution(hw, out_hw, rng, cfg.square_random_portrait)
+    if not cfg.portrait_to_landscape:
+      crop_hw, portrait = tuple(out_hw), False
+    b = random_crop_boxes(hw, cfg.static_crop_candidates, crop_hw,
+                          static_zoom_range(hw, out_hw[0], cfg.static_min_zoom), rng)
+    boxes.append(b)
+    shapes.append((crop_hw, portrait))
+    inside.append(((xy[:, None] >= b[None, :, :2]) & (xy[:, None] < b[None, :, 2:])).all(-1))
+  shared = inside[0].astype(np.float32).T @ inside[1].astype(np.float32)
+  best = np.unravel_index(int(np.argmax(shared)), shared.shape)
+  out = []
+  for v, b, k, (crop_hw, portrait) in zip((v0, v1), boxes, best, shapes):
+    c = crop_view_affine(v, b[k], crop_hw, cfg.static_pil_sampling, cfg.fast_image_ops)
+    out.append(rotate_to_landscape(c) if portrait else c)
+  return out
+
+
+def static_labels(v0: StaticView, v1: StaticView, params) -> tuple[dict, dict]:
+  """Forward and backward labels of a (cropped) static pair (`geometry.official_labels`)."""
+  keys = LABEL_KEYS
+  f = geometry.official_labels(v0.depth, v0.K, v0.cam2world, v1.depth, v1.K, v1.cam2world, params)
+  b = geometry.official_labels(v1.depth, v1.K, v1.cam2world, v0.depth, v0.K, v0.cam2world, params)
+  return {k: f[k] for k in keys}, {k: b[k] for k in keys}
+
+
+# ------------------------------------------------------------------------------------ colour
+
+def _blend_lut(base: float, factor: float) -> np.ndarray:
+  """PIL Image.blend(constant base, image, factor) on uint8 as a lookup table: float32
+  base + factor (x - base), clipped, truncated."""
+  x = np.arange(256, dtype=np.float32)
+  return _trunc_u8(np.float32(base) + np.float32(factor) * (x - np.float32(base)))
+
+
+def color_jitter(image: np.ndarray, params, fast: bool = False) -> np.ndarray:
+  """torchvision ColorJitter on a PIL image: params = (order, brightness, contrast, saturation,
+  hue), order a permutation of range(4) (0 brightness, 1 contrast, 2 saturation, 3 hue).
+  PIL's ImageEnhance semantics (brightness and contrast as the equivalent lookup tables) and its
+  HSV conversion, as torchvision's PIL path (fast: OpenCV's HSV)."""
   if params is None:
     return image
-  brightness, contrast, saturation, hue = params
-  # brightness b, contrast c (around the mean grey m), saturation s (around the pixel's grey g)
-  # fold into one affine blend: out = s*b*c * img + (1-s)*b*c * g + m*(1-c), m = b * mean(g).
-  grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-  m = brightness * float(grey.mean())
-  bc = brightness * contrast
-  img = cv2.addWeighted(image, saturation * bc, cv2.cvtColor(grey, cv2.COLOR_GRAY2RGB),
-                        (1 - saturation) * bc, m * (1 - contrast))
-  if hue:
-    hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV_FULL)
-    hsv[..., 0] += np.uint8(int(round(hue * 256)) % 256)  # uint8 wraps: the shift mod 256
-    img = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB_FULL)
+  order, b, c, s, h = params
+  img = np.ascontiguousarray(image)
+  for op in order:
+    if op == 0:
+      img = cv2.LUT(img, _blend_lut(0.0, b))
+    elif op == 1:
+      mean = int(np.asarray(Image.fromarray(img).convert("L")).mean() + 0.5)
+      img = cv2.LUT(img, _blend_lut(mean, c))
+    elif op == 2:
+      img = np.asarray(ImageEnhance.Color(Image.fromarray(img)).enhance(s))
+    elif fast:
+      hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV_FULL)
+      hsv[..., 0] += np.int32(h * 255).astype(np.uint8)   # wraps mod 256
+      img = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB_FULL)
+    else:
+      hh, ss, vv = Image.fromarray(img).convert("HSV").split()
+      hue = np.asarray(hh, np.uint8) + np.int32(h * 255).astype(np.uint8)   # wraps mod 256
+      img = np.asarray(Image.merge("HSV", (Image.fromarray(hue, "L"), ss, vv)).convert("RGB"))
   return img
 
 
-def apply(sample: Mapping[str, Any], params: Params, out_hw,
-          backward: Mapping[str, Any] | None = None,
-          label_grids: tuple[LabelGrid, LabelGrid] | None = None) -> list[dict]:
-  """Augments one pair; with `backward` (the (image1 -> image0) labels) returns [fwd, bwd].
+def color_jitter_float(image: np.ndarray, params) -> np.ndarray:
+  """torchvision ColorJitter on a float tensor in [0, 1] (the Kubric path, kubric4d.py:171-178),
+  returned as the official `(img * 255).to(uint8)`."""
+  x = np.asarray(image, np.float32) / np.float32(255)
+  if params is not None:
+    order, b, c, s, h = params
+    weights = np.array([[0.2989, 0.587, 0.114]], np.float32)   # torchvision rgb_to_grayscale
+    for op in order:
+      if op == 0:
+        x *= np.float32(b)
+      elif op == 1:
+        mean = np.float32(cv2.mean(cv2.transform(x, weights))[0])
+        x *= np.float32(c)
+        x += np.float32(1 - c) * mean
+      elif op == 2:
+        grey = cv2.transform(x, np.float32(1 - s) * weights)
+        x *= np.float32(s)
+        x += grey[..., None]
+      else:
+        hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
+        hue = hsv[..., 0]
+        hue *= np.float32(1 / 360)
+        hue += np.float32(h)
+        np.mod(hue, 1, out=hue)
+        hue *= np.float32(360)
+        x = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+      np.clip(x, 0, 1, out=x)
+  x *= np.float32(255)
+  return x.astype(np.uint8)
 
-  The backward pair reuses the forward's augmented images swapped, so (a, b) and (b, a) in a
-  symmetrized batch show exactly the same pixels. `label_grids`: the forward labels hold only
-  the pixels of the first grid (`label_grid(params.view0, ...)`), the backward ones the second's.
+
+def draw_color(rng, cfg: AugmentConfig):
+  """ColorJitter.get_params: a random order and the four factors."""
+  return (tuple(int(i) for i in rng.permutation(4)),
+          float(rng.uniform(max(0.0, 1 - cfg.brightness), 1 + cfg.brightness)),
+          float(rng.uniform(max(0.0, 1 - cfg.contrast), 1 + cfg.contrast)),
+          float(rng.uniform(max(0.0, 1 - cfg.saturation), 1 + cfg.saturation)),
+          float(rng.uniform(-cfg.hue, cfg.hue)))
+
+
+def grayscale(image: np.ndarray) -> np.ndarray:
+  """RandomGrayscale's PIL path: convert('L') replicated to three channels."""
+  grey = np.asarray(Image.fromarray(np.asarray(image)).convert("L"))
+  return np.repeat(grey[..., None], 3, axis=2)
+
+
+def gaussian_blur(image: np.ndarray, sigma: float, kernel: int = 5) -> np.ndarray:
+  """torchvision gaussian_blur on a uint8 image: float32 separable kernel, reflect padding,
+  rounded back."""
+  half = (kernel - 1) * 0.5
+  x = np.linspace(-half, half, kernel, dtype=np.float32)
+  pdf = np.exp(-0.5 * (x / np.float32(sigma)) ** 2)
+  k = (pdf / pdf.sum()).astype(np.float32)
+  out = cv2.sepFilter2D(np.asarray(image, np.float32), -1, k, k, borderType=cv2.BORDER_REFLECT_101)
+  return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+def low_light(image: np.ndarray, rng) -> np.ndarray:
+  """apply_darkening_and_quantization (base_stereo_view_dataset.py:433-463): x U(0.1, 0.3),
+  16 levels, N(0, 0.02*255) noise, U(0, 0.08*255) bias; the official float result is rounded
+  to uint8 here (our batches carry uint8 images)."""
+  x = np.clip(np.asarray(image, np.float64) * rng.uniform(0.1, 0.3), 0, 255)
+  step = 255.0 / 16
+  x = np.floor(x / step) * step
+  x += rng.normal(0.0, 0.02 * 255, x.shape)
+  x += rng.uniform(0, 0.08 * 255, x.shape)
+  return np.clip(np.rint(x), 0, 255).astype(np.uint8)
+
+
+def photometric(image: np.ndarray, rng, cfg: AugmentConfig, low_light_on: bool,
+                static: bool) -> np.ndarray:
+  """One image's colour augmentation in the official order: jitter, grayscale, blur, low light
+  (static datasets grey the image first, base_stereo_view_dataset.py:370-373)."""
+  image = color_jitter(image, draw_color(rng, cfg), cfg.fast_image_ops)
+  if rng.random() < cfg.grayscale_prob:
+    image = grayscale(image)
+  if rng.random() < cfg.blur_prob:
+    image = gaussian_blur(image, rng.uniform(*cfg.blur_sigma), cfg.blur_kernel)
+  if low_light_on and rng.random() < cfg.low_light_prob:
+    image = low_light(grayscale(image) if static else image, rng)
+  return np.ascontiguousarray(image)
+
+
+# ------------------------------------------------------------------- pairs through a pathway
+
+def _row(image0, image1, labels) -> dict:
+  return {"image0": np.ascontiguousarray(image0), "image1": np.ascontiguousarray(image1),
+          **{k: np.ascontiguousarray(v) for k, v in labels.items()}}
+
+
+def static_pair(v0: StaticView, v1: StaticView, params, out_hw, rng, cfg: AugmentConfig, *,
+                crop: bool = True, low_light_on: bool = False, backward: bool = True):
+  """A static pair through the official static pathway -> [fwd] or [fwd, bwd] rows (the
+  backward row shows the same two images swapped)."""
+  if cfg.enabled and crop:
+    v0, v1 = static_crop_pair(v0, v1, out_hw, rng, cfg)
+  else:
+    v0, v1 = (resize_cover_center_crop(v, out_hw, cfg.portrait_to_landscape) for v in (v0, v1))
+  if cfg.enabled:
+    v0.image = photometric(v0.image, rng, cfg, low_light_on, static=True)
+    v1.image = photometric(v1.image, rng, cfg, low_light_on, static=True)
+    if rng.random() < cfg.identical_view_prob:
+      v1 = dataclasses.replace(v0)
+  fwd, bwd = static_labels(v0, v1, params)
+  rows = [_row(v0.image, v1.image, fwd)]
+  if backward:
+    rows.append(_row(v1.image, v0.image, bwd))
+  return rows
+
+
+def flow_pair(sample: Mapping[str, Any], backward: Mapping[str, Any] | None, out_hw, rng,
+              cfg: AugmentConfig, *, low_light_on: bool = False, grid=None):
+  """Stored labels through the official flow pathway -> [fwd] or [fwd, bwd] rows.
+
+  grid: (forward grid, backward grid) when the labels hold only `FlowCrop.source_grid`'s
+  pixels; use `flow_crop` first to know them (the pipeline's lazily labelled sources)."""
+  crop = flow_crop(sample["image0"].shape[:2], out_hw, rng, cfg)
+  return flow_pair_with_crop(sample, backward, crop, rng, cfg, low_light_on=low_light_on,
+                             grid=grid)
+
+
+def flow_crop(hw, out_hw, rng, cfg: AugmentConfig) -> FlowCrop:
+  return random_flow_crop(hw, out_hw, rng, cfg) if cfg.enabled else center_flow_crop(hw, out_hw)
+
+
+def flow_pair_with_crop(sample, backward, crop: FlowCrop, rng, cfg: AugmentConfig, *,
+                        low_light_on: bool = False, grid=None, jittered: bool = False):
+  if np.shape(sample["image0"]) != np.shape(sample["image1"]):
+    raise ValueError(f"flow pathway: image shapes {np.shape(sample['image0'])} and "
+                     f"{np.shape(sample['image1'])} differ (the official pathway needs equal ones)")
+  image0, image1 = flow_crop_images(sample["image0"], sample["image1"], crop)
+  if cfg.enabled and not jittered:
+    image0 = photometric(image0, rng, cfg, low_light_on, static=False)
+    image1 = photometric(image1, rng, cfg, low_light_on, static=False)
+  g0, g1 = grid or (None, None)
+  rules = ("in_crop", "in_crop") if cfg.enabled else ("center_forward", "center_backward")
+  rows = [_row(image0, image1, flow_crop_labels(_labels(sample), crop, 0, rules[0], g0))]
+  if backward is not None:
+    rows.append(_row(image1, image0, flow_crop_labels(_labels(backward), crop, 1, rules[1], g1)))
+  return rows
+
+
+def kubric_pair(sample: Mapping[str, Any], backward: Mapping[str, Any], out_hw, rng,
+                cfg: AugmentConfig, *, with_backward: bool = True):
+  """Kubric-4D through the official Kubric pathway (labels at the stored size, colour jitter on
+  the stored images, then crops) -> [fwd] or [fwd, bwd] rows."""
+  hw = np.shape(sample["image0"])[:2]
+  colors = ((draw_color(rng, cfg), draw_color(rng, cfg)) if cfg.enabled else (None, None))
+  jitter = ((lambda im, p: color_jitter(im, p, fast=True)) if cfg.fast_image_ops else
+            color_jitter_float)
+  images = {"image0": jitter(sample["image0"], colors[0]),
+            "image1": jitter(sample["image1"], colors[1])}
+  crop = (covisible_guided_crops(sample, backward, hw, out_hw, rng, cfg) if cfg.enabled else
+          center_flow_crop(hw, out_hw))
+  return flow_pair_with_crop({**_labels(sample), **images}, backward if with_backward else None,
+                             crop, rng, cfg, jittered=True)
+
+
+def _labels(sample: Mapping[str, Any]) -> dict:
+  return {k: sample[k] for k in LABEL_KEYS + ("fov_mask",) if k in sample}
+
+
+# ----------------------------------------------------------------------- no augmentation
+
+def official_no_aug(sample: Mapping[str, Any], out_hw, kind: str,
+                    backward: Mapping[str, Any] | None = None, params=None) -> list[dict]:
+  """What the official dataset classes return with aug_crop=False, transform='imgnorm', at
+  out_hw = (H, W) (images still uint8, not normalised): [forward] or [forward, backward] dicts
+  with image0, image1, flow, covisibility (non_occluded_mask), flow_valid, covis_valid
+  (occlusion_supervision_mask) and, where the input has one, fov_mask.
+
+  kind 'static': `sample` in the dict interface with meta depth0/1, K0/1, cam2world0/1 (z-depth,
+    OpenCV, 0 = no depth); each view `resize_cover_center_crop`, then `official_labels` with
+    `params` (default: `geometry.rendering_parameters(meta['dataset'])`); both directions are
+    returned (the official batch labels both views). The rows' meta hold the cropped cameras.
+  kind 'flow': stored labels (forward `sample`, optional `backward` = the image1 -> image0
+    labels): ResizeShortAxis + CenterCrop with the official mask update (forward masks AND-ed
+    with the covisibility before the crop test, backward with the one after it; flow_valid only
+    resized and cropped); images resized in float with antialiasing and truncated.
+  kind 'kubric': 'flow' with the images first through the Kubric loader's float round trip
+    (uint8 / 255 * 255, truncated).
   """
   out_hw = tuple(int(s) for s in out_hw)
-  g0, g1 = label_grids or (None, None)
-  im0 = color_jitter(warp_image(np.asarray(sample["image0"]), params.view0, out_hw), params.color0)
-  im1 = color_jitter(warp_image(np.asarray(sample["image1"]), params.view1, out_hw), params.color1)
-  pairs = [(im0, im1, warp_labels(sample, params.view0, params.view1, out_hw, g0))]
-  if backward is not None:
-    pairs.append((im1, im0, warp_labels(backward, params.view1, params.view0, out_hw, g1)))
-  outs = []
-  for a, b, labels in pairs:
-    if params.hflip:
-      a, b, labels = a[:, ::-1], b[:, ::-1], hflip_labels(labels)
-    outs.append({"image0": np.ascontiguousarray(a), "image1": np.ascontiguousarray(b), **labels})
-  return outs
-
-
-def augment(sample: Mapping[str, Any], rng: np.random.Generator, out_hw, cfg: AugmentConfig,
-            backward: Mapping[str, Any] | None = None) -> list[dict]:
-  """Random parameters + `apply`; returns [fwd] or [fwd, bwd] dicts of output-shaped arrays."""
-  hw0 = np.shape(sample["image0"])[:2]
-  hw1 = np.shape(sample["image1"])[:2]
-  return apply(sample, sample_params(rng, hw0, hw1, out_hw, cfg), out_hw, backward)
+  cfg = AugmentConfig(enabled=False)
+  if kind == "static":
+    meta = sample["meta"]
+    if params is None:
+      params = geometry.rendering_parameters(str(meta.get("dataset", "")))
+      if params is None:
+        raise ValueError(f"official_no_aug: no covisible_rendering_parameters for dataset "
+                         f"{meta.get('dataset')!r}; pass params=(absolute, temperature, relative)")
+    views = [StaticView(np.asarray(sample[f"image{i}"]), np.asarray(meta[f"depth{i}"]),
+                        np.asarray(meta[f"K{i}"]), np.asarray(meta[f"cam2world{i}"]))
+             for i in (0, 1)]
+    v0, v1 = (resize_cover_center_crop(v, out_hw) for v in views)
+    fwd, bwd = static_labels(v0, v1, params)
+    cams = lambda a, b: {"meta": {"K0": a.K, "K1": b.K, "cam2world0": a.cam2world,
+                                  "cam2world1": b.cam2world, "depth0": a.depth, "depth1": b.depth}}
+    return [{**_row(v0.image, v1.image, fwd), **cams(v0, v1)},
+            {**_row(v1.image, v0.image, bwd), **cams(v1, v0)}]
+  if kind == "kubric":
+    return kubric_pair(sample, backward, out_hw, None, cfg, with_backward=backward is not None)
+  if kind == "flow":
+    return flow_pair(sample, backward, out_hw, None, cfg)
+  raise ValueError(f"official_no_aug: kind must be 'static', 'flow' or 'kubric', got {kind!r}")

@@ -10,7 +10,10 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import pathlib
 import re
+import shutil
+import tempfile
 
 import cv2
 import numpy as np
@@ -29,8 +32,10 @@ def _require_file(path) -> None:
 
 
 @contextlib.contextmanager
-def _atomic(path, suffix: str = ""):
-  """Yields a temp path next to `path`; renames it over `path` only if the block succeeds."""
+def atomic_file(path, suffix: str = ""):
+  """Yields a temp path next to `path`; renames it over `path` only if the block succeeds (the
+  one atomic writer of the package: a crash never leaves half a file). `suffix` ends the temp
+  name, for writers that pick the format from it (cv2.imwrite) or append one (np.savez)."""
   path = os.fspath(path)
   tmp = f"{path}.tmp{os.getpid()}{suffix}"
   try:
@@ -39,6 +44,38 @@ def _atomic(path, suffix: str = ""):
   finally:
     if os.path.exists(tmp):
       os.remove(tmp)
+
+
+@contextlib.contextmanager
+def staging_dir(path):
+  """Yields a new temp folder beside `path` (same file system, so renames out of it are
+  atomic), removed with whatever is left in it when the block ends."""
+  path = pathlib.Path(path).absolute()
+  path.parent.mkdir(parents=True, exist_ok=True)
+  tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+  try:
+    yield tmp
+  finally:
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_dir(path):
+  """Yields a temp folder that becomes the new folder `path` when the block succeeds (never
+  overwrites: FileExistsError when `path` exists); on any error nothing is left behind."""
+  path = pathlib.Path(path).absolute()
+  if path.exists():
+    raise FileExistsError(f"{path} already exists; refusing to overwrite it")
+  with staging_dir(path) as tmp:
+    yield tmp
+    os.replace(tmp, path)
+
+
+def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:
+  """`np.save` of `array` to exactly `path`, atomically."""
+  with atomic_file(path) as tmp:
+    with open(tmp, "wb") as f:
+      np.save(f, np.asarray(array))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -90,7 +127,7 @@ def write_flo(path: str | os.PathLike, flow: np.ndarray) -> None:
   if flow.ndim != 3 or flow.shape[2] != 2:
     raise ValueError(f"write_flo({path}): flow must be [H, W, 2], got shape {flow.shape}")
   h, w = flow.shape[:2]
-  with _atomic(path) as tmp:
+  with atomic_file(path) as tmp:
     with open(tmp, "wb") as f:
       f.write(np.array([FLO_MAGIC], "<f4").tobytes())
       f.write(np.array([w, h], "<i4").tobytes())
@@ -140,7 +177,7 @@ def write_kitti_flow(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarra
     ok &= valid
   enc = np.clip(np.round(np.nan_to_num(flow) * KITTI_FLOW_SCALE + KITTI_FLOW_OFFSET), 0, 65535)
   rgb = np.concatenate([enc, ok[..., None].astype(np.float64)], -1).astype(np.uint16)
-  with _atomic(path, ".png") as tmp:
+  with atomic_file(path, ".png") as tmp:
     if not cv2.imwrite(tmp, rgb[..., ::-1]):
       raise OSError(f"{path}: cv2.imwrite failed")
 
@@ -188,7 +225,7 @@ def write_pfm(path: str | os.PathLike, array: np.ndarray, little_endian: bool = 
   kind = b"PF" if array.ndim == 3 else b"Pf"
   header = kind + b"\n" + f"{w} {h}\n".encode() + (b"-1\n" if little_endian else b"1\n")
   body = array[::-1].astype("<f4" if little_endian else ">f4").tobytes()
-  with _atomic(path) as tmp:
+  with atomic_file(path) as tmp:
     with open(tmp, "wb") as f:
       f.write(header + body)
 
@@ -290,7 +327,7 @@ def read_dsp5(path: str | os.PathLike) -> np.ndarray:
 
 def _write_h5(path, key: str, arr: np.ndarray) -> None:
   import h5py
-  with _atomic(path) as tmp:
+  with atomic_file(path) as tmp:
     with h5py.File(tmp, "w") as f:
       f.create_dataset(key, data=arr, compression="gzip", compression_opts=5)
 
@@ -352,7 +389,7 @@ def write_float3(path: str | os.PathLike, array: np.ndarray) -> None:
   array = np.asarray(array, np.float32)
   header = b"float\n" + f"{array.ndim}\n".encode()
   header += b"".join(f"{d}\n".encode() for d in reversed(array.shape))
-  with _atomic(path) as tmp:
+  with atomic_file(path) as tmp:
     with open(tmp, "wb") as f:
       f.write(header + array.astype("<f4").tobytes())
 
@@ -419,7 +456,7 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
                      f"{image.dtype} {image.shape}")
   ext = os.path.splitext(os.fspath(path))[1] or ".png"
   bgr = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-  with _atomic(path, ext) as tmp:
+  with atomic_file(path, ext) as tmp:
     if not cv2.imwrite(tmp, bgr):
       raise OSError(f"{path}: cv2.imwrite failed")
 
@@ -438,7 +475,7 @@ def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:
   mask = np.asarray(mask)
   if mask.ndim != 2:
     raise ValueError(f"write_mask({path}): expected [H, W], got {mask.shape}")
-  with _atomic(path, ".png") as tmp:
+  with atomic_file(path, ".png") as tmp:
     if not cv2.imwrite(tmp, np.where(mask.astype(bool), 255, 0).astype(np.uint8)):
       raise OSError(f"{path}: cv2.imwrite failed")
 
@@ -465,9 +502,45 @@ def write_png_depth16(path: str | os.PathLike, depth: np.ndarray, scale: float) 
     raise ValueError(f"write_png_depth16({path}): expected [H, W], got {depth.shape}")
   enc = np.round(np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0) * scale)
   enc[(enc < 0) | (enc > 65535)] = 0
-  with _atomic(path, ".png") as tmp:
+  with atomic_file(path, ".png") as tmp:
     if not cv2.imwrite(tmp, enc.astype(np.uint16)):
       raise OSError(f"{path}: cv2.imwrite failed")
+
+
+# ------------------------------------------------------------------------------------------------
+# safetensors (released model weights)
+
+
+def read_safetensors(path) -> dict[str, np.ndarray]:
+  """All tensors of a .safetensors file (numpy); a damaged file's error names it and, when its
+  header promises more bytes than it has, the expected and actual sizes."""
+  from safetensors.numpy import load_file
+  path = pathlib.Path(path)
+  try:
+    return load_file(str(path))
+  except Exception as e:  # safetensors raises its own error types
+    raise ValueError(f"{path}: cannot read safetensors ({e}){_truncation_hint(path)}") from e
+
+
+def _truncation_hint(path: pathlib.Path) -> str:
+  """'; the file looks truncated: ...' when its header promises more bytes than it has."""
+  size = path.stat().st_size
+  try:
+    with open(path, "rb") as f:
+      n = int.from_bytes(f.read(8), "little")
+      header = json.loads(f.read(n)) if 0 < n <= size - 8 else None
+  except (OSError, ValueError):
+    header = None
+  if header is None:
+    return ""
+  ends = [int(v["data_offsets"][1]) for k, v in header.items()
+          if k != "__metadata__" and isinstance(v, dict) and "data_offsets" in v]
+  expected = 8 + n + max(ends, default=0)
+  if size < expected:
+    return (f"; the file looks truncated: its header describes {expected:,} bytes, the file has "
+            f"{size:,} (an interrupted download?)")
+  return ""
+
 
 
 def check_dir(path: str | os.PathLike, layout: str) -> str:
@@ -483,7 +556,7 @@ def write_json_atomic(path: str | os.PathLike, obj) -> None:
   is created. Values JSON cannot hold (numpy scalars, paths) are written as float, else str."""
   path = os.fspath(path)
   os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-  with _atomic(path, ".json") as tmp:
+  with atomic_file(path, ".json") as tmp:
     with open(tmp, "w") as f:
       json.dump(obj, f, indent=1, sort_keys=False, default=_json_default)
 

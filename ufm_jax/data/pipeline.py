@@ -14,15 +14,19 @@ k) comes from (seed, position), never from process-local generators.
 
 Batches are dicts of numpy arrays with a leading batch axis of the per-host batch size:
 image0, image1 [B,H,W,3] uint8; flow [B,H,W,2] float32; covisibility, flow_valid, covis_valid
-[B,H,W] bool; dataset_id [B] int32 (index into `Pipeline.names`); epoch [B] int32. With
-symmetrize, rows (2i, 2i+1) are (a, b) and (b, a): backward labels come from the source (its
-`both(i)`, when it declares `has_backward`), else for a source that declares `static_scene` from
-depth + poses in meta, else (backward_fallback='unsupervised', e.g. FlyingChairs, HD1K) the (b, a)
-row has all masks False, so
-the loss must tolerate rows without supervised pixels (FlyingChairs' covis_valid is all False too).
-A source with `lazy_pair(i)` (the posed datasets, Kubric-4D) is labelled only at the pixels the
-augmentation reads, in both directions (static scenes from the views' own depth and float64
-poses): the same rows as from its full-size labels for a fraction of the depth reprojection.
+[B,H,W] bool; dataset_id [B] int32 (index into `Pipeline.names`); epoch [B] int32.
+
+Each pair goes through its dataset's official pathway (`pathway`, ufm_jax.data.augment): static
+scenes (the posed sources' `lazy_pair(i)`) are cropped first and labelled after the crop from
+their depth and cameras by the official rule, in both directions; flow sets' stored labels and
+Kubric-4D's (labelled at the stored size) are resized and cropped with the masks cut where a
+match leaves the crop. A posed source read as a flow set (TartanAir) is labelled only at the
+stored pixels its crop reads. With symmetrize, rows (2i, 2i+1) are (a, b) and (b, a): backward
+labels come from the pathway (static, Kubric), the source (its `both(i)`, when it declares
+`has_backward`), a `static_scene` source's depth + poses in meta, else
+(backward_fallback='unsupervised', e.g. FlyingChairs, HD1K) the (b, a) row has all masks False,
+so the loss must tolerate rows without supervised pixels (FlyingChairs' covis_valid is all False
+too).
 
 A sample that raises while loading, labelling or augmenting, or fails validation, is skipped: a
 replacement is drawn from the same dataset (deterministically), the failure is logged with the
@@ -226,18 +230,18 @@ def _geometry_possible(source, meta) -> bool:
   return source.static_scene and all(k in meta for k in _GEOMETRY_META)
 
 
-def geometry_backward(sample: Mapping[str, Any], thresholds=None) -> dict:
-  """Backward labels (image1 -> image0) of a static-scene pair from depth + poses in meta, with the
-  source's thresholds (else those of meta's dataset: Table S1, the benchmark values) and the label
-  rules the sources use."""
+def geometry_backward(sample: Mapping[str, Any], params=None) -> dict:
+  """Backward labels (image1 -> image0) of a static-scene pair from depth + poses in meta, by the
+  official rule (`geometry.official_labels`) with params = (absolute, temperature, relative)
+  (default: `label_parameters` of meta's dataset)."""
   from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
   meta = sample["meta"]
-  tau_d, tau_r = thresholds or geometry.covis_thresholds(str(meta["dataset"]))
-  corr = geometry.correspondence_from_depth(meta["depth1"], meta["K1"], meta["cam2world1"],
-                                            meta["depth0"], meta["K0"], meta["cam2world0"],
-                                            tau_d, tau_r)
-  return {"image0": sample["image1"], "image1": sample["image0"],
-          **geometry.labels_from_correspondence(corr), "meta": meta}
+  if params is None:
+    params = label_parameters(None, str(meta.get("dataset")))
+  out = geometry.official_labels(meta["depth1"], meta["K1"], meta["cam2world1"], meta["depth0"],
+                                 meta["K0"], meta["cam2world0"], params)
+  return {"image0": sample["image1"], "image1": sample["image0"], "meta": meta,
+          **{k: out[k] for k in augment_lib.LABEL_KEYS}}
 
 
 def unsupervised_backward(sample: Mapping[str, Any]) -> dict:
@@ -275,6 +279,49 @@ def backward_mode(source, name: str, fallback: str = "unsupervised") -> str:
       "the mixture")
 
 
+def pathway(source, name: str, cfg: augment_lib.AugmentConfig) -> str:
+  """The official pathway a dataset's pairs take (ufm_jax.data.augment): 'static' (views
+  cropped, then labelled from depth + poses), 'kubric' or 'flow' (stored labels resized and
+  cropped). A source class may declare `pathway`; else static scenes are 'static', the rest
+  'flow'; `cfg.flow_pathway_datasets` read as flow sets what the official code reads so."""
+  if name.lower() in cfg.flow_pathway_datasets:
+    return "flow"
+  declared = getattr(source, "pathway", None)
+  if declared is not None:
+    if declared not in ("static", "flow", "kubric"):
+      raise TypeError(f"dataset {name!r}: source class {type(source).__name__} declares pathway "
+                      f"{declared!r}; expected 'static', 'flow' or 'kubric'")
+    return declared
+  return "static" if getattr(source, "static_scene", False) else "flow"
+
+
+def label_parameters(source, name: str) -> tuple[float, float, float]:
+  """(absolute, temperature, relative) of the official label rule for a dataset: the source's
+  `thresholds` (3 values; 2 values = the supplementary's (tau_d, tau_r), no temperature), else
+  the official `covisible_rendering_parameters` (geometry.RENDERING_PARAMETERS), else the
+  supplementary's thresholds without temperature; looked up by the mixture name, then by the
+  source's own `name` or `dataset`."""
+  from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
+  own = getattr(source, "thresholds", None)
+  if own is not None:
+    own = tuple(float(x) for x in own)
+    return own if len(own) == 3 else (own[0], 0.0, own[1])
+  names = [name] + [str(getattr(source, a)) for a in ("name", "dataset")
+                    if isinstance(getattr(source, a, None), str)]
+  for n in names:
+    params = geometry.rendering_parameters(n)
+    if params is not None:
+      return params
+  for n in names:
+    try:
+      tau_d, tau_r = geometry.covis_thresholds(n)
+    except KeyError:
+      continue
+    return (tau_d, 0.0, tau_r)
+  raise KeyError(f"dataset {name!r}: no label thresholds (give its source `thresholds`, or add it "
+                 f"to ufm_jax.geometry.RENDERING_PARAMETERS)")
+
+
 class LoadPair:
   """grain map: index record -> dict of augmented arrays with a leading axis of 1 or 2 pairs."""
 
@@ -283,6 +330,13 @@ class LoadPair:
     self.sources, self.names, self.backward_modes = sources, names, backward_modes
     self.layout, self.shapes, self.cfg = layout, tuple(shapes), augment_cfg
     self.symmetrize, self.max_retries = symmetrize, max_retries
+    self.pathways = tuple(pathway(s, n, augment_cfg) for s, n in zip(sources, names))
+    # The label rule's parameters, for the datasets labelled here from depth and cameras.
+    modes = backward_modes or (None,) * len(sources)
+    self.params = tuple(
+        label_parameters(s, n) if (p != "flow" or callable(getattr(s, "lazy_pair", None))
+                                   or m == "geometry") else None
+        for s, n, p, m in zip(sources, names, self.pathways, modes))
 
   def _load(self, d: int, i: int):
     where = f"{self.names[d]}[{i}]"
@@ -297,7 +351,7 @@ class LoadPair:
     if mode == "source" and backward is None:   # e.g. a pairs_folder pair without reverse/ labels
       mode = "geometry" if _geometry_possible(src, sample.get("meta", {})) else "unsupervised"
     if mode == "geometry":
-      backward = geometry_backward(sample, getattr(src, "thresholds", None))
+      backward = geometry_backward(sample, self.params[d])
     elif mode == "unsupervised":
       backward = unsupervised_backward(sample)
     if backward is not None:
@@ -308,31 +362,66 @@ class LoadPair:
                          f"{backward['image1'].shape} do not swap the forward's")
     return sample, backward
 
-  def _lazy_pairs(self, pair, mode, out_hw, rng, where):
-    """`augment` of a source's lazy pair, labelled only at the pixels the crop reads
-    (augment.label_grid): the same rows as from full-size labels, for a fraction of the depth
-    reprojection (the largest host cost of the posed datasets)."""
-    image0, image1 = check_images(pair.image0, pair.image1, where)
-    hw0, hw1 = image0.shape[:2], image1.shape[:2]
-    params = augment_lib.sample_params(rng, hw0, hw1, out_hw, self.cfg)
-    grids = (augment_lib.label_grid(params.view0, hw0, out_hw),
-             augment_lib.label_grid(params.view1, hw1, out_hw))
-    sample = {"image0": image0, "image1": image1,
-              **pair.labels(False, grids[0].rows, grids[0].cols)}
-    backward = None
-    if mode is not None:   # 'geometry' or 'source': the lazy pair's own backward labels
-      backward = {"image0": image1, "image1": image0,
-                  **pair.labels(True, grids[1].rows, grids[1].cols)}
-    return augment_lib.apply(sample, params, out_hw, backward, grids)
+  def _static_views(self, d: int, i: int, where: str):
+    """The two posed views of a static pair: the source's lazy pair, else its sample's meta."""
+    src = self.sources[d]
+    if callable(getattr(src, "lazy_pair", None)):
+      pair = src.lazy_pair(i)
+      image0, image1 = check_images(pair.image0, pair.image1, where)
+      views = ((image0, pair.v0), (image1, pair.v1))
+      views = [(im, v.depth, v.K, v.cam2world) for im, v in views]
+    else:
+      sample = src[i]
+      meta = sample.get("meta") or {}
+      missing = [k for k in _GEOMETRY_META if k not in meta]
+      if missing:
+        raise ValueError(f"{where}: a static-pathway sample needs {', '.join(missing)} in meta")
+      image0, image1 = check_images(sample["image0"], sample["image1"], where)
+      views = [(im, meta[f"depth{k}"], meta[f"K{k}"], meta[f"cam2world{k}"])
+               for k, im in enumerate((image0, image1))]
+    out = []
+    for k, (image, depth, K, c2w) in enumerate(views):
+      if np.shape(depth) != image.shape[:2]:
+        raise ValueError(f"{where}: view {k} image is {image.shape[:2]} but its depth is "
+                         f"{np.shape(depth)}")
+      out.append(augment_lib.StaticView(image, np.asarray(depth, np.float32),
+                                        np.asarray(K, np.float64), np.asarray(c2w, np.float64)))
+    return out
 
   def _augmented(self, d: int, i: int, out_hw, rng):
-    """Sample i of dataset d as [fwd] or [fwd, bwd] augmented rows."""
-    src = self.sources[d]
+    """Sample i of dataset d through its official pathway as [fwd] or [fwd, bwd] rows."""
+    src, name, cfg = self.sources[d], self.names[d].lower(), self.cfg
+    where = f"{self.names[d]}[{i}]"
+    params, path = self.params[d], self.pathways[d]
+    low_light = name in cfg.low_light_datasets
+    if path == "static":
+      v0, v1 = self._static_views(d, i, where)
+      return augment_lib.static_pair(v0, v1, params, out_hw, rng, cfg,
+                                     crop=name not in cfg.no_crop_datasets,
+                                     low_light_on=low_light, backward=self.symmetrize)
+    lazy = callable(getattr(src, "lazy_pair", None))
+    if path == "kubric":
+      pair = src.lazy_pair(i)
+      image0, image1 = check_images(pair.image0, pair.image1, where)
+      fwd = {"image0": image0, "image1": image1, **pair.training_labels(False, params)}
+      bwd = {"image0": image1, "image1": image0, **pair.training_labels(True, params)}
+      return augment_lib.kubric_pair(fwd, bwd, out_hw, rng, cfg, with_backward=self.symmetrize)
     mode = self.backward_modes[d] if self.symmetrize else None
-    if mode != "unsupervised" and callable(getattr(src, "lazy_pair", None)):
-      return self._lazy_pairs(src.lazy_pair(i), mode, out_hw, rng, f"{self.names[d]}[{i}]")
+    if lazy and mode != "unsupervised":
+      # A posed source read as a flow set (TartanAir): labelled only at the stored pixels the
+      # nearest resize of the crop reads, in both directions.
+      pair = src.lazy_pair(i)
+      image0, image1 = check_images(pair.image0, pair.image1, where)
+      crop = augment_lib.flow_crop(image0.shape[:2], out_hw, rng, cfg)
+      grids = tuple(tuple(np.unique(g) for g in crop.source_grid(k)) for k in (0, 1))
+      fwd = {"image0": image0, "image1": image1, **pair.training_labels(False, params, *grids[0])}
+      bwd = None
+      if mode is not None:
+        bwd = {"image0": image1, "image1": image0, **pair.training_labels(True, params, *grids[1])}
+      return augment_lib.flow_pair_with_crop(fwd, bwd, crop, rng, cfg, low_light_on=low_light,
+                                             grid=grids)
     sample, backward = self._load(d, i)
-    return augment_lib.augment(sample, rng, out_hw, self.cfg, backward=backward)
+    return augment_lib.flow_pair(sample, backward, out_hw, rng, cfg, low_light_on=low_light)
 
   def __call__(self, rec):
     d, i, g = rec["dataset_id"], rec["index"], rec["position"]
@@ -450,7 +539,17 @@ def _open_sources(datasets: Mapping[str, Mapping[str, Any]], split: str | None,
                      "expected quota, root, options")
     if quota <= 0:
       continue
-    if root is not None:
+    reader = name
+    if name in mixture.LAYOUTS:
+      # The official layout first, else the raw one (mixture.find_layout); LayoutError stops here.
+      layout, found, why = mixture.find_layout(name, data_root, root)
+      if layout is None:
+        dropped.append(f"{name} ({why})")
+        continue
+      log.info("dataset %s: %s layout at %s, read by %r (%s)", name, layout.kind, found,
+               layout.source, why)
+      reader, root = layout.source, found
+    elif root is not None:
       root = os.path.expanduser(str(root))
       if data_root is not None and not os.path.isabs(root):
         root = os.path.join(os.path.expanduser(str(data_root)), root)
@@ -460,7 +559,7 @@ def _open_sources(datasets: Mapping[str, Mapping[str, Any]], split: str | None,
     if split is not None:
       options.setdefault("split", split)
     try:
-      source = get_source(name, root, **options)
+      source = get_source(reader, root, **options)
     except FileNotFoundError as e:
       dropped.append(f"{name} ({e})")
       continue
@@ -504,6 +603,7 @@ INPUT_DEFAULTS = {
     "symmetrize": True,
     "longest_side": 560,
     "aspect_ratios": augment_lib.DEFAULT_ASPECT_RATIOS,
+    "shapes": (),
     "augment": {},
     "num_workers": -1,
     "read_threads": 2,
@@ -556,6 +656,10 @@ def input_config(datasets, **overrides):
   backward_fallback: what symmetrize does for datasets without backward labels ('unsupervised':
   the (b, a) row has all masks False; 'error': refuse to build).
   keep_heap: glibc malloc keeps freed memory in the processes that make samples (`keep_heap`).
+  shapes: the (H, W) training shapes, one drawn uniformly per global batch (the recipes give
+  the official ones, augment.SHAPES_560 / SHAPES_980); empty: W = longest_side and H from
+  aspect_ratios.
+  augment: `augment.AugmentConfig` keys (empty: the official augmentation).
   """
   import ml_collections  # pylint: disable=g-import-not-at-top
   unknown = sorted(set(overrides) - set(INPUT_DEFAULTS))
@@ -563,6 +667,7 @@ def input_config(datasets, **overrides):
     raise KeyError(f"input_config: unknown keys {unknown}; known: {sorted(INPUT_DEFAULTS)}")
   block = {**INPUT_DEFAULTS, **overrides}
   block["aspect_ratios"] = tuple(block["aspect_ratios"])
+  block["shapes"] = tuple(tuple(int(x) for x in hw) for hw in block["shapes"])
   block["augment"] = dict(block["augment"] or {})
   block["data_root"] = block["data_root"] or mixture.DEFAULT_DATA_ROOT
   if block["split"] is None:
@@ -577,7 +682,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
 
   Keys: datasets {name: {quota, root, options}} (relative roots are under data_root), data_root,
   batch_size (global pairs per step, counting both directions when symmetrized), symmetrize,
-  longest_side, aspect_ratios, augment {...}, num_workers, worker_buffer_size, read_threads,
+  longest_side, aspect_ratios, shapes, augment {...}, num_workers, worker_buffer_size, read_threads,
   prefetch_buffer_size, max_skip_fraction, skip_check_min_samples, backward_fallback, split,
   keep_heap.
   process_index/count default to jax's (grain ShardByJaxProcess).
@@ -616,8 +721,8 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
     if unsup:
       log.warning("no backward labels for %s: their (b, a) rows in symmetrized batches carry no "
                   "supervision (all masks False)", ", ".join(unsup))
-  shapes = augment_lib.training_shapes(int(cfg["longest_side"]),
-                                       tuple(cfg["aspect_ratios"]))
+  shapes = (augment_lib.check_shapes(cfg["shapes"]) if cfg["shapes"] else
+            augment_lib.training_shapes(int(cfg["longest_side"]), tuple(cfg["aspect_ratios"])))
   if jax_processes and process_count > 1:
     # Every host derives the same plans only if it sees the same datasets with the same sizes.
     from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top

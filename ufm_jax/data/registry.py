@@ -18,11 +18,12 @@ symmetrizes batches (ufm_jax.data.pipeline.backward_mode):
                   follow from depth + poses in meta (`thresholds` of the source, else those of
                   meta's dataset)
 
-A source may also offer `lazy_pair(i)`: an object with `image0`, `image1` and
-`labels(backward, rows, cols)` -> the four label arrays of either direction at the source pixels
-rows x cols only (posed.PosedPair: static scenes from depth + poses; kubric4d.KubricPair: rigid
-objects). The training pipeline then labels just the pixels its crop reads (augment.label_grid)
-instead of the whole frame, in both directions.
+A source may also offer `lazy_pair(i)`: an object with `image0`, `image1`, the two posed views
+`v0`, `v1` (image, z-depth, K, cam2world) and `training_labels(backward, params, rows, cols)`
+-> the four label arrays of either direction by the official training code's rule, at the
+source pixels rows x cols only (posed.PosedPair: static scenes; kubric4d.KubricPair: rigid
+objects), and declare `pathway` ('static', 'kubric' or 'flow'): how the training pipeline crops
+and labels its pairs (ufm_jax.data.augment; pipeline.pathway).
 """
 
 from __future__ import annotations

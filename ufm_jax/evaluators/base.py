@@ -1,8 +1,9 @@
 """What every evaluator shares: the model runner, the bench table, prediction files, results.
 
 A bench names a family (flow / dense / pose), one or more dataset sources (one per split, e.g.
-Sintel clean and final), the sub-folder of `--data_root` holding the data and the `data/` tool
-that prepares it. Evaluators take any sequence of sample dicts (see ufm_jax/data/registry.py),
+Sintel clean and final), the sub-folder of `--data_root` holding the data, the `data/` tool
+that prepares it and its protocol: `native` (ours) or `official` (the UFM benchmark branch's;
+docs/benchmarks.md). Evaluators take any sequence of sample dicts (see ufm_jax/data/registry.py),
 so tests can feed in-memory sources.
 """
 
@@ -35,13 +36,18 @@ class Bench:
   name: str
   family: str                          # "flow" | "dense" | "pose"
   splits: tuple[Split, ...]
-  data_subdir: str                     # folder under --data_root
+  data_subdir: str | tuple[str, ...]   # folder(s) under --data_root, the first present is used
   layout: str                          # expected on-disk layout (for error messages)
   tool: str                            # the data/ tool that prepares it
   options: tuple = ()                  # evaluator options, e.g. (("auc_thresholds", (5, 10, 15)),)
+  protocol: str = "native"             # "native" | "official"
 
   def option(self, key, default=None):
     return dict(self.options).get(key, default)
+
+  @property
+  def subdirs(self) -> tuple[str, ...]:
+    return (self.data_subdir,) if isinstance(self.data_subdir, str) else tuple(self.data_subdir)
 
 
 def round_to_multiple(x: float, m: int = 14) -> int:
@@ -81,10 +87,13 @@ class Runner:
     """Compiles the forward for this pair's shape outside the timed runs (I/O excluded)."""
     self(image0, image1)
 
-  def ms_per_pair(self) -> float:
-    """Median forward time per pair in ms over calls that did not compile (NaN if none)."""
+  def ms_per_pair(self, mean: bool = False) -> float:
+    """Median (or, with `mean`, mean: the branch's `method_time_avg`) forward time per pair in ms
+    over calls that did not compile (NaN if none)."""
     per_pair = [t / n for t, n in self.timings if n]
-    return 1e3 * statistics.median(per_pair) if per_pair else float("nan")
+    if not per_pair:
+      return float("nan")
+    return 1e3 * (statistics.fmean(per_pair) if mean else statistics.median(per_pair))
 
 
 def relpath_of(sample: dict, index: int) -> str:

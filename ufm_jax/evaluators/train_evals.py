@@ -1,8 +1,8 @@
 """Evaluators that train.py runs on the current params, chosen by `type` in `config.evals`:
 
   heldout  fixed held-out pairs of a registered source, predicted by the sharded training-mesh
-           forward; the dense metrics (`DenseMetrics` with baselines: epe, px1/3/5, epe_all,
-           epe_zero, covis_acc)
+           forward; the dense metrics (`DenseMetrics` with baselines: epe, px1/3/5,
+           epe_occluded, epe_all, epe_zero, covis_acc)
   bench    a benchmark of ufm_jax.evaluators (evaluate.py's benches) through ufm_jax.predict
   "module:Class"  anything else, called with (cfg, mesh)
 """
@@ -90,7 +90,8 @@ class HeldoutEval:
 class BenchEval:
   """A benchmark of ufm_jax.evaluators (evaluate.py's benches) run on the current params.
 
-  Config: bench (e.g. sintel), every, max_pairs, resolution (560 | 980 | native), data_root.
+  Config: bench (e.g. sintel), every, max_pairs, resolution (560 | 980 | native), data_root,
+  protocol (default "native"; "official" needs no resolution: docs/benchmarks.md).
   Benches whose data is absent are skipped with a warning (once).
   """
 
@@ -107,7 +108,8 @@ class BenchEval:
     runner = evaluators.Runner(self.model, params, self.cfg.get("resolution"))
     try:
       metrics, _ = evaluators.run_bench(self.cfg.bench, runner, self.cfg.get("data_root"),
-                                        max_pairs=self.cfg.get("max_pairs"), progress=False)
+                                        max_pairs=self.cfg.get("max_pairs"), progress=False,
+                                        protocol=self.cfg.get("protocol", "native"))
     except evaluators.MissingDataError as e:
       logging.warning("eval %s skipped from now on: %s", self.cfg.bench, e)
       self.missing = True

@@ -277,21 +277,22 @@ def _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search=0.0, rows
               valid_other=valid_other, in_front=in_front, error=error)
 
 
-def _source_in_target(depth0, valid0, K0, rel, rows=None, cols=None):
-  """Camera-2 coordinates (float64 X, Y, Z planes) of the unprojected source depth under the rigid
-  transform rel [4, 4] (camera 1 -> camera 2). `rows`, `cols`: the image coordinates of depth0's
-  rows and columns (default 0, 1, ...)."""
+def _source_in_target(depth0, valid0, K0, rel, rows=None, cols=None, dtype=np.float64):
+  """Camera-2 coordinates (X, Y, Z planes of `dtype`) of the unprojected source depth under the
+  rigid transform rel [4, 4] (camera 1 -> camera 2), composed in float64. `rows`, `cols`: the
+  image coordinates of depth0's rows and columns (default 0, 1, ...)."""
   h, w = depth0.shape
   with np.errstate(invalid="ignore"):
-    d = np.where(valid0, depth0, 0.0)
-  u = (np.arange(w) if cols is None else cols).astype(np.float64)[None, :]
-  v = (np.arange(h) if rows is None else rows).astype(np.float64)[:, None]
-  M = rel[:3, :3] @ _k_inverse(K0)
+    d = np.where(valid0, depth0, 0.0).astype(dtype, copy=False)
+  u = (np.arange(w) if cols is None else cols).astype(dtype)[None, :]
+  v = (np.arange(h) if rows is None else rows).astype(dtype)[:, None]
+  M = (rel[:3, :3] @ _k_inverse(K0)).astype(dtype)
+  t = rel[:3, 3].astype(dtype)
   out = []
   for i in range(3):
     p = M[i, 0] * u + (M[i, 1] * v + M[i, 2])
     p *= d
-    p += rel[i, 3]
+    p += t[i]
     out.append(p)
   return out
 
@@ -323,8 +324,8 @@ def correspondence_from_depth(depth0, K0, cam2world0, depth1, K1, cam2world1,
   valid=False (and flow 0, all masks False); invalid target pixels never confirm covisibility.
   Returns the dict of `covisibility_from_points` (see there for `subpixel_search`).
   rows, cols (int index vectors): only the source pixels of that grid, every output [len(rows),
-  len(cols)]. The rule is per source pixel, so they equal the full result there bit for bit; the
-  training pipeline labels just the pixels its crop reads (ufm_jax.data.augment.label_grid).
+  len(cols)]. The rule is per source pixel, so they equal the full result there bit for bit
+  (e.g. only the pixels a crop reads).
   """
   depth0 = _check_depth("depth0", depth0)
   _check_depth("depth1", depth1)
@@ -340,3 +341,160 @@ def correspondence_from_depth(depth0, K0, cam2world0, depth1, K1, cam2world1,
   xyz = lambda r0, r1: _source_in_target(depth0[r0:r1], valid0[r0:r1], K0, rel,
                                          np.arange(r0, r1) if rows is None else rows[r0:r1], cols)
   return _correspond(xyz, valid0, depth1, K1, tau_d, tau_r, subpixel_search, rows, cols)
+
+
+# ----------------------------------------------------------------- the official training labels
+# UFM's training code labels static pairs with `flow_occlusion_post_processing`
+# (uniflowmatch/datasets/base/flow_postprocessing.py:544-714 on the train branch, d8c421e). Its
+# rule differs from the paper's one above in four ways, all reproduced here:
+#   * threshold abs + rel * r - ln(0.5) * temp (r: distance of the point to the other camera
+#     centre), with per-dataset `covisible_rendering_parameters` = (abs, temp, rel): :605-627;
+#   * the other view's range map is sampled bilinearly with ZERO padding (grid_sample,
+#     align_corners=False): holes (depth 0) and the image border pull their neighbours' samples
+#     towards 0, making them occluded: :444-485;
+#   * a source pixel without depth still projects (its point is its camera centre): it keeps
+#     that projection in the occlusion supervision mask and the flow; only the fov and
+#     covisibility masks are AND-ed with its own depth validity at the end: :696-714;
+#   * `opt_iters` has no effect (the optimised uv residual is added once, before the loop, and
+#     never re-read), so there is no sub-pixel search: :632-688.
+LN_HALF = float(np.log(0.5))
+
+
+class _ZeroPaddedRange:
+  """Target depth map for zero-padded bilinear lookups (torch grid_sample, padding 'zeros',
+  align_corners=False) and zero-padded nearest lookups of its validity (half-to-even rounding,
+  as torch's nearest). With K1 the map is the range (z-depth x ray norm), without it z-depth."""
+
+  def __init__(self, depth1, K1=None):
+    depth1 = np.asarray(depth1)
+    self.h, self.w = h, w = depth1.shape
+    with np.errstate(invalid="ignore"):
+      valid = np.isfinite(depth1) & (depth1 > 0)
+    rng = np.where(valid, depth1, 0).astype(_F, copy=False)
+    if K1 is not None:
+      rng = rng * _ray_norms32(h, w, _k_tuple(K1))
+    padded = np.zeros((h + 2, w + 2), _F)   # one ring of zeros: the padding
+    padded[1:-1, 1:-1] = rng
+    self.range = padded.ravel()
+    self.valid = valid.ravel()
+    self.wp = w + 2
+
+  def sample(self, u, v):
+    """Bilinear value at (u, v) in [-0.5, W) x [-0.5, H) (float32 planes, as grid_sample), taps
+    outside the image reading 0; and the validity of the nearest pixel (False outside)."""
+    x = np.asarray(u, _F) + _F(1)
+    y = np.asarray(v, _F) + _F(1)
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = x - x0
+    fy = y - y0
+    i00 = (y0.astype(np.intp) * self.wp + x0.astype(np.intp))
+    a = self.range
+    c00, c01 = np.take(a, i00), np.take(a[1:], i00)
+    c10, c11 = np.take(a[self.wp:], i00), np.take(a[self.wp + 1:], i00)
+    gx = 1 - fx
+    c00 *= gx
+    c01 *= fx
+    c00 += c01
+    c00 *= 1 - fy
+    c10 *= gx
+    c11 *= fx
+    c10 += c11
+    c10 *= fy
+    c00 += c10
+    xn, yn = np.rint(u).astype(np.intp), np.rint(v).astype(np.intp)
+    inside = (xn >= 0) & (xn < self.w) & (yn >= 0) & (yn < self.h)
+    flat = yn * self.w + xn
+    flat[~inside] = 0
+    return c00, np.take(self.valid, flat) & inside
+
+
+def official_labels(depth0, K0, cam2world0, depth1, K1, cam2world1, params, rows=None,
+                    cols=None) -> dict:
+  """Flow 0 -> 1 and masks of a static pair as the official training code makes them.
+
+  params: the dataset's `covisible_rendering_parameters` (absolute, temperature, relative), e.g.
+  (0.1, 0.1, 0.005) for every official static dataset (`thresholds.RENDERING_PARAMETERS`).
+  rows, cols: only these source pixels (the result there equals the full one's).
+  Returns dict in the sample-dict keys:
+    flow         float32 [H, W, 2], 0 where the point does not project into view 1 (fov_pre);
+    covisibility the official non_occluded_mask;
+    flow_valid   the official fov_mask: projects into view 1 and has its own depth;
+    covis_valid  the official occlusion_supervision_mask (V_covis on fov_pre, see above);
+  and fov_pre, valid (own depth > 0), valid_other, error (float32, inf outside fov_pre).
+  """
+  depth0 = _check_depth("depth0", depth0)
+  _check_depth("depth1", depth1)
+  rows, cols, depth0 = on_grid(rows, cols, depth0)
+  with np.errstate(invalid="ignore"):
+    valid0 = np.isfinite(depth0) & (depth0 > 0)
+  rel = camera.invert_pose(cam2world1) @ np.asarray(cam2world0, np.float64)   # camera 0 -> 1
+  all_v = np.arange(depth0.shape[0]) if rows is None else rows
+  xyz = lambda r0, r1: _source_in_target(depth0[r0:r1], valid0[r0:r1], K0, rel, all_v[r0:r1],
+                                         cols, _F)
+  return official_correspond(xyz, valid0, depth1, K1, params, rows, cols)
+
+
+def official_correspond(xyz, valid0, depth1, K1, params, rows=None, cols=None) -> dict:
+  """The official rule's core: xyz(r0, r1) -> camera-1 coordinates X, Y, Z (float64 planes) of
+  source rows r0:r1 (pixels without depth: their camera centre) -> `official_labels`' dict.
+  Shared by static scenes and Kubric's rigid objects (`correspondence_from_rigid_objects`)."""
+  valid0 = np.asarray(valid0, bool)
+  target = _ZeroPaddedRange(depth1, K1)
+  h1, w1 = target.h, target.w
+  fx, s, cx, fy, cy = (_F(k) for k in _k_tuple(K1))
+  absolute, temperature, relative = (float(p) for p in params)
+  bias = _F(absolute) - _F(LN_HALF) * _F(temperature)
+  relative = _F(relative)
+  h0, w0 = valid0.shape
+  fov_pre, non_occluded, valid_other = (np.empty((h0, w0), bool) for _ in range(3))
+  flow = np.empty((h0, w0, 2), _F)
+  error = np.empty((h0, w0), _F)
+  grid_u = (np.arange(w0) if cols is None else cols).astype(_F)[None, :]
+  all_v = (np.arange(h0) if rows is None else rows).astype(_F)
+  lo_u, hi_u, lo_v, hi_v = _F(-0.5), _F(w1 - 0.5), _F(-0.5), _F(h1 - 0.5)
+  step = max(1, _BLOCK_PIXELS // max(w0, 1))
+  # float32 throughout, as the official code (float32 points, projection and threshold).
+  for r0 in range(0, h0, step):
+    r1 = min(h0, r0 + step)
+    grid_v = all_v[r0:r1, None]
+    X, Y, Z = (np.asarray(c, _F) for c in xyz(r0, r1))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+      inv_z = _F(1) / Z
+      u = X * inv_z
+      u *= fx
+      if s:
+        u += s * (Y * inv_z)
+      u += cx
+      v = Y * inv_z
+      v *= fy
+      v += cy
+      fov = Z > 0
+      fov &= u >= lo_u
+      fov &= u < hi_u
+      fov &= v >= lo_v
+      fov &= v < hi_v
+    outside = ~fov
+    fu = np.subtract(u, grid_u, out=flow[r0:r1, :, 0])
+    fv = np.subtract(v, grid_v, out=flow[r0:r1, :, 1])
+    fu[outside] = 0
+    fv[outside] = 0
+    u[outside] = 0   # any position inside the target: the lookups there are masked out
+    v[outside] = 0
+    expected = X * X
+    expected += Y * Y
+    expected += Z * Z
+    np.sqrt(expected, out=expected)
+    sampled, nearest_valid = target.sample(u, v)
+    sampled -= expected
+    err = np.abs(sampled, out=sampled)
+    thr = expected * relative
+    thr += bias
+    np.less(err, thr, out=non_occluded[r0:r1])
+    non_occluded[r0:r1] &= fov
+    np.logical_and(fov, nearest_valid, out=valid_other[r0:r1])
+    err[outside] = np.inf
+    fov_pre[r0:r1], error[r0:r1] = fov, err
+  return dict(flow=flow, covisibility=non_occluded & valid0, flow_valid=fov_pre & valid0,
+              covis_valid=(valid0 & ~fov_pre) | valid_other, fov_pre=fov_pre, valid=valid0,
+              valid_other=valid_other, error=error)

@@ -12,7 +12,7 @@ import numpy as np
 
 from ufm_jax.geometry import camera
 from ufm_jax.geometry.covisibility import (_check_depth, _correspond, _k_inverse,
-                                           _source_in_target, on_grid)
+                                           _source_in_target, official_correspond, on_grid)
 
 
 def _pose_table(poses, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -51,7 +51,7 @@ def object_motions(object_poses0, object_poses1) -> tuple[np.ndarray, np.ndarray
 def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, object_poses0,
                                       depth1, K1, cam2world1, object_poses1,
                                       tau_d: float, tau_r: float, subpixel_search: float = 0.0,
-                                      rows=None, cols=None):
+                                      rows=None, cols=None, official_params=None):
   """Flow 0->1 and covisibility for a scene of rigid objects.
 
   segmentation0: [H, W] int object id per source pixel. object_poses0/1: object-to-world poses
@@ -59,6 +59,9 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
   background (Kubric id 0) the identity (or any equal poses) at both times. Pixels whose id has
   no pose at either time get valid=False. Returns the dict of `covisibility_from_points`.
   rows, cols: only the source pixels of that grid, as in `correspondence_from_depth`.
+  official_params: (absolute, temperature, relative) -> the official training code's rule
+  instead (kubric_flow_postprocessing_pathway, flow_postprocessing.py:252-314): the output dict
+  of `official_labels` (tau_d, tau_r, subpixel_search unused).
   """
   depth0 = _check_depth("depth0", depth0)
   depth1 = _check_depth("depth1", depth1)
@@ -79,7 +82,8 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
   ids = ids.reshape(-1).astype(np.intp, copy=False)
   counts = np.bincount(ids, minlength=len(rel))
   base = int(counts.argmax())
-  xyz = _source_in_target(depth0, valid0, K0, rel[base], rows, cols)
+  dtype = np.float32 if official_params is not None else np.float64   # as official_correspond
+  xyz = _source_in_target(depth0, valid0, K0, rel[base], rows, cols, dtype)
   others = np.flatnonzero(ids != base) if counts[base] < ids.size else np.zeros(0, np.intp)
   if others.size:
     affine = rel[:, :3].copy()
@@ -107,5 +111,7 @@ def correspondence_from_rigid_objects(depth0, K0, cam2world0, segmentation0, obj
       for i in range(3):
         xyz[i].reshape(-1)[pix] = (c[4 * i] * u + c[4 * i + 1] * v + c[4 * i + 2]) * d \
             + c[4 * i + 3]
-  return _correspond(lambda r0, r1: [c[r0:r1] for c in xyz], valid0, depth1, K1, tau_d, tau_r,
-                     subpixel_search, rows, cols)
+  planes = lambda r0, r1: [c[r0:r1] for c in xyz]
+  if official_params is not None:
+    return official_correspond(planes, valid0, depth1, K1, official_params, rows, cols)
+  return _correspond(planes, valid0, depth1, K1, tau_d, tau_r, subpixel_search, rows, cols)

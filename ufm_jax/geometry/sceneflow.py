@@ -15,6 +15,9 @@ d + d_change (so the depth change of the formula is f B / (d + d_change) - f B /
 
 Conventions: pixel (u, v) = (column, row), pixel centres at integer coordinates, a location is in
 view when -0.5 <= u < W - 0.5 and -0.5 <= v < H - 0.5.
+
+The training labels follow the official preprocess instead (`official_sceneflow_covisibility`:
+z-depths, zero-padded lookups, a temperature term); this rule is the supplementary's.
 """
 
 from __future__ import annotations
@@ -157,3 +160,52 @@ def sceneflow_covisibility(flow: np.ndarray, disparity0: np.ndarray, disparity_c
   return dict(covisibility=covisible, fov_mask=fov, valid=valid0, covis_valid=covis_valid,
               error=error.astype(np.float32, copy=False), depth0=depth0.astype(np.float32, copy=False),
               depth1=depth1.astype(np.float32, copy=False))
+
+
+def official_sceneflow_covisibility(flow, disparity0, disparity_change, disparity1, params,
+                                   K=None, baseline: float = SCENEFLOW_BASELINE) -> dict:
+  """The official preprocess's scene-flow labels (preprocess_flyingthings.py:385-433, 485-604;
+  preprocess_monkaa.py the same), params = (absolute, temperature, relative), officially
+  (0.01, 0.01, 0.001). Unlike the supplementary's rule above: z-depths are compared, not ranges;
+  the target is in view iff 0 <= x + u < W and 0 <= y + v < H (no half-pixel margin, no in-front
+  test); the target depth is sampled bilinearly with zero padding (holes and the border pull
+  samples towards 0); the threshold has the temperature term. Its `opt_iters=1` has no effect
+  (the uv residual is never re-read). The official forward direction reads the backward
+  direction's projections for its supervision mask (the loop variables of :583-597); with valid
+  depth everywhere, as in FlyingThings3D and Monkaa, that gives the mask computed here.
+  Returns the dict of `sceneflow_covisibility`, error on z-depth."""
+  flow = np.asarray(flow, np.float32)
+  h, w = flow.shape[:2]
+  for name, a in (("disparity0", disparity0), ("disparity_change", disparity_change),
+                  ("disparity1", disparity1)):
+    if np.shape(a) != (h, w):
+      raise ValueError(f"sceneflow_covisibility: {name} has shape {np.shape(a)}, expected {(h, w)}")
+  K = sceneflow_intrinsics(h, w) if K is None else np.asarray(K, np.float64)
+  fb = np.float32(K[0, 0] * baseline)
+  d0 = np.asarray(disparity0, np.float32)
+  d1 = np.asarray(disparity1, np.float32)
+  with np.errstate(invalid="ignore", divide="ignore"):
+    valid0 = np.isfinite(d0) & (d0 > 0)
+    valid1 = np.isfinite(d1) & (d1 > 0)
+    depth0 = np.where(valid0, fb / d0, np.float32(0))
+    depth1 = np.where(valid1, fb / d1, np.float32(0))
+    expected = fb / (d0 + np.asarray(disparity_change, np.float32))   # z of the moved point
+  expected = np.where(np.isfinite(expected), expected, np.float32(np.inf)).astype(np.float32)
+  absolute, temperature, relative = (np.float32(p) for p in params)
+  bias = absolute - np.float32(np.log(0.5)) * temperature
+  from ufm_jax.geometry.covisibility import _ZeroPaddedRange  # pylint: disable=g-import-not-at-top
+  target = _ZeroPaddedRange(depth1)
+  u = np.arange(w, dtype=np.float32)[None, :] + flow[..., 0]
+  v = np.arange(h, dtype=np.float32)[:, None] + flow[..., 1]
+  with np.errstate(invalid="ignore"):
+    view = valid0 & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+  us = np.where(view, u, 0).astype(np.float64)
+  vs = np.where(view, v, 0).astype(np.float64)
+  observed, other_valid = target.sample(us, vs)
+  with np.errstate(invalid="ignore"):
+    err = np.where(view, np.abs(observed - expected), np.float32(np.inf)).astype(np.float32)
+    covisible = view & (err < bias + relative * expected)
+  other_valid &= view
+  return dict(covisibility=covisible, fov_mask=view, valid=valid0,
+              covis_valid=(valid0 & ~view) | other_valid, error=err, depth0=depth0,
+              depth1=depth1)

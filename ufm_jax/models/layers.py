@@ -1,7 +1,7 @@
 """Transformer building blocks shared by the DINOv2 encoder and the info-sharing transformer.
 
 Submodule and parameter names follow the PyTorch modules (timm / DINOv2 / UniCeption), so the
-weight conversion in `ufm_jax.convert` is a mechanical rename: `qkv`, `proj`, `fc1`, `fc2`,
+weight conversion in `ufm_jax.official` is a mechanical rename: `qkv`, `proj`, `fc1`, `fc2`,
 `norm1`, `norm2`, `ls1.gamma`, `ls2.gamma`, `q_norm`, `k_norm`, `w12`, `w3`.
 """
 
@@ -214,6 +214,7 @@ class Attention(nn.Module):
   dtype: Optional[Dtype] = None
   implementation: Optional[str] = None  # None/"auto", "xla", "cudnn", "cpu" (attention_implementation)
   tied_qk_init: Optional[float] = None  # from-scratch: W_k = W_q, this scale (tied_qkv_init)
+  query_scale: float = 1.0  # extra factor on the logits (UniCeption's scalable softmax/entropy)
 
   @nn.compact
   def __call__(self, x):
@@ -231,10 +232,11 @@ class Attention(nn.Module):
       k = layer_norm("k_norm", self.dtype)(k)
     if q.dtype == jnp.float64:
       # jax.nn.dot_product_attention always takes the softmax in float32; keep float64 exact.
-      logits = jnp.einsum("bqhd,bkhd->bhqk", q, k) * head_dim ** -0.5
+      logits = jnp.einsum("bqhd,bkhd->bhqk", q, k) * (head_dim ** -0.5 * self.query_scale)
       out = jnp.einsum("bhqk,bkhd->bqhd", jax.nn.softmax(logits, axis=-1), v)
     else:
-      out = dot_product_attention(q, k, v, head_dim ** -0.5, self.implementation)
+      out = dot_product_attention(q, k, v, head_dim ** -0.5 * self.query_scale,
+                                  self.implementation)
     out = out.reshape(b, n, c)
     return Dense(c, dtype=self.dtype, name="proj")(out)
 
@@ -282,6 +284,7 @@ class Block(nn.Module):
   dtype: Optional[Dtype] = None
   attention_impl: Optional[str] = None
   tied_qk_init: Optional[float] = None
+  query_scale: float = 1.0
 
   @nn.compact
   def __call__(self, x):
@@ -291,7 +294,7 @@ class Block(nn.Module):
     y = layer_norm("norm1")(x)
     y = Attention(num_heads=self.num_heads, qkv_bias=self.qkv_bias, qk_norm=self.qk_norm,
                   dtype=self.dtype, implementation=self.attention_impl,
-                  tied_qk_init=self.tied_qk_init, name="attn")(y)
+                  tied_qk_init=self.tied_qk_init, query_scale=self.query_scale, name="attn")(y)
     x = x + ls("ls1")(y)
     y = layer_norm("norm2")(x)
     if self.ffn == "mlp":

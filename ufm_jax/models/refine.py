@@ -2,6 +2,7 @@
 
 Port of the refinement stage of the official `UniFlowMatchClassificationRefinement`:
   features_i = conv2(relu(conv1(concat[patch_mlp(tokens_i), unet(image_i)])))     (i = source, target)
+    (feature_combine_method "modulate": conv2(patch_mlp(tokens_i) * tanh(unet(image_i))))
   logits[a, b] = <f_src(x, y), f_tgt(x + u + b - R, y + v + a - R)> / temperature + bias[a * P + b]
   flow = flow_regressed + sum softmax(logits) * (b - R, a - R)
 where f_tgt is read with torch `grid_sample(mode="bicubic", padding_mode="zeros", align_corners=False)`.
@@ -26,17 +27,55 @@ _A = -0.75  # torch's bicubic convolution constant
 # U-Net
 
 
-class DoubleConv(nn.Module):
-  """(conv3x3 pad 1, ReLU) x 2, biases on (no batch norm in the official U-Net)."""
-  features: int
-  dtype: Any = jnp.float32
+class BatchNorm(nn.Module):
+  """torch BatchNorm2d over the channel (last) axis, with torch's names and update rule.
+
+  train=True normalises with the batch's statistics (biased variance) and updates the running
+  ones in the "batch_stats" collection: momentum 0.1, the unbiased variance, num_batches_tracked
+  + 1 (call `apply` with mutable=["batch_stats"]). train=False normalises with the running ones.
+  """
+  momentum: float = 0.1
+  epsilon: float = 1e-5
 
   @nn.compact
-  def __call__(self, x):
-    for name in ("conv_0", "conv_2"):
-      x = nn.relu(nn.Conv(self.features, (3, 3), padding=((1, 1), (1, 1)), dtype=self.dtype,
-                          name=name)(x))
-    return x
+  def __call__(self, x, train: bool = False):
+    c = x.shape[-1]
+    scale = self.param("scale", nn.initializers.ones, (c,))
+    bias = self.param("bias", nn.initializers.zeros, (c,))
+    mean = self.variable("batch_stats", "running_mean", lambda: jnp.zeros((c,), jnp.float32))
+    var = self.variable("batch_stats", "running_var", lambda: jnp.ones((c,), jnp.float32))
+    count = self.variable("batch_stats", "num_batches_tracked", lambda: jnp.zeros((), jnp.int32))
+    xf = x.astype(jnp.promote_types(x.dtype, jnp.float32))
+    if train:
+      axes = tuple(range(x.ndim - 1))
+      m = xf.mean(axes)
+      v = jnp.square(xf - m).mean(axes)
+      if not self.is_initializing():
+        n = x.size // c
+        mom = self.momentum
+        mean.value = (1 - mom) * mean.value + mom * jax.lax.stop_gradient(m)
+        var.value = (1 - mom) * var.value + mom * jax.lax.stop_gradient(v) * (n / max(n - 1, 1))
+        count.value = count.value + 1
+    else:
+      m, v = mean.value, var.value
+    return ((xf - m) * jax.lax.rsqrt(v + self.epsilon) * scale + bias).astype(x.dtype)
+
+
+class DoubleConv(nn.Module):
+  """(conv3x3 pad 1, ReLU) x 2, biases on; with batch_norm a BatchNorm after the first ReLU
+  (the official Sequential: conv.0, relu, conv.2 = BatchNorm2d, conv.3, relu)."""
+  features: int
+  dtype: Any = jnp.float32
+  batch_norm: bool = False
+
+  @nn.compact
+  def __call__(self, x, train: bool = False):
+    conv = lambda name: nn.Conv(self.features, (3, 3), padding=((1, 1), (1, 1)),  # noqa: E731
+                                dtype=self.dtype, name=name)
+    x = nn.relu(conv("conv_0")(x))
+    if self.batch_norm:
+      return nn.relu(conv("conv_3")(BatchNorm(name="conv_2")(x, train)))
+    return nn.relu(conv("conv_2")(x))
 
 
 class UpConv2x2(nn.Module):
@@ -78,22 +117,26 @@ class UNet(nn.Module):
   features: Sequence[int] = (64, 128, 256, 512)
   out_channels: int = 16
   dtype: Any = jnp.float32
+  batch_norm: bool = False  # official use_unet_batchnorm
 
   @nn.compact
-  def __call__(self, x):
+  def __call__(self, x, train: bool = False):
+    def double(f, name):
+      return lambda y: DoubleConv(f, dtype=self.dtype, batch_norm=self.batch_norm, name=name)(
+          y, train)
     skips = []
     for i, f in enumerate(self.features):
-      x = DoubleConv(f, dtype=self.dtype, name=f"downs_{i}")(x)
+      x = double(f, f"downs_{i}")(x)
       skips.append(x)
       # keywords: jax2onnx's patched max_pool takes no positional window shape
       x = nn.max_pool(x, window_shape=(2, 2), strides=(2, 2), padding="VALID")
-    x = DoubleConv(2 * self.features[-1], dtype=self.dtype, name="bottleneck")(x)
+    x = double(2 * self.features[-1], "bottleneck")(x)
     for k, f in enumerate(reversed(self.features)):
       x = UpConv2x2(f, dtype=self.dtype, name=f"ups_{2 * k}")(x)
       skip = skips[-1 - k]
       if x.shape[1:3] != skip.shape[1:3]:
         x = resize_nearest_legacy(x, skip.shape[1:3])
-      x = DoubleConv(f, dtype=self.dtype, name=f"ups_{2 * k + 1}")(jnp.concatenate([skip, x], -1))
+      x = double(f, f"ups_{2 * k + 1}")(jnp.concatenate([skip, x], -1))
     return nn.Conv(self.out_channels, (1, 1), dtype=self.dtype, name="final_conv")(x)
 
 
@@ -308,26 +351,29 @@ class Refiner(nn.Module):
   temperature: float = 4.0
   chunk: Any = None
   unet_dtype: Any = jnp.float32
+  use_unet_batchnorm: bool = False
 
   def setup(self):
     if self.refinement_range % 2 != 1:
       raise ValueError(f"refinement_range must be odd, got {self.refinement_range}")
-    if self.use_unet_feature and self.feature_combine_method != "conv":
-      raise ValueError(f"feature_combine_method {self.feature_combine_method!r} is not supported "
-                       "(the released models use 'conv')")
+    if self.use_unet_feature and self.feature_combine_method not in ("conv", "modulate"):
+      raise ValueError(f"feature_combine_method {self.feature_combine_method!r}; expected 'conv' "
+                       "or 'modulate'")
     self.classification_head = MLPFeature(self.feature_dim, self.patch_size, self.mlp_ratio)
     if self.use_unet_feature:
-      self.unet_feature = UNet(tuple(self.unet_features), self.feature_dim, dtype=self.unet_dtype)
+      self.unet_feature = UNet(tuple(self.unet_features), self.feature_dim, dtype=self.unet_dtype,
+                               batch_norm=self.use_unet_batchnorm)
       self.conv1 = nn.Conv(2 * self.feature_dim, (1, 1))
       self.conv2 = nn.Conv(self.feature_dim, (1, 1))
     p = self.refinement_range
     self.classification_bias = self.param("classification_bias", nn.initializers.zeros, (p * p,))
 
-  def unet(self, image_norm):
-    """[N, H, W, 3] normalised images -> U-Net features (None when the model has no U-Net)."""
+  def unet(self, image_norm, train: bool = False):
+    """[N, H, W, 3] normalised images -> U-Net features (None when the model has no U-Net).
+    train: BatchNorm on batch statistics, updating the running ones (`BatchNorm`)."""
     if not self.use_unet_feature:
       return None
-    return self.unet_feature(image_norm)
+    return self.unet_feature(image_norm, train)
 
   def combine(self, tokens, unet_out):
     """tokens [N, h, w, C_enc + C_info] (concat of encoder list[0] and info-sharing final) and the
@@ -335,7 +381,12 @@ class Refiner(nn.Module):
     f = self.classification_head(tokens)
     if self.use_unet_feature:
       u = unet_out.astype(f.dtype)
-      f = self.conv2(nn.relu(self.conv1(jnp.concatenate([f, u], -1))))
+      if self.feature_combine_method == "modulate":
+        if self.is_initializing():  # the official module registers conv1 (32 -> 32) unused
+          self.conv1(jnp.concatenate([f, u], -1))
+        f = self.conv2(f * jnp.tanh(u))
+      else:
+        f = self.conv2(nn.relu(self.conv1(jnp.concatenate([f, u], -1))))
     return f
 
   def features(self, tokens, image_norm):
@@ -381,7 +432,8 @@ class UFMRefineConfig(ufm.UFMConfig):
   refine_feature_dim: int = 16          # classification_head_kwargs.output_dim
   refine_mlp_ratio: float = 4.0         # classification_head_kwargs.mlp_ratio
   use_unet_feature: bool = True
-  feature_combine_method: str = "conv"
+  feature_combine_method: str = "conv"  # or "modulate"
+  use_unet_batchnorm: bool = False      # BatchNorm in the U-Net's DoubleConvs (batch_stats)
   refinement_range: int = 7             # P: the window is P x P
   temperature: float = 4.0
   # Source rows per refinement step (lax.map): bounds the refinement's memory at 980 px.
@@ -424,12 +476,14 @@ class UFMRefine(ufm.UFM):
         patch_size=cfg.encoder.patch_size, mlp_ratio=cfg.refine_mlp_ratio,
         use_unet_feature=cfg.use_unet_feature, feature_combine_method=cfg.feature_combine_method,
         refinement_range=cfg.refinement_range, temperature=cfg.temperature,
-        chunk=cfg.refine_chunk, unet_dtype=unet_dtype)
+        chunk=cfg.refine_chunk, unet_dtype=unet_dtype, use_unet_batchnorm=cfg.use_unet_batchnorm)
     # The refiner's params sit at the root (unet_feature, classification_head, conv1, conv2,
     # classification_bias), like the attributes of the PyTorch module.
     nn.share_scope(self, self.refiner)
 
-  def __call__(self, source, target, symmetrized: bool = False):
+  def __call__(self, source, target, symmetrized: bool = False, train: bool = False):
+    """train: the U-Net's BatchNorm (use_unet_batchnorm) normalises with batch statistics and
+    updates the running ones; call apply with mutable=["batch_stats"]. No effect otherwise."""
     cfg = self.config
     ufm.check_images(source, target, cfg.encoder.patch_size, symmetrized)
     _, h, w, _ = source.shape
@@ -445,9 +499,14 @@ class UFMRefine(ufm.UFM):
     feats = self.encoder(images)
     first1, first2 = (self.constrain(v) for v in ufm.split_views(feats[0], symmetrized))
     last1, last2 = (self.constrain(v) for v in ufm.split_views(feats[-1], symmetrized))
-    u = self.refiner.unet(images)
-    u1, u2 = ((self.constrain(v) for v in ufm.split_views(u, symmetrized)) if u is not None
-              else (None, None))
+    if train and cfg.use_unet_batchnorm:
+      # As the official forward: one U-Net call per view, so each call's batch statistics (and
+      # running-statistics update) cover one view's images.
+      u1, u2 = (self.constrain(self.refiner.unet(x, train=True)) for x in (src, tgt))
+    else:
+      u = self.refiner.unet(images)
+      u1, u2 = ((self.constrain(v) for v in ufm.split_views(u, symmetrized)) if u is not None
+                else (None, None))
 
     (fin1, fin2), inters = self.info_sharing(last1, last2)
     head_in = [self.constrain(t.astype(head_dtype))

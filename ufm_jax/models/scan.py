@@ -3,7 +3,7 @@ stack, run by `jax.lax.scan` so XLA compiles one block body instead of 24 + 12 u
 
 Layout: with scan on, `encoder/blocks_{i}/...` becomes `encoder/blocks/...` and
 `info_sharing/self_attention_blocks_{i}/...` becomes `info_sharing/self_attention_blocks/...`,
-every leaf with a leading [depth] axis. The official key map (`ufm_jax.convert`) stays per-layer;
+every leaf with a leading [depth] axis. The official key map (`ufm_jax.official`) stays per-layer;
 `stack_blocks` / `unstack_blocks` convert between the two layouts, so any per-layer tree (official
 snapshot, converted checkpoint, DINOv2 weights) loads into a scan model and back.
 

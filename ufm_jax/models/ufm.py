@@ -1,11 +1,13 @@
 """UFM (`UniFlowMatchConfidence`): DINOv2 encoder -> two-view info sharing -> DPT flow head and
 DPT covisibility head.
 
-Contract: `model.apply({"params": params}, source, target)` with [B, H, W, 3] uint8 (or float
+Contract: `model.apply(variables(params), source, target)` with [B, H, W, 3] uint8 (or float
 0..255) images, H and W multiples of the patch size, returns
-{"flow" [B, H, W, 2] (pixels, u then v), "covisibility" [B, H, W], "covisibility_logits" [B, H, W]}.
-ImageNet normalisation of x / 255 happens inside. Internals are sown into the "intermediates"
-collection (read them with `mutable=["intermediates"]`).
+{"flow" [B, H, W, 2] (pixels, u then v), "covisibility" [B, H, W], "covisibility_logits" [B, H, W]}
+(no covisibility without an uncertainty head). ImageNet normalisation of x / 255 happens inside.
+Internals are sown into the "intermediates" collection (read them with `mutable=["intermediates"]`).
+`params` is the parameter tree, or for models with BatchNorm (a refiner with
+`use_unet_batchnorm`) the variables {"params", "batch_stats"}: see `variables`.
 """
 
 import dataclasses
@@ -34,10 +36,12 @@ class UFMConfig:
   encoder: dinov2.DinoV2Config = dinov2.DinoV2Config()
   info_sharing: info_sharing_lib.InfoSharingConfig = info_sharing_lib.InfoSharingConfig()
   flow_head: dpt.DPTConfig = dpt.DPTConfig(output_dim=2)
-  covisibility_head: dpt.DPTConfig = dpt.DPTConfig(output_dim=1)
+  # None: no uncertainty head (the official refinement training recipe); no covisibility output.
+  covisibility_head: Optional[dpt.DPTConfig] = dpt.DPTConfig(output_dim=1)
   flow_adaptor: dpt.FlowAdaptorConfig = dpt.FlowAdaptorConfig()
   detach_uncertainty_head: bool = True
-  inference_resolution: Tuple[int, int] = (420, 560)  # (H, W), used by ufm_jax.predict
+  # (H, W) used by ufm_jax.predict, or several: predict picks the closest aspect ratio per pair.
+  inference_resolution: Tuple[int, int] = (420, 560)
   # Compute dtype of encoder + info sharing: "float32", "bfloat16" (heads stay float32, as the
   # official autocast does), or "float64" (everything; needs jax_enable_x64, for testing).
   dtype: str = "float32"
@@ -56,6 +60,11 @@ class UFMConfig:
   # or "official" (as the official PyTorch modules: `official_init`). Pretrained weights loaded
   # afterwards replace either.
   param_init: str = "flax"
+  # The official config.json this model was read from (JSON text), kept so that save_official
+  # writes it back as the official code wrote it while it still describes the model. Not part
+  # of the structure: equality, hashing and repr ignore it.
+  official_kwargs: Optional[str] = dataclasses.field(default=None, compare=False, hash=False,
+                                                     repr=False)
 
   def __post_init__(self):
     if self.dtype not in DTYPES:
@@ -103,7 +112,9 @@ def config_from_dict(d: Dict[str, Any]) -> UFMConfig:
   """Inverse of config_to_dict (JSON lists become tuples); unknown keys raise."""
   kw = {}
   for k, v in d.items():
-    if k in _SUB:
+    if k in _SUB and v is None:
+      kw[k] = None
+    elif k in _SUB:
       cls = _SUB[k]
       names = {f.name for f in dataclasses.fields(cls)}
       unknown = set(v) - names
@@ -228,8 +239,9 @@ class UFM(nn.Module):
     hook = self.activation_sharding
     self.head1_0_0 = dpt.DPTFeature(cfg.flow_head, hd, hook)
     self.head1_0_1 = dpt.DPTRegressionProcessor(cfg.flow_head, hd, hook)
-    self.uncertainty_head_0_0 = dpt.DPTFeature(cfg.covisibility_head, hd, hook)
-    self.uncertainty_head_0_1 = dpt.DPTRegressionProcessor(cfg.covisibility_head, hd, hook)
+    if cfg.covisibility_head is not None:
+      self.uncertainty_head_0_0 = dpt.DPTFeature(cfg.covisibility_head, hd, hook)
+      self.uncertainty_head_0_1 = dpt.DPTRegressionProcessor(cfg.covisibility_head, hd, hook)
 
   def encode(self, source, target, symmetrized: bool = False):
     """Normalised [B, H, W, 3] pair -> last encoder feature maps (view1, view2)."""
@@ -262,12 +274,16 @@ class UFM(nn.Module):
     flow_norm = self.head1_0_1(self.head1_0_0(feats), hw)
     self.sow("intermediates", "flow_decoded_channels", flow_norm)
     flow = dpt.flow_adaptor(flow_norm, cfg.flow_adaptor)
+    if cfg.covisibility_head is None:
+      return {"flow": self.constrain(flow)}
     cov_feats = [jax.lax.stop_gradient(t) for t in feats] if cfg.detach_uncertainty_head else feats
     logits = self.uncertainty_head_0_1(self.uncertainty_head_0_0(cov_feats), hw)[..., 0]
     flow, logits = self.constrain(flow), self.constrain(logits)
     return {"flow": flow, "covisibility": jax.nn.sigmoid(logits), "covisibility_logits": logits}
 
-  def __call__(self, source, target, symmetrized: bool = False) -> Dict[str, jax.Array]:
+  def __call__(self, source, target, symmetrized: bool = False,
+               train: bool = False) -> Dict[str, jax.Array]:
+    del train  # no BatchNorm or dropout here; the refinement model's U-Net has BatchNorm
     b = self.backbone(source, target, symmetrized)
     return self.heads(b["head_features"], b["hw"])
 
@@ -313,6 +329,21 @@ def model_from_config(cfg: UFMConfig, **kw) -> UFM:
   if hasattr(cfg, "build_model"):
     return cfg.build_model(**kw)
   return UFM(cfg, **kw)
+
+
+def variables(params) -> Dict[str, Any]:
+  """The variables for `model.apply` from what the loaders return: a parameter tree, or the
+  variables of a model with BatchNorm ({"params", "batch_stats"}), passed through."""
+  return params if "params" in params else {"params": params}
+
+
+def variable_shapes(model: UFM) -> Dict[str, Any]:
+  """Shape/dtype trees of every variable collection the model has ("params", and "batch_stats"
+  with BatchNorm), without allocating them."""
+  p = model.config.encoder.patch_size
+  x = jax.ShapeDtypeStruct((1, 2 * p, 2 * p, 3), jnp.uint8)
+  out = jax.eval_shape(lambda a, b: model.init(jax.random.PRNGKey(0), a, b), x, x)
+  return {k: v for k, v in out.items() if k != "intermediates"}
 
 
 def param_shapes(model: UFM):

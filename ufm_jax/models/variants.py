@@ -28,25 +28,9 @@ def dinov2_small(**kw) -> dinov2.DinoV2Config:
   return dinov2.dinov2_config("small", **kw)
 
 
-def dinov2_base(**kw) -> dinov2.DinoV2Config:
-  """ViT-B/14: 768 wide, 12 blocks, 12 heads (86M)."""
-  return dinov2.dinov2_config("base", **kw)
-
-
 def dinov2_large(**kw) -> dinov2.DinoV2Config:
   """ViT-L/14: 1024 wide, 24 blocks, 16 heads (304M) - the UFM encoder."""
   return dinov2.dinov2_config("large", **kw)
-
-
-def dinov2_giant(**kw) -> dinov2.DinoV2Config:
-  """ViT-g/14: 1536 wide, 40 blocks, 24 heads, SwiGLU FFN (1.1B)."""
-  return dinov2.dinov2_config("giant", **kw)
-
-
-def with_registers(cfg: dinov2.DinoV2Config, n: int = 4) -> dinov2.DinoV2Config:
-  """The hub's *_reg variant: 4 register tokens, antialiased position interpolation, no offset."""
-  return dataclasses.replace(cfg, num_register_tokens=n, interpolate_antialias=True,
-                             interpolate_offset=0.0)
 
 
 def ufm_base(**kw) -> ufm.UFMConfig:
@@ -88,6 +72,43 @@ def ufm_refine(**kw) -> refine.UFMRefineConfig:
   fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(ufm.UFMConfig)}
   cfg = refine.UFMRefineConfig(**fields, unet_features=(64, 128, 256, 512), refine_feature_dim=16,
                                refine_mlp_ratio=2.0, refinement_range=7, temperature=4.0)
+  return cfg.replace(**kw)
+
+
+def ufm_base_dinov2l_init(**kw) -> ufm.UFMConfig:
+  """UFM-Base-DINOv2L-init (official README, main 3732a50: 0.3B parameters) as UniCeption
+  ee7fa0b's scripts/convert_dino_to_info_sharing.py builds it from one DINOv2 ViT-L/14: the
+  encoder is its first 12 blocks without the final norm (norm_returned_features=False), the
+  fusion transformer its blocks 12-23 (1024 wide, 16 heads, LayerScale, no input projection);
+  fusion taps (4, 8). The released config.json was not available here: `load_official` reads
+  the release's own and is authoritative."""
+  cfg = ufm_base(
+      encoder=dinov2_large(depth=12, indices=(11,), norm_returned_features=False),
+      info_sharing=info_sharing.InfoSharingConfig(
+          input_embed_dim=1024, dim=1024, depth=12, num_heads=16, mlp_ratio=4.0, qkv_bias=True,
+          init_values=1e-5, indices=(4, 8)),
+      flow_head=_dpt(1024, 1024, 2), covisibility_head=_dpt(1024, 1024, 1))
+  return cfg.replace(**kw)
+
+
+def ufm_refine_recipe(**kw) -> refine.UFMRefineConfig:
+  """The refinement model as the official training recipe builds it (train branch:
+  configs/model/uniflowmatch_refinement.yaml with bash_scripts/training/
+  megatraining_refinement_560.sh): UFM-Base's encoder, fusion and flow head, the encoder
+  returning blocks (6, 23) (block 23 feeds the fusion and the DPT, block 6 the refiner), no
+  uncertainty head, a U-Net [64, 128, 256, 512] with BatchNorm (`use_unet_batchnorm`, the
+  "batch_stats" collection) combined by "modulate", the patch_mlp head (16 channels, mlp_ratio 2)
+  and a 7 x 7 window at temperature 4 (the class default). The flow adaptor is the recipe's
+  adaptor_map/flow_scale_both.yaml: std 25 px at a 224 x 224 base shape."""
+  base = ufm_base(encoder=dinov2_large(indices=(6, 23)), covisibility_head=None,
+                  flow_adaptor=dpt.FlowAdaptorConfig(flow_mean=(0.0, 0.0), flow_std=(25.0, 25.0),
+                                                     base_shape=(224, 224),
+                                                     scale_strategy="scale_both"))
+  fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(ufm.UFMConfig)}
+  cfg = refine.UFMRefineConfig(**fields, unet_features=(64, 128, 256, 512), refine_feature_dim=16,
+                               refine_mlp_ratio=2.0, use_unet_feature=True,
+                               use_unet_batchnorm=True, feature_combine_method="modulate",
+                               refinement_range=7, temperature=4.0)
   return cfg.replace(**kw)
 
 
@@ -153,9 +174,23 @@ def tiny_refine(**kw) -> refine.UFMRefineConfig:
   return cfg.replace(**kw)
 
 
+def tiny_refine_recipe(**kw) -> refine.UFMRefineConfig:
+  """`tiny_refine` built as `ufm_refine_recipe` is: encoder taps (0, 1) (the first feeds the
+  refiner), no uncertainty head, a BatchNorm U-Net [8, 16] combined by "modulate"; for tests."""
+  base = tiny(encoder=dataclasses.replace(tiny().encoder, indices=(0, 1)), covisibility_head=None)
+  fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(ufm.UFMConfig)}
+  cfg = refine.UFMRefineConfig(**fields, unet_features=(8, 16), refine_feature_dim=8,
+                               refine_mlp_ratio=2.0, use_unet_batchnorm=True,
+                               feature_combine_method="modulate", refinement_range=7,
+                               temperature=4.0)
+  return cfg.replace(**kw)
+
+
 VARIANTS = {"fixture_small": fixture_small, "tiny": tiny, "tiny_synth": tiny_synth, "synth": synth,
             "ufm_base": ufm_base,
-            "ufm_base_980": ufm_base_980, "ufm_refine": ufm_refine, "tiny_refine": tiny_refine}
+            "ufm_base_980": ufm_base_980, "ufm_refine": ufm_refine, "tiny_refine": tiny_refine,
+            "ufm_refine_recipe": ufm_refine_recipe, "tiny_refine_recipe": tiny_refine_recipe,
+            "ufm_base_dinov2l_init": ufm_base_dinov2l_init}
 
 
 def get(name: str, **kw) -> ufm.UFMConfig:

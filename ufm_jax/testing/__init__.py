@@ -2,8 +2,10 @@
 the public fixtures do not cover, random parameters for them, official-style snapshot folders,
 random weights in official namings, the skip-or-fail rule of optional extras. Submodules:
 `wide_trees` (tiny trees in the real on-disk formats of the wide-baseline and benchmark datasets),
-`train_support` (a stand-in model, data and config for the training-machinery tests);
-`training_fixtures()` locates the official training-code fixtures."""
+`bench_trees` (the optical-flow benchmarks' layouts and the official benchmark branch's),
+`official_trees` (the official processed training layouts), `train_support` (a stand-in model,
+data and config for the training-machinery tests); `training_fixtures()` locates the official
+training-code fixtures."""
 
 from __future__ import annotations
 
@@ -13,7 +15,6 @@ import pathlib
 import numpy as np
 from flax import traverse_util
 
-from ufm_jax import convert
 from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
 
 
@@ -79,7 +80,8 @@ def perturbed_params(model, seed: int):
   flax's initialisers for a many-module tree is slow on CPU and not what the tests check)."""
   rng = np.random.default_rng(seed)
   flat = {}
-  for path, shape in convert.expected_param_shapes(model).items():
+  from ufm_jax.official import snapshot
+  for path, shape in snapshot.expected_param_shapes(model).items():
     fan_in = int(np.prod(shape[:-1])) if len(shape) > 1 else 1
     scale = 0.05 if len(shape) == 1 or path[-1] in ("cls_token", "pos_embed", "register_tokens") \
         else (1.0 / fan_in) ** 0.5

@@ -11,6 +11,17 @@ must have the same size (the full-resolution Depths_raw). Scene = `scan<N>`, fra
 Pairs: `<root>/pairs_<split>.txt` (e.g. from data/dtu/prepare.py: every covisible view pair of
 the evaluation scans), else for the 22 MVSNet evaluation scans (split 'test') every (reference,
 source) entry among the top `num_src` of Cameras/pair.txt. Lighting index `light` (default 3).
+
+`dtu_official` reads the benchmark branch's own data instead (official download scripts
+download_dtu_processed.sh + download_pairs_eth3d_dtu.sh; uniflowmatch/datasets/dtu.py), in
+millimetres as the branch keeps it:
+  <root>/scan<N>/images/<view>.png                    600x450, lighting 3 (`dtu_processed/`)
+  <root>/scan<N>/depths/<view>.npy                    z-depth mm, 0 = none
+  <root>/scan<N>/camera_params/<view>_intrinsics.npy  3x3 K
+  <root>/scan<N>/poses/<view>.npy                     4x4 world-to-camera (mm)
+  <root>/../anymap_data_pairs/dtu_valid_pairs.npz     rows (scene, view0, view1, score)
+and scores every 50th pair on the 560x420 crop with the branch's labels
+(widebaseline_datasets.py:146-170; see ufm_jax/data/sources/_benchmark_branch.py).
 """
 
 from __future__ import annotations
@@ -19,9 +30,10 @@ import os
 
 import numpy as np
 
-from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import posed
+from ufm_jax.data.registry import register
+from ufm_jax.data.sources import _benchmark_branch, posed
+from ufm_jax.geometry.benchmark_labels import BRANCH_THRESHOLDS
 
 EVAL_SCANS = (1, 4, 9, 10, 11, 12, 13, 15, 23, 24, 29, 32, 33, 34, 48, 49, 62, 75, 77, 110, 114,
               118)
@@ -72,3 +84,25 @@ class DTU(posed.PosedPairSource):
     depth = posed.sanitize_depth(io.read_pfm(
         os.path.join(self.root, "Depths_raw", scene, f"depth_map_{v:04d}.pfm")), scale=1e-3)
     return posed.View(image, depth, K, c2w)
+
+
+@register("dtu_official")
+class DTUOfficial(_benchmark_branch.BranchPosedPairs):
+  """The benchmark branch's DTU dense bench (module docstring): `[::50]` of the AnyMap pairs,
+  labels in millimetres with (a, T, r) = (12, 12, 0.01): tau = 20.318 mm + 0.01 d."""
+
+  name = "dtu_official"
+  pairs_file = "dtu_valid_pairs.npz"
+  stride = 50
+  thresholds = BRANCH_THRESHOLDS["dtu"]
+
+  def load_view(self, scene, view):
+    d = os.path.join(self.root, scene)
+    image = io.read_image(os.path.join(d, "images", view + ".png"))
+    depth = _benchmark_branch.load_npy(os.path.join(d, "depths", view + ".npy"),
+                                       "an [H, W] z-depth map (mm)", image.shape[:2])
+    K = _benchmark_branch.load_npy(os.path.join(d, "camera_params", view + "_intrinsics.npy"),
+                                   "a 3x3 intrinsic matrix", (3, 3))
+    w2c = _benchmark_branch.load_npy(os.path.join(d, "poses", view + ".npy"),
+                                     "a 4x4 world-to-camera pose (mm)", (4, 4))
+    return image, depth.astype(np.float32), K, w2c

@@ -14,8 +14,9 @@ real ground truth). With `directions="both"` the source enumerates them interlea
 2k+1 its backward pair) so batches can be symmetrised by adjacent indices.
 
 Labels: flow_valid = |u|, |v| < 1000 (RAFT); NaN/Inf flow (no marker in this dense format) makes the
-sample corrupt (ValueError). Covisibility follows the supplementary scene-flow rule (`ufm_jax.geometry.sceneflow`): flow + disparity change, depth = 1050 / disparity,
-thresholds of Table S1 (tau_d = 0.01, tau_r = 0.001). meta holds K (shared by both frames) and the
+sample corrupt (ValueError). Covisibility follows the official preprocess
+(`ufm_jax.geometry.sceneflow.official_sceneflow_covisibility`): flow + disparity change,
+depth = 1050 / disparity, z-depths compared with tau = 0.01 + 0.001 z - ln(0.5) 0.01. meta holds K (shared by both frames) and the
 depth maps; camera poses (camera_data.txt) are not read, their convention is not documented here.
 """
 
@@ -28,6 +29,7 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
+from ufm_jax.data.sources import _official, posed
 from ufm_jax.data.sources._bidirectional import BidirectionalPairs
 from ufm_jax.geometry import sceneflow
 
@@ -35,12 +37,10 @@ MAX_FLOW = 1000.0
 _DIRS = {"forward": ("into_future", "Future"), "backward": ("into_past", "Past")}
 
 
-def _thresholds(name: str) -> tuple[float, float]:
-  try:  # one table for every dataset once the geometry package provides it
-    from ufm_jax.geometry import COVIS_THRESHOLDS
-    return tuple(COVIS_THRESHOLDS[name])
-  except (ImportError, KeyError):
-    return sceneflow.SCENEFLOW_THRESHOLDS[name]
+def _thresholds(name: str) -> tuple[float, float, float]:
+  """(absolute, temperature, relative) of the official preprocess (geometry.RENDERING_PARAMETERS)."""
+  from ufm_jax.geometry import rendering_parameters
+  return rendering_parameters(name)
 
 
 class SceneFlowSource(BidirectionalPairs):
@@ -134,8 +134,8 @@ class SceneFlowSource(BidirectionalPairs):
     io.require_finite(flow, flow_path)  # dense PFM: NaN/Inf is no marker but a damaged file
     flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)
     K = sceneflow.sceneflow_intrinsics(h, w)
-    geo = sceneflow.sceneflow_covisibility(sceneflow.fill_invalid(flow, flow_valid, np.nan), disp0,
-                                           change, disp1, *self.tau, K=K)
+    geo = sceneflow.official_sceneflow_covisibility(
+        sceneflow.fill_invalid(flow, flow_valid, np.nan), disp0, change, disp1, self.tau, K=K)
     flow = sceneflow.fill_invalid(flow, flow_valid)
     return dict(image0=image0, image1=image1, flow=flow,
                 covisibility=geo["covisibility"] & flow_valid, flow_valid=flow_valid,
@@ -154,3 +154,150 @@ def make_flyingthings(root, split: str = "train", **options) -> SceneFlowSource:
 @register("monkaa")
 def make_monkaa(root, split: str | None = "train", **options) -> SceneFlowSource:
   return SceneFlowSource(root, "monkaa", split=split, **options)
+
+
+# ------------------------------------------------------------------------ official processed layout
+
+class SceneFlowProcessed(_official.PrecomputedPairs):
+  """FlyingThings3D / Monkaa as UFM's `preprocess_datasets/preprocess_{flyingthings,monkaa}.py`
+  write them (or the UFM data mirror's `flyingthings3d_processed`), read like the official
+  `uniflowmatch.datasets.{FlyingThings3D,Monkaa}`. Under root (FlyingThings3D: with a split
+  level `<q>/train`, Monkaa without):
+    individual_quantities/<q>/index.json   {i: {file_name, file_index, [split, division,] seq, idx}}
+    individual_quantities/<q>/<a>_<b>.h5   frame_{cleanpass,finalpass}_{left,right} (N, H, W, 3)
+                                           uint8, depth_*, intrinsics_*, pose_*
+    flow/<q>/index.json or job_df.csv      one row per pair: [split, division,] seq, pair0_id,
+                                           pair1_id (the FlyingThings3D preprocess writes only
+                                           job_df.csv; row i then lives in the `<a>_<b>.h5` with
+                                           a <= i <= b at index i - a, as the preprocess writes it)
+    flow/<q>/<a>_<b>.h5                    <cam>_view<0|1>_{flow ((N, H, W, 2) or (N, 2, H, W)
+                                           float32), fov_mask, non_occluded_mask,
+                                           occlusion_supervision_mask} (N, H, W) bool
+  view0 = forward (frame pair0 -> pair1), view1 = backward; both are precomputed, so `both(i)`
+  returns the pair and its reverse from one read. The official draws the camera (left / right)
+  and the rendering (clean / final, the same for both frames) at random per sample when its
+  aug_left_right / aug_clean_final are on (the 560 recipe); here every (camera, pass) is its own
+  pair, index = pair * len(cameras) * len(passes) + camera * len(passes) + pass, so a uniform draw
+  sees each with the official probability. The no-augmentation config: cameras=("left",),
+  passes=("clean",)."""
+
+  def __init__(self, root, dataset: str, split="train", cameras=("left", "right"),
+               passes=("clean", "final")):
+    if root is None:
+      raise ValueError(f"{dataset}_official: root is required (see data/{dataset}/README.md)")
+    self.root, self.dataset, self.split = os.fspath(root), dataset, split
+    for c in cameras:
+      if c not in ("left", "right"):
+        raise ValueError(f"{dataset}_official: cameras must be left/right, got {c!r}")
+    for p in passes:
+      if p not in ("clean", "final"):
+        raise ValueError(f"{dataset}_official: passes must be clean/final, got {p!r}")
+    if not cameras or not passes:
+      raise ValueError(f"{dataset}_official: cameras and passes must not be empty")
+    self.cameras, self.passes = tuple(cameras), tuple(passes)
+    sub = (split,) if dataset == "flyingthings" else ()
+    iq = io.check_dir(os.path.join(self.root, "individual_quantities", *sub),
+                      f"individual_quantities/{'/'.join(sub)} (see data/{dataset}/README.md)")
+    self.flow_dir = io.check_dir(os.path.join(self.root, "flow", *sub),
+                                 f"flow/{'/'.join(sub)} (see data/{dataset}/README.md)")
+    self.frames = _official.H5Index(iq)
+    iq_rows = _read_json_rows(os.path.join(iq, "index.json"))
+    keys = ("split", "division", "seq", "idx") if dataset == "flyingthings" else ("seq", "idx")
+    frame_of = {}
+    for i, row in iq_rows.items():
+      try:
+        frame_of[tuple(str(row[k]) for k in keys)] = i
+      except KeyError as e:
+        raise ValueError(f"{iq}/index.json: entry {i} lacks {e}") from None
+    rows = self._flow_rows()
+    split_key = "TRAIN" if split == "train" else "TEST"
+    self.pairs = []   # (flow index, frame index 0, frame index 1, label)
+    missing = []
+    for i, row in rows:
+      lead = (split_key, str(row["division"])) if dataset == "flyingthings" else ()
+      try:
+        a = frame_of[lead + (str(row["seq"]), str(row["pair0_id"]))]
+        b = frame_of[lead + (str(row["seq"]), str(row["pair1_id"]))]
+      except KeyError as e:
+        missing.append(f"flow row {i}: frame {e.args[0]}")
+        continue
+      label = "_".join(str(x) for x in (lead[1:] + (row["seq"],)))
+      self.pairs.append((i, a, b, label))
+    if missing:
+      raise ValueError(f"{self.flow_dir}: {len(missing)} flow rows name frames absent from "
+                       f"{iq}/index.json, e.g. {missing[0]}")
+    if not self.pairs:
+      raise FileNotFoundError(f"{self.flow_dir}: no pairs")
+
+  def _flow_rows(self):
+    """[(flow index, row dict)] and self.flow (an H5Index over flow/<q>)."""
+    index = os.path.join(self.flow_dir, "index.json")
+    if os.path.isfile(index):
+      rows = _read_json_rows(index)
+      self.flow = _official.H5Index(self.flow_dir)
+      return sorted(rows.items())
+    csv = posed.require_file(os.path.join(self.flow_dir, "job_df.csv"),
+                             "flow/index.json or the preprocess's job_df.csv")
+    rows = _read_job_csv(csv)
+    ranges = _official.h5_ranges(self.flow_dir)
+    entries = {}
+    for i in rows:
+      hit = next(((name, i - a) for a, b, name in ranges if a <= i <= b), None)
+      if hit is None:
+        raise ValueError(f"{csv}: row {i} lies in no <first>_<last>.h5 of {self.flow_dir}")
+      entries[i] = hit
+    self.flow = _official.H5Index(self.flow_dir, entries)
+    return sorted(rows.items())
+
+  def __len__(self):
+    return len(self.pairs) * len(self.cameras) * len(self.passes)
+
+  def _variant(self, index):
+    k, r = divmod(int(index), len(self.cameras) * len(self.passes))
+    c, p = divmod(r, len(self.passes))
+    return k, self.cameras[c], self.passes[p]
+
+  def _views(self, index):
+    k, cam, dpass = self._variant(index)
+    i, a, b, label = self.pairs[k]
+    key = f"frame_{dpass}pass_{cam}"
+    where = f"{self.dataset}:{self.flow.location(i)[0]}[{self.flow.location(i)[1]}]"
+    img0 = _official.rgb_u8(self.frames.read(a, (key,))[key], where)
+    img1 = _official.rgb_u8(self.frames.read(b, (key,))[key], where)
+    f = self.flow.read(i, [f"{cam}_view{v}_{q}" for v in (0, 1) for q in _official.LABELS])
+    return _official.two_directions(
+        self.dataset, img0, img1, lambda q, v: f[f"{cam}_view{v}_{q}"], where, flow_layout="auto",
+        scene=f"{label}_{cam}_{dpass}", camera=cam, dstype=dpass, pair_index=i,
+        suitable_for_refinement=self.dataset == "flyingthings")
+
+
+def _read_json_rows(path: str) -> dict[int, dict]:
+  import json  # pylint: disable=g-import-not-at-top
+  posed.require_file(path, "an index.json of the official preprocess")
+  try:
+    with open(path) as f:
+      m = json.load(f)
+    return {int(k): v for k, v in m.items()}
+  except (OSError, ValueError, AttributeError) as e:
+    raise ValueError(f"{path}: not an index json ({{i: {{...}}}}): {e}") from None
+
+
+def _read_job_csv(path: str) -> dict[int, dict]:
+  import csv  # pylint: disable=g-import-not-at-top
+  with open(path, newline="") as f:
+    reader = csv.reader(f)
+    header = next(reader, None)
+    if not header or not {"seq", "pair0_id", "pair1_id"} <= set(header):
+      raise ValueError(f"{path}: expected a pandas job_df.csv with columns seq, pair0_id, "
+                       f"pair1_id, got {header}")
+    return {int(r[0]): dict(zip(header[1:], r[1:])) for r in reader if r}
+
+
+@register("flyingthings_official")
+def make_flyingthings_official(root, split="train", **options) -> SceneFlowProcessed:
+  return SceneFlowProcessed(root, "flyingthings", split=split, **options)
+
+
+@register("monkaa_official")
+def make_monkaa_official(root, split="train", **options) -> SceneFlowProcessed:
+  return SceneFlowProcessed(root, "monkaa", split=split, **options)

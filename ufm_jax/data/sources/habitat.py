@@ -21,7 +21,7 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
-from ufm_jax.data.sources import exr, posed
+from ufm_jax.data.sources import _official, exr, posed
 
 
 def read_camera_params(path):
@@ -83,3 +83,50 @@ class Habitat(posed.PosedPairSource):
     image = io.read_image(os.path.join(d, f"{frame}.jpeg"))
     depth = posed.sanitize_depth(exr.read_exr(os.path.join(d, f"{frame}_depth.exr")))
     return posed.View(image, depth, K, c2w)
+
+
+# ------------------------------------------------------------------------ official processed layout
+
+@register("habitat_official")
+class HabitatProcessed(_official.OfficialPosed, posed.PosedPairSource):
+  """Habitat as the official `uniflowmatch.datasets.Habitat` reads it: DUSt3R's Habitat renders of
+  ReplicaCAD only, root `habitat_processed/replica_cad_baked_lighting` holding
+    Habitat_<size>_scenes_<split>.txt   one `<dir>/<key>` per line (size 35000 for train)
+    <dir>/<key>_<i>.jpeg, <key>_<i>_depth.exr, <key>_<i>_camera_params.json, i = 1..5
+  The official pairs view 1 of a key with one of views 2..5 drawn at random; here each of the four
+  is its own pair (key-major), so a uniform draw sees each with the official probability. The
+  principal point is the official's: camera_intrinsics with 0.5 subtracted from cx, cy (DUSt3R
+  renders store it in the corner-origin pixel frame)."""
+
+  name = "habitat"
+  has_backward = False
+  static_scene = True
+
+  def __init__(self, root, split="train", pairs=None, thresholds=None, size=35000,
+               views=(2, 3, 4, 5)):
+    super().__init__(root, split, pairs, thresholds)
+    self.size, self.views = size, tuple(views)
+
+  def _official_pairs(self):
+    path = posed.require_file(
+        os.path.join(self.root, f"Habitat_{self.size}_scenes_{self.split}.txt"),
+        "the official Habitat scene list (`<dir>/<key>` per line)")
+    with open(path) as f:
+      keys = [l.strip() for l in f if l.strip()]
+    for line in keys:
+      scene, key = os.path.split(line)
+      for j in self.views:
+        yield scene, f"{key}_1", f"{key}_{j}"
+
+  def load_view(self, scene, frame):
+    d = os.path.join(self.root, scene)
+    K, c2w = read_camera_params(os.path.join(d, f"{frame}_camera_params.json"))
+    if not np.isfinite(c2w).all():
+      raise ValueError(f"{os.path.join(d, frame)}_camera_params.json: non-finite pose")
+    K = K.astype(np.float32)
+    K[:2, 2] -= 0.5
+    image = io.read_image(os.path.join(d, f"{frame}.jpeg"))
+    depth = posed.sanitize_depth(exr.read_exr(os.path.join(d, f"{frame}_depth.exr")))
+    return posed.check_view(posed.View(image, depth, K.astype(np.float64),
+                                       c2w.astype(np.float32).astype(np.float64)),
+                            os.path.join(d, frame))

@@ -21,6 +21,7 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
+from ufm_jax.data.sources import _official
 from ufm_jax.geometry import sceneflow
 
 LAYOUT = ("hd1k_input/image_2/<seq %06d>_<frame %04d>.png and hd1k_flow_gt/flow_occ/<seq>_<frame>.png; "
@@ -72,3 +73,51 @@ class HD1K:
 @register("hd1k")
 def make_hd1k(root, split: str = "train") -> HD1K:
   return HD1K(root, split=split)
+
+
+# ------------------------------------------------------------------------ official processed layout
+
+INVALID_FLOW = 4000.0  # the official HD1K reader's value for pixels without ground truth
+
+
+@register("hd1k_official")
+class HD1KProcessed(_official.PrecomputedPairs):
+  """HD1K as UFM's `preprocess_datasets/preprocess_hd1k.py` writes it (`hd1k_processed`, 1330x560,
+  LANCZOS images, nearest flow), read like the official `uniflowmatch.datasets.HD1K`:
+    <root>/%04d.npz   img0, img1 (H, W, 3) uint8, flow (2, H, W) float32, valid (H, W) bool
+  Forward: flow set to 4000 where not valid, covisibility = fov = valid, no covisibility
+  supervision. Backward (the official's second view): flow 4000 everywhere, every mask False."""
+
+  def __init__(self, root, split="train"):
+    if root is None:
+      raise ValueError("hd1k_official: root is required (see data/hd1k/README.md)")
+    if split != "train":
+      raise ValueError(f"hd1k_official: only split='train' exists, got {split!r}")
+    self.root, self.split = os.fspath(root), split
+    io.check_dir(self.root, "%04d.npz files (see data/hd1k/README.md)")
+    self.files = sorted(os.path.join(self.root, f) for f in os.listdir(self.root)
+                        if f.endswith(".npz"))
+    if not self.files:
+      raise FileNotFoundError(f"{self.root}: no .npz files (expected hd1k_processed/%04d.npz)")
+
+  def __len__(self):
+    return len(self.files)
+
+  def _views(self, index):
+    path = self.files[index]
+    z = _official.load_npz(path, ("img0", "img1", "flow", "valid"))
+    valid = np.asarray(z["valid"], bool)
+    flow = np.array(z["flow"], np.float32)
+    if flow.shape[1:] != valid.shape:
+      raise ValueError(f"{path}: flow {flow.shape} does not match valid {valid.shape}")
+    flow[:, ~valid] = INVALID_FLOW
+    none = np.zeros_like(valid)
+    labels = {"flow": (flow, np.full_like(flow, INVALID_FLOW)), "non_occluded_mask": (valid, none),
+              "occlusion_supervision_mask": (none, none), "fov_mask": (valid, none)}
+    img0, img1 = (_official.rgb_u8(z[k], path) for k in ("img0", "img1"))
+    fwd, bwd = _official.two_directions(
+        "hd1k", img0, img1, lambda q, v: labels[q][v], path, scene=os.path.basename(path)[:-4],
+        split="train", suitable_for_refinement=False)
+    fwd["flow_valid"] = valid.copy()
+    bwd["flow_valid"] = none.copy()
+    return [fwd, bwd]

@@ -17,8 +17,11 @@ Layout under root (the GCD download, see data/kubric4d/README.md):
   scn{%05d}/frames_p0_v{v}/segmentation_{t:05d}.png  object id per pixel (palette or grey PNG),
                                                    0 = static background
 Conventions: K = |camera.K| * (W, H) is in Kubric's corner-origin frame (pixel i centred at
-i + 0.5), so the OpenCV principal point is that minus 0.5; the camera pose's y and z columns are
-negated for OpenCV axes; range is converted to z-depth with the same K.
+i + 0.5), so the OpenCV principal point is that minus 0.5 (`principal_point_shift=True`). The
+official training code means to subtract it but subtracts it from a copy it then discards
+(uniflowmatch/datasets/kubric4d.py:55-60), so its labels use the corner-origin value: the default
+here (`principal_point_shift=False`) for its training labels. The camera pose's y and z columns
+are negated for OpenCV axes; range is converted to z-depth with the same K.
 Scene = `scn{%05d}`, frame = `{view}/{time}`. Split: scenes 0-2799 train, 2800-2899 val, the rest
 test. Pairs: `<root>/pairs_<split>.txt` written by `python data/kubric4d/sample_pairs.py`
 (the supplementary sampler, `sample_scene_pairs` below).
@@ -38,7 +41,7 @@ import numpy as np
 
 from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import posed
+from ufm_jax.data.sources import _official, posed
 
 SPLITS = {"train": (0, 2800), "val": (2800, 2900), "test": (2900, 10 ** 9)}
 
@@ -133,7 +136,9 @@ def write_index_png(path: str, ids: np.ndarray, palette: np.ndarray) -> None:
   os.replace(tmp, path)
 
 
-def read_metadata(path: str) -> dict:
+def read_metadata(path: str, principal_point_shift: bool = True) -> dict:
+  """Kubric metadata json -> K (OpenCV, see the module docstring for `principal_point_shift`),
+  cam2world per frame, object poses, frame count, (H, W)."""
   posed.require_file(path, "a Kubric metadata json (scn*_p0_v*.json)")
   try:
     with open(path) as f:
@@ -150,8 +155,9 @@ def read_metadata(path: str) -> dict:
   K = Kn.copy()
   K[0] *= W
   K[1] *= H
-  K[0, 2] -= 0.5  # corner-origin -> pixel centres at integers
-  K[1, 2] -= 0.5
+  if principal_point_shift:
+    K[0, 2] -= 0.5  # corner-origin -> pixel centres at integers
+    K[1, 2] -= 0.5
   c2w = np.tile(np.eye(4), (len(pos), 1, 1))
   for t in range(len(pos)):
     c2w[t, :3, :3] = posed.qvec_to_rotmat(quat[t]) @ np.diag([1.0, -1.0, -1.0])
@@ -219,6 +225,14 @@ class Kubric4D(posed.PosedPairSource):
   name = "kubric4d"
   has_backward = True
   static_scene = False  # objects move: backward labels come from `backward`
+  pathway = "kubric"    # the official Kubric pathway of ufm_jax.data.augment
+
+  def __init__(self, root, split="train", pairs=None, thresholds=None,
+               principal_point_shift: bool = False):
+    """principal_point_shift: False (official quirk): K's principal point as Kubric writes it
+    (corner origin), half a pixel off the pixel-centre convention; True: shifted by -0.5."""
+    super().__init__(root, split, pairs, thresholds)
+    self.principal_point_shift = bool(principal_point_shift)
 
   def scenes(self):
     lo, hi = SPLITS.get(self.split, (0, 10 ** 9))
@@ -239,7 +253,8 @@ class Kubric4D(posed.PosedPairSource):
 
   @functools.lru_cache(maxsize=256)
   def metadata(self, scene, view):
-    return read_metadata(os.path.join(self.root, scene, f"{scene}_p0_v{view}.json"))
+    return read_metadata(os.path.join(self.root, scene, f"{scene}_p0_v{view}.json"),
+                         self.principal_point_shift)
 
   def _view(self, scene, frame, with_segmentation=True):
     v, t = (int(x) for x in frame.split("/"))
@@ -326,9 +341,138 @@ class KubricPair(posed.PosedPair):
         rows=rows, cols=cols)
     return geometry.labels_from_correspondence(corr)
 
+  def training_labels(self, backward: bool, params, rows=None, cols=None) -> dict:
+    """The four label arrays by the official Kubric pathway's rule (`official_labels` on the
+    rigid-object motion, params = (absolute, temperature, relative); officially the function
+    arguments (0.1, 0.1, 0.005), flow_postprocessing.py:308-314)."""
+    from ufm_jax import geometry
+    a, b, seg, (pa, pb) = ((self.v1, self.v0, self.seg1, self.poses_backward) if backward else
+                           (self.v0, self.v1, self.seg0, self.poses_forward))
+    out = geometry.correspondence_from_rigid_objects(
+        a.depth, a.K, a.cam2world, seg, pa, b.depth, b.K, b.cam2world, pb, *self.thresholds,
+        rows=rows, cols=cols, official_params=params)
+    return {k: out[k] for k in ("flow", "covisibility", "flow_valid", "covis_valid")}
+
   def sample(self, backward: bool) -> dict:
     """The full-size sample dict of one direction."""
     a, b = (self.v1, self.v0) if backward else (self.v0, self.v1)
     frames, times = (self.frames[::-1], self.times[::-1]) if backward else (self.frames, self.times)
     return posed.labelled_sample(self.dataset, self.scene, frames, a, b, self.labels(backward),
                                  dict(time0=times[0], time1=times[1]))
+
+
+# ------------------------------------------------------------------------ official processed layout
+
+@register("kubric4d_official")
+class Kubric4DProcessed(Kubric4D):
+  """Kubric-4D as the official `uniflowmatch.datasets.Kubric4D` reads it. Root = the official
+  `<root_data_dir>/kubric4d` holding
+    kubric4d_raw/scn%05d/frames_p0_v<v>/{rgba,depth,segmentation}_%05d.{png,tiff,png}
+        the GCD training frames (range depth)
+    kubric4d_metadata/sampled_pairs.npz    train_pairs / test_pairs: rows (scene, view0, view1,
+                                           frame0, frame1)
+    kubric4d_metadata/metadata/scn%05d.npz intrinsics [V, 3, 3] (normalised, Kubric's sign flip),
+        extrinsics [V, 4, 4] (camera-to-world, Blender axes), instances_position_scene
+        [V, objects, frames, 3], instances_orientation_scene [V, objects, frames, 4] (w, x, y, z)
+  Conventions as the official: K = intrinsics[v] * (W, H, 1) by rows @ diag(1, -1, -1), with no
+  half-pixel shift (its `intrinsics[0, 2] -= 0.5` edits a copy np.load discards, kubric4d.py
+  lines 51-56), so the principal point is |K[0, 2]| * W in OpenCV's integer-centre frame; the
+  camera pose is extrinsics[v] with its y and z axes negated; object id k's pose at frame t is
+  instances_*_scene[v, k - 1, t] of the view that sees it (id 0 = static background)."""
+
+  name = "kubric4d"
+  suitable_for_refinement = False
+
+  def __init__(self, root, split="train", pairs=None, thresholds=None):
+    posed.PosedPairSource.__init__(self, root, split, pairs, thresholds)
+    self.raw = posed.require_dir(os.path.join(self.root, "kubric4d_raw"),
+                                 "kubric4d_raw/scn%05d/ (the GCD frames)")
+    self.meta_dir = posed.require_dir(os.path.join(self.root, "kubric4d_metadata"),
+                                      "kubric4d_metadata/ (sampled_pairs.npz, metadata/)")
+
+  @property
+  def pairs(self):
+    if self._pairs is None:
+      if isinstance(self._pairs_arg, (list, tuple)):
+        self._pairs = [tuple(map(str, p[:3])) for p in self._pairs_arg]
+      else:
+        path = os.path.join(self.meta_dir, "sampled_pairs.npz")
+        key = "train_pairs" if self.split == "train" else "test_pairs"
+        rows = np.asarray(_official.load_npz(path, (key,))[key])
+        if rows.ndim != 2 or rows.shape[1] != 5:
+          raise ValueError(f"{path}: {key} must be (N, 5) rows (scene, view0, view1, frame0, "
+                           f"frame1), got {rows.shape}")
+        self._pairs = [(f"scn{int(s):05d}", f"{int(v0)}/{int(f0)}", f"{int(v1)}/{int(f1)}")
+                       for s, v0, v1, f0, f1 in rows]
+      if not self._pairs:
+        raise ValueError(f"{self.meta_dir}: no Kubric-4D pairs for split {self.split!r}")
+    return self._pairs
+
+  def scenes(self):
+    return sorted({p[0] for p in self.pairs})
+
+  @functools.lru_cache(maxsize=256)
+  def metadata(self, scene, view=None):
+    path = os.path.join(self.meta_dir, "metadata", f"{scene}.npz")
+    m = _official.load_npz(path, ("intrinsics", "extrinsics", "instances_position_scene",
+                                  "instances_orientation_scene"))
+    if m["intrinsics"].shape[1:] != (3, 3) or m["extrinsics"].shape[1:] != (4, 4):
+      raise ValueError(f"{path}: intrinsics must be [V, 3, 3] and extrinsics [V, 4, 4], got "
+                       f"{m['intrinsics'].shape}, {m['extrinsics'].shape}")
+    return dict(m, path=path)
+
+  def _view(self, scene, frame, with_segmentation=True):
+    v, t = (int(x) for x in frame.split("/"))
+    m = self.metadata(scene)
+    if v >= len(m["intrinsics"]):
+      raise ValueError(f"{m['path']}: no view {v} ({len(m['intrinsics'])} views)")
+    d = os.path.join(self.raw, scene, f"frames_p0_v{v}")
+    image = io.read_image(os.path.join(d, f"rgba_{t:05d}.png"))
+    h, w = image.shape[:2]
+    flip = np.diag([1.0, -1.0, -1.0])
+    K = (np.asarray(m["intrinsics"][v], np.float64) * np.array([w, h, 1.0])[:, None]) @ flip
+    c2w = np.array(m["extrinsics"][v], np.float64)
+    c2w[:3, :3] = c2w[:3, :3] @ flip
+    path = os.path.join(d, f"depth_{t:05d}.tiff")
+    posed.require_file(path, "a Kubric float32 range TIFF")
+    rng = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if rng is None or rng.ndim != 2:
+      raise ValueError(f"{path}: expected a single-channel float32 TIFF")
+    depth = posed.range_to_z(posed.sanitize_depth(rng), K)
+    seg = read_index_png(os.path.join(d, f"segmentation_{t:05d}.png")) \
+        if with_segmentation else None
+    return posed.View(image, depth, K, c2w), seg, (m, v), t
+
+  def _pair(self, scene, f0, f1, backward: bool) -> "KubricPair":
+    from ufm_jax import geometry  # pylint: disable=g-import-not-at-top
+    v0, seg0, m0, t0 = self._view(scene, f0)
+    v1, seg1, m1, t1 = self._view(scene, f1, with_segmentation=backward)
+    for v, seg, f in ((v0, seg0, f0), (v1, seg1, f1)):
+      posed.check_view(v, f"kubric4d:{scene}/{f}")
+      if seg is not None and seg.shape != v.depth.shape:
+        raise ValueError(f"kubric4d:{scene}/{f}: segmentation {seg.shape} vs depth "
+                         f"{v.depth.shape}")
+    # The official takes each view's object poses from its own view's metadata row.
+    p0, p1 = _npz_object_poses(*m0, t0), _npz_object_poses(*m1, t1)
+    return KubricPair(v0, v1, tuple(self.thresholds or geometry.covis_thresholds(self.name)),
+                      self.name, scene, (f0, f1), (t0, t1), seg0, seg1, (p0, p1), (p1, p0))
+
+  def __getitem__(self, i):
+    sample = super().__getitem__(i)
+    sample["meta"].update(_official.official_meta(self))
+    return sample
+
+
+def _npz_object_poses(m: dict, view: int, t: int) -> dict:
+  """{segmentation id: object-to-world 4x4} at frame t from the official metadata's view row."""
+  pos = np.asarray(m["instances_position_scene"][view], np.float64)
+  quat = np.asarray(m["instances_orientation_scene"][view], np.float64)
+  if not 0 <= t < pos.shape[1]:
+    raise ValueError(f"{m['path']}: frame {t} out of range ({pos.shape[1]} frames)")
+  out = {0: np.eye(4)}
+  for k in range(pos.shape[0]):
+    T = np.eye(4)
+    T[:3, :3] = posed.qvec_to_rotmat(quat[k, t])
+    T[:3, 3] = pos[k, t]
+    out[k + 1] = T
+  return out

@@ -25,7 +25,7 @@ import numpy as np
 
 from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import posed
+from ufm_jax.data.sources import _official, posed
 
 _VAL_SCENES = ("0015", "0022")
 _DIST = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4}
@@ -122,3 +122,60 @@ class MegaDepth(posed.PosedPairSource):
       raise KeyError(f"{cams_path}: no camera {entry['camera_id']} (used by {frame})")
     K = undistorted_K(cams[entry["camera_id"]], image.shape[1::-1], cams_path)
     return posed.View(image, depth, K, np.linalg.inv(entry["w2c"]))
+
+
+# ------------------------------------------------------------------------ official processed layout
+
+@register("megadepth_official")
+class MegaDepthProcessed(_official.OfficialPosed, posed.PosedPairSource):
+  """MegaDepth as DUSt3R's preprocessing leaves it, read like the official
+  `uniflowmatch.datasets.MegaDepth`:
+    <root>/<scene>/<subscene>/<image>.jpg, <image>.exr (float32 z-depth), <image>.npz
+    (intrinsics 3x3 OpenCV, cam2world 4x4; both read as float32)
+    pairs: dust3r_data_pairs/megadepth_pairs.npz with `scenes` ("<scene> <subscene>"), `images`
+    (names without extension) and `pairs` (fields scene_id, im1_id, im2_id, score)
+  Split: val = scenes 0015 and 0022, train = every other pair (the official `select_scene`)."""
+
+  name = "megadepth"
+  has_backward = False
+  static_scene = True
+
+  pairs_file = "megadepth_pairs.npz"
+
+  def _official_pairs(self):
+    data = _official.load_npz(self.pairs_path, ("scenes", "images", "pairs"), allow_pickle=True)
+    scenes, images, pairs = data["scenes"], data["images"], data["pairs"]
+    names = pairs.dtype.names or ()
+    if names and not {"scene_id", "im1_id", "im2_id"} <= set(names):
+      raise ValueError(f"{self.pairs_path}: 'pairs' lacks fields scene_id, im1_id, im2_id "
+                       f"(has {names})")
+    cols = ([pairs[f] for f in ("scene_id", "im1_id", "im2_id")] if names else
+            [pairs[:, 0], pairs[:, 1], pairs[:, 2]])
+    scene_names = [str(s).split() for s in scenes]
+    is_val = np.array([s[0].startswith(_VAL_SCENES) for s in scene_names])
+    sid = cols[0].astype(np.int64)
+    keep = np.ones(len(sid), bool) if self.split in (None, "all") else (
+        is_val[sid] if self.split == "val" else ~is_val[sid])
+    out = []
+    for s, a, b in zip(sid[keep], cols[1][keep].astype(np.int64), cols[2][keep].astype(np.int64)):
+      scene, sub = scene_names[s]
+      out.append((f"{scene}/{sub}", _stem(images[a]), _stem(images[b])))
+    return out
+
+  def scenes(self):
+    return sorted(f"{s}/{sub}" for s in os.listdir(self.root) if _in_split(s, self.split)
+                  and os.path.isdir(os.path.join(self.root, s))
+                  for sub in os.listdir(os.path.join(self.root, s)))
+
+  def frames(self, scene):
+    d = posed.require_dir(os.path.join(self.root, scene), "a processed MegaDepth subscene")
+    return sorted(f[:-4] for f in os.listdir(d) if f.endswith(".npz"))
+
+  def load_view(self, scene, frame):
+    return _official.processed_view(os.path.join(self.root, scene, frame),
+                                    (("intrinsics",), ("cam2world",)))
+
+
+def _stem(name) -> str:
+  name = str(name)
+  return name[:-4] if name.lower().endswith(".jpg") else name

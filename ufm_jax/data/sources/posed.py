@@ -221,8 +221,8 @@ def check_view(v: View, where: str) -> View:
 @dataclasses.dataclass(frozen=True)
 class PosedPair:
   """Two posed views of a static scene, labelled on request in either direction and on any grid
-  of source pixels: the training pipeline labels only the pixels its crop reads
-  (`PosedPairSource.lazy_pair`, ufm_jax.data.augment.label_grid)."""
+  of source pixels. The training pipeline crops the views and labels the crops, or (a posed set
+  read as a flow set) labels only the stored pixels its crop reads (ufm_jax.data.augment)."""
   v0: View
   v1: View
   thresholds: tuple[float, float]   # (tau_d, tau_r)
@@ -242,6 +242,15 @@ class PosedPair:
     corr = geometry.correspondence_from_depth(a.depth, a.K, a.cam2world, b.depth, b.K,
                                               b.cam2world, *self.thresholds, rows=rows, cols=cols)
     return geometry.labels_from_correspondence(corr)
+
+  def training_labels(self, backward: bool, params, rows=None, cols=None) -> dict:
+    """The four label arrays by the official training code's rule (`geometry.official_labels`,
+    params = covisible_rendering_parameters) at the source pixels rows x cols: what the training
+    pipeline uses where a dataset's official pathway labels stored-size views (TartanAir)."""
+    a, b = (self.v1, self.v0) if backward else (self.v0, self.v1)
+    out = geometry.official_labels(a.depth, a.K, a.cam2world, b.depth, b.K, b.cam2world, params,
+                                   rows=rows, cols=cols)
+    return {k: out[k] for k in ("flow", "covisibility", "flow_valid", "covis_valid")}
 
 
 def pair_sample(dataset: str, scene: str, frames: tuple, v0: View, v1: View,
@@ -268,9 +277,14 @@ def labelled_sample(dataset, scene, frames, v0: View, v1: View, labels: dict, ex
 
 class PosedPairSource:
   """Random-access pairs of posed views. Subclasses set `name` and implement `load_view` and
-  `default_pairs` (and optionally `scenes` / `frames` for pair mining)."""
+  `default_pairs` (and optionally `scenes` / `frames` for pair mining).
+
+  Their own samples (`self[i]`: evaluation, tools, pair mining) carry the supplementary's labels
+  (`geometry.correspondence_from_depth`); the training pipeline crops the views of `lazy_pair(i)`
+  and labels them by the official training code's rule (`pathway`, ufm_jax.data.augment)."""
 
   name = "posed"
+  pathway = "static"
 
   def __init__(self, root, split="train", pairs=None, thresholds=None):
     if root is None:

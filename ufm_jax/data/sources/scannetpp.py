@@ -24,7 +24,7 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
-from ufm_jax.data.sources import exr, posed
+from ufm_jax.data.sources import _official, exr, posed
 
 
 def read_scene_meta(path: str) -> dict:
@@ -90,3 +90,63 @@ class ScanNetPP(WaiScenes, posed.PosedPairSource):
     if frame not in m["frames"]:
       raise KeyError(f"{os.path.join(self.root, scene, 'scene_meta.json')}: no frame {frame!r}")
     return wai_view(os.path.join(self.root, scene), m["meta"], m["frames"][frame])
+
+
+# ------------------------------------------------------------------------ official processed layout
+
+@register("scannetpp_official")
+class ScanNetPPProcessed(_official.OfficialPosed, posed.PosedPairSource):
+  """ScanNet++ v2 as UFM's `preprocess_datasets/preprocess_scannetpp.py` writes it (AnyMap pairs,
+  DSLR images undistorted and rescaled, depth rendered from the mesh), read like the official
+  `uniflowmatch.datasets.ScanNetpp`. Root = the folder holding all_metadata.npz
+  (`scannetpp_anymap_processed/train` in the official data root):
+    all_metadata.npz   scenes, sceneids (per image), images (basenames), intrinsics (per image,
+                       3x3 OpenCV), trajectories (per image, 4x4 camera-to-world OpenCV),
+                       pairs (N, >= 2) global image indices
+    <scene>/images/<basename>.jpg, <scene>/depth/<basename>.png (uint16 millimetres, 0 = none)
+  Split as the official: the first int(0.95 N) pairs are train, the rest val. A pair's frames
+  are global image indices; scene = the first image's scene."""
+
+  name = "scannetpp"
+  has_backward = False
+  static_scene = True
+
+  @functools.cached_property
+  def metadata(self):
+    m = _official.load_npz(os.path.join(self.root, "all_metadata.npz"),
+                           ("scenes", "sceneids", "images", "intrinsics", "trajectories", "pairs"))
+    n = len(m["images"])
+    for k in ("sceneids", "intrinsics", "trajectories"):
+      if len(m[k]) != n:
+        raise ValueError(f"{self.root}/all_metadata.npz: {k} has {len(m[k])} entries, images {n}")
+    return m
+
+  def _official_pairs(self):
+    pairs = np.asarray(self.metadata["pairs"])
+    if pairs.ndim != 2 or pairs.shape[1] < 2:
+      raise ValueError(f"{self.root}/all_metadata.npz: pairs must be (N, >= 2), got {pairs.shape}")
+    pairs = pairs[:, :2].astype(np.int64)
+    n_train = int(0.95 * len(pairs))
+    pairs = pairs[:n_train] if self.split == "train" else pairs[n_train:]
+    scenes, sceneids = self.metadata["scenes"], self.metadata["sceneids"]
+    return [(str(scenes[sceneids[a]]), str(a), str(b)) for a, b in pairs]
+
+  def scenes(self):
+    return [str(s) for s in self.metadata["scenes"]]
+
+  def frames(self, scene):
+    m = self.metadata
+    return [str(i) for i in np.flatnonzero(m["scenes"][m["sceneids"]] == scene)]
+
+  def load_view(self, scene, frame):
+    m, i = self.metadata, int(frame)
+    if not 0 <= i < len(m["images"]):
+      raise ValueError(f"{self.root}/all_metadata.npz: image index {i} out of range")
+    d = os.path.join(self.root, str(m["scenes"][m["sceneids"][i]]))
+    base = str(m["images"][i])
+    image = io.read_image(os.path.join(d, "images", base + ".jpg"))
+    depth = posed.sanitize_depth(io.read_png_depth16(os.path.join(d, "depth", base + ".png"),
+                                                     1000.0))
+    K = np.asarray(m["intrinsics"][i], np.float32).astype(np.float64)
+    c2w = np.asarray(m["trajectories"][i], np.float32).astype(np.float64)
+    return posed.check_view(posed.View(image, depth, K, c2w), os.path.join(d, base))

@@ -10,11 +10,11 @@ Layout under `root` (the unpacked `MPI-Sintel-complete/`, see data/sintel/README
 Labels: flow_valid = known GT, |u|, |v| <= 1e9 (the .flo unknown marker; NaN/Inf is none, so it makes
 the sample corrupt, a ValueError; the standard "Sintel train" EPE averages over all pixels; the
 `invalid` map is kept in meta, not applied); covisibility = not occluded and landing inside
-image1; covis_valid = not invalid. meta adds the boolean maps `occlusion`, `invalid` and
-`matched` (visible in both frames: not occluded, x + flow inside [0, W-1] x [0, H-1] and
-|u| <= W-1, |v| <= H-1, the unimatch approximation of the official matched/unmatched split;
-unmatched = ~matched). gt_relpath is `<pass>/<scene>/frame_%04d.flo` (the submission layout).
-No backward flow.
+image1 (`covis_in_image=False`: not occluded only, the benchmark branch's mask); covis_valid = not
+invalid. meta adds the boolean maps `occlusion`, `invalid` and `matched` (visible in both frames:
+not occluded, x + flow inside [0, W-1] x [0, H-1] and |u| <= W-1, |v| <= H-1, the unimatch
+approximation of the official matched/unmatched split; unmatched = ~matched). gt_relpath is
+`<pass>/<scene>/frame_%04d.flo` (the submission layout). No backward flow.
 """
 
 from __future__ import annotations
@@ -42,12 +42,16 @@ class Sintel:
     split: 'training' (alias 'train'; 1041 pairs) or 'test' (alias 'testing'; no GT: zero flow,
       all-False masks, meta["has_gt"] False).
     scenes: optional list of scene names to keep (e.g. a validation subset).
+    covis_in_image: covisibility also requires the GT target inside image1 (default). False gives
+      the benchmark branch's mask, not occluded only (opticalflow_datasets.py:116-122), which
+      `evaluate.py --protocol official` scores the [covis] EPE on.
   """
 
   has_backward = False
   static_scene = False
 
-  def __init__(self, root, dstype: str, split: str = "training", scenes=None):
+  def __init__(self, root, dstype: str, split: str = "training", scenes=None,
+               covis_in_image: bool = True):
     if root is None:
       raise ValueError(f"sintel_{dstype}: root is required; expected {LAYOUT}")
     split = {"train": "training", "testing": "test"}.get(split, split)
@@ -55,6 +59,7 @@ class Sintel:
       raise ValueError(f"sintel_{dstype}: split must be 'training' or 'test', got {split!r}")
     self.root, self.dstype, self.split = os.fspath(root), dstype, split
     self.has_gt = split == "training"
+    self.covis_in_image = bool(covis_in_image)
     image_root = io.check_dir(os.path.join(self.root, split, dstype), LAYOUT)
     if self.has_gt:
       for sub in ("flow", "occlusions", "invalid"):
@@ -101,7 +106,9 @@ class Sintel:
     io.require_finite(flow, flow_path)  # unknown flow is marked with 1e10, never NaN
     flow_valid = (np.abs(flow[..., 0]) <= UNKNOWN_FLOW) & (np.abs(flow[..., 1]) <= UNKNOWN_FLOW)
     flow = sceneflow.fill_invalid(flow, flow_valid)
-    covisibility = ~occlusion & sceneflow.fov_mask(flow) & flow_valid
+    covisibility = ~occlusion & flow_valid
+    if self.covis_in_image:
+      covisibility &= sceneflow.fov_mask(flow)
     u = np.arange(w)[None, :] + flow[..., 0]
     v = np.arange(h)[:, None] + flow[..., 1]
     matched = (~occlusion & flow_valid & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)

@@ -34,6 +34,7 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
+from ufm_jax.data.sources import _official
 from ufm_jax.data.sources._bidirectional import BidirectionalPairs
 from ufm_jax.geometry import sceneflow
 
@@ -192,3 +193,50 @@ class Spring(BidirectionalPairs):
 @register("spring")
 def make_spring(root, split: str = "train", **options) -> Spring:
   return Spring(root, split=split, **options)
+
+
+# ------------------------------------------------------------------------ official processed layout
+
+@register("spring_official")
+class SpringProcessed(_official.PrecomputedPairs):
+  """Spring as UFM's `preprocess_datasets/preprocess_spring.py` writes it (`spring_processed`,
+  926x560, sequences 38 and up under test/), read like the official `uniflowmatch.datasets.Spring`:
+    <root>/<split>/<seq>/<left|right>/images/%04d.png
+    <root>/<split>/<seq>/<left|right>/flow/%04d_%04d.npz   flow_<i> (2, H, W) float32 (NaN = no
+        ground truth), fov_mask_<i>, non_occluded_mask_<i>, occlusion_supervision_mask_<i>
+        (H, W) bool; i = 0 forward (first -> second frame), 1 backward
+  The official lists the npz files with an unsorted glob; here they are sorted (seq, camera,
+  frames), so indices are stable across machines. NaN flow is kept (flow_valid is False there;
+  the preprocess clears the masks of both views where the forward flow is NaN)."""
+
+  def __init__(self, root, split="train"):
+    if root is None:
+      raise ValueError("spring_official: root is required (see data/spring/README.md)")
+    self.root, self.split = os.fspath(root), split
+    base = io.check_dir(os.path.join(self.root, split),
+                        f"{split}/<seq>/<left|right>/{{images,flow}}/ (see data/spring/README.md)")
+    self.files = []
+    for seq in sorted(os.listdir(base)):
+      for cam in ("left", "right"):
+        d = os.path.join(base, seq, cam, "flow")
+        if os.path.isdir(d):
+          self.files += [os.path.join(d, f) for f in sorted(os.listdir(d))
+                         if re.fullmatch(r"\d{4}_\d{4}\.npz", f)]
+    if not self.files:
+      raise FileNotFoundError(f"{base}: no <seq>/<left|right>/flow/%04d_%04d.npz files")
+
+  def __len__(self):
+    return len(self.files)
+
+  def _views(self, index):
+    path = self.files[index]
+    cam_dir = os.path.dirname(os.path.dirname(path))
+    a, b = os.path.basename(path)[:-4].split("_")
+    images = [io.read_image(os.path.join(cam_dir, "images", f"{x}.png")) for x in (a, b)]
+    z = _official.load_npz(path, [f"{q}_{i}" for i in (0, 1) for q in _official.LABELS])
+    seq, cam = os.path.basename(os.path.dirname(cam_dir)), os.path.basename(cam_dir)
+    fwd, bwd = _official.two_directions(
+        "spring", images[0], images[1], lambda q, i: z[f"{q}_{i}"], path, scene=seq, camera=cam,
+        frame0=a, frame1=b, split=self.split, suitable_for_refinement=False)
+    bwd["meta"].update(frame0=b, frame1=a)
+    return [fwd, bwd]

@@ -22,7 +22,7 @@ import numpy as np
 
 from ufm_jax.data.registry import register
 from ufm_jax.data import io
-from ufm_jax.data.sources import posed
+from ufm_jax.data.sources import _official, exr, posed
 
 _CAMS = {"l": "left", "r": "right", b"l": "left", b"r": "right"}
 
@@ -82,3 +82,60 @@ class StaticThings(posed.PosedPairSource):
       raise ValueError(f"{os.path.join(self.root, 'poses', scene, cam, idx)}: expected a 4x4 pose "
                        f"and 3x3 intrinsics, got {w2c.shape} and {K.shape}")
     return posed.View(image, depth, K.astype(np.float64), np.linalg.inv(w2c.astype(np.float64)))
+
+
+# ------------------------------------------------------------------------ official processed layout
+
+PASSES = ("clean", "final")
+
+
+@register("staticthings_official")
+class StaticThingsProcessed(_official.OfficialPosed, posed.PosedPairSource):
+  """StaticThings3D as DUSt3R's preprocessing leaves it (`staticthings3d_processed`), read like
+  the official `uniflowmatch.datasets.StaticThings3D`:
+    <root>/staticthings_pairs.npy   rows (scene letter, seq, cam1 l|r, im1, cam2 l|r, im2)
+    <root>/TRAIN/<A|B|C>/<seq %04d>/<left|right>/%04d_clean.jpg, %04d_final.jpg,
+      %04d.exr (float32 z-depth), %04d.npz (intrinsics, cam2world)
+  The official draws the clean or the final rendering at random for each view; here every
+  combination is its own pair (index = 4 * pair + 2 * pass0 + pass1 over `passes`), so a
+  uniform draw sees each with the official probability. `passes=("final",)` keeps one.
+  `max_depth` (the official mask_bg, off in the recipes) zeroes depth beyond it."""
+
+  name = "staticthings"
+  has_backward = False
+  static_scene = True
+
+  def __init__(self, root, split="train", pairs=None, thresholds=None, passes=PASSES,
+               max_depth=None):
+    super().__init__(root, split, pairs, thresholds)
+    bad = [p for p in passes if p not in PASSES]
+    if bad or not passes:
+      raise ValueError(f"staticthings_official: passes must be a non-empty subset of {PASSES}, "
+                       f"got {passes!r}")
+    self.passes, self.max_depth = tuple(passes), max_depth
+
+  def _official_pairs(self):
+    path = posed.require_file(os.path.join(self.root, "staticthings_pairs.npy"),
+                              "DUSt3R's staticthings_pairs.npy")
+    for scene, seq, cam1, im1, cam2, im2 in _official.load_npy(path):
+      letter = scene.decode() if isinstance(scene, bytes) else str(scene)
+      for p0 in self.passes:
+        for p1 in self.passes:
+          yield (f"TRAIN/{letter}/{int(seq):04d}", f"{_CAMS[cam1]}/{int(im1):04d}_{p0}",
+                 f"{_CAMS[cam2]}/{int(im2):04d}_{p1}")
+
+  def load_view(self, scene, frame):
+    cam, name = frame.split("/")
+    num, dpass = name.split("_")
+    d = os.path.join(self.root, scene, cam)
+    cam_params = _official.load_npz(os.path.join(d, num + ".npz"), ("intrinsics", "cam2world"))
+    image = io.read_image(os.path.join(d, f"{num}_{dpass}.jpg"))
+    depth = posed.sanitize_depth(exr.read_exr(os.path.join(d, num + ".exr")))
+    if self.max_depth is not None:
+      depth[depth > self.max_depth] = 0
+    K = np.asarray(cam_params["intrinsics"], np.float64)
+    c2w = np.asarray(cam_params["cam2world"], np.float64)
+    if K.shape != (3, 3) or c2w.shape != (4, 4):
+      raise ValueError(f"{os.path.join(d, num)}.npz: expected 3x3 intrinsics and a 4x4 "
+                       f"cam2world, got {K.shape} and {c2w.shape}")
+    return posed.check_view(posed.View(image, depth, K, c2w), os.path.join(d, name))

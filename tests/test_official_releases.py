@@ -1,0 +1,256 @@
+"""Snapshots written by the newest official code (ufm_reference_v2: UFM main 3732a50, UniCeption
+ee7fa0b) against their official outputs, every case folder found; their exact round trip through
+save_official; refused unknown keys; the random view-embedding rule; Hub IDs from an offline
+cache in the standard Hugging Face layout."""
+
+import hashlib
+import json
+import os
+import pathlib
+import struct
+import subprocess
+import sys
+import warnings
+
+import jax
+import numpy as np
+import pytest
+
+import ufm_jax
+from ufm_jax import model_io
+from ufm_jax.models import ufm
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+V2 = pathlib.Path(os.environ.get("UFM_FIXTURES", REPO.parent / "shared" / "fixtures")) / \
+    "ufm_reference_v2"
+CASES = sorted(p.parent.name for p in V2.glob("*/config.json"))
+
+
+def _case_dir(name) -> pathlib.Path:
+  if name is None:
+    msg = (f"no official v2 snapshots under {V2}: set UFM_FIXTURES to the folder that holds "
+           "ufm_reference_v2/")
+    if os.environ.get("CI", "").lower() == "true":
+      pytest.fail(msg + " (CI=true: parity tests may not be skipped)")
+    pytest.skip(msg)
+  return V2 / name
+
+
+def _nhwc(a):
+  return np.transpose(a, (0, 2, 3, 1))
+
+
+def _close(name, got, want, atol):
+  got = np.asarray(got, np.float64)
+  assert got.shape == want.shape, f"{name}: shape {got.shape} != {want.shape}"
+  err = float(np.abs(got - want).max())
+  assert err <= atol, f"{name}: max |diff| {err:.3g} > {atol:.3g}"
+
+
+@pytest.fixture(scope="module", params=CASES or [None])
+def case(request):
+  d = _case_dir(request.param)
+  model, params = ufm_jax.load_official(d)
+  io = dict(np.load(d / "io.npz"))
+  out = jax.jit(model.apply)(ufm.variables(params), io["img1_uint8"], io["img2_uint8"])
+  return d, model, params, io, {k: np.asarray(v) for k, v in out.items()}
+
+
+def test_forward_matches_the_official_outputs(case):
+  """Tolerances of the older fixtures: flow 1e-3 px (5e-3 after refinement), logits 2e-4."""
+  _, model, _, io, out = case
+  refined = "flow_before_refinement" in io
+  _close("flow", out["flow"], _nhwc(io["flow"]), 5e-3 if refined else 1e-3)
+  if "covisibility_logits" in io:
+    _close("covisibility_logits", out["covisibility_logits"], io["covisibility_logits"][:, 0], 2e-4)
+    _close("covisibility", out["covisibility"], io["covisibility_mask"][:, 0], 5e-5)
+  if refined:
+    _close("flow_before_refinement", out["flow_before_refinement"],
+           _nhwc(io["flow_before_refinement"]), 1e-3)
+    _close("residual", out["residual"], _nhwc(io["residual"]), 5e-3)
+    for k in ("feature_map_0", "feature_map_1"):
+      _close(k, out[k], _nhwc(io[k]), 2e-4)
+
+
+@pytest.mark.parametrize("pair", ["hl0", "hl1", "hl2"])
+def test_predict_matches_the_official_high_level_api(case, pair):
+  """predict_correspondences_batched; hl*_flow at the fixture README's ~1e-2 px."""
+  _, model, params, io, _ = case
+  if f"{pair}_src_uint8" not in io:
+    pytest.skip(f"this case has no {pair}")
+  got = ufm_jax.predict(model, params, io[f"{pair}_src_uint8"], io[f"{pair}_tgt_uint8"])
+  _close(f"{pair}_flow", got["flow"], _nhwc(io[f"{pair}_flow"])[0], 1e-2)
+  _close(f"{pair}_covisibility", got["covisibility"], io[f"{pair}_covisibility"][0], 5e-5)
+
+
+def _safetensors_parts(path):
+  """(header as parsed JSON, data bytes): the metadata's key order is not reproducible (the
+  safetensors writer keeps it in a hash map), everything else is."""
+  raw = pathlib.Path(path).read_bytes()
+  n = struct.unpack("<Q", raw[:8])[0]
+  return json.loads(raw[8:8 + n]), raw[8 + n:]
+
+
+def test_round_trip_through_our_checkpoint_is_exact(case, tmp_path):
+  """snapshot -> our checkpoint (convert) -> official snapshot (to-official): config.json byte
+  for byte; model.safetensors with the same header (names, dtypes, offsets, alias metadata) and
+  the same data bytes."""
+  d, model, params, _, _ = case
+  model_io.save(tmp_path / "ckpt", model, params)
+  back_model, back_params = model_io.load(tmp_path / "ckpt")
+  assert back_model.config == model.config
+  ufm_jax.save_official(back_model, back_params, tmp_path / "out", source=str(d))
+  assert (tmp_path / "out" / "config.json").read_bytes() == (d / "config.json").read_bytes()
+  assert _safetensors_parts(tmp_path / "out" / "model.safetensors") == \
+      _safetensors_parts(d / "model.safetensors")
+
+
+# --------------------------------------------------------------------------- config.json rules
+
+
+@pytest.fixture(scope="module")
+def refine_bn():
+  return _case_dir("refine_bn_conv" if "refine_bn_conv" in CASES else None)
+
+
+def _with_config(src, dst, edit):
+  dst.mkdir()
+  cj = json.loads((src / "config.json").read_text())
+  edit(cj)
+  (dst / "config.json").write_text(json.dumps(cj, indent=2, sort_keys=True))
+  os.symlink(src / "model.safetensors", dst / "model.safetensors")
+  return dst
+
+
+@pytest.mark.parametrize("section,key", [
+    (None, "use_new_thing"), ("info_sharing_kwargs", "use_rope_for_views"),
+    ("encoder_kwargs", "register_dropout"), ("classification_head_kwargs", "norm_layer"),
+    ("feature_head_kwargs.dpt_feature", "use_gn")])
+def test_a_key_the_loader_does_not_know_is_an_error_naming_it(refine_bn, tmp_path, section, key):
+  def edit(cj):
+    d = cj
+    for part in (section.split(".") if section else ()):
+      d = d[part]
+    d[key] = True
+  snap = _with_config(refine_bn, tmp_path / "snap", edit)
+  with pytest.raises(ValueError, match=rf"{section + '.' if section else ''}{key}: not an option"):
+    ufm_jax.load_official(snap)
+
+
+def test_integer_input_feature_dim_is_written_back_as_an_integer(refine_bn, tmp_path):
+  def edit(cj):
+    cj["classification_head_kwargs"]["input_feature_dim"] = sum(
+        int(t) for t in cj["classification_head_kwargs"]["input_feature_dim"].split("+"))
+  snap = _with_config(refine_bn, tmp_path / "snap", edit)
+  model, params = ufm_jax.load_official(snap)
+  ufm_jax.save_official(model, params, tmp_path / "out")
+  assert (tmp_path / "out" / "config.json").read_text() == (snap / "config.json").read_text()
+  assert isinstance(json.loads((tmp_path / "out" / "config.json").read_text())[
+      "classification_head_kwargs"]["input_feature_dim"], int)
+
+
+def test_a_changed_model_is_exported_with_the_new_kwargs(refine_bn, tmp_path):
+  """The source config.json is written back only while it describes the model: a changed
+  structure option is exported from the model config, the new official kwargs with it."""
+  model, params = ufm_jax.load_official(refine_bn)
+  cfg = model.config.replace(inference_resolution=(84, 112))
+  ufm_jax.save_official(model.clone(config=cfg), params, tmp_path / "out")
+  cj = json.loads((tmp_path / "out" / "config.json").read_text())
+  assert cj["inference_resolution"] == [112, 84] and cj["use_unet_batchnorm"] is True
+  back, _ = ufm_jax.load_official(tmp_path / "out")
+  assert back.config == cfg
+
+
+def test_several_inference_resolutions(refine_bn, tmp_path):
+  """inference_resolution may list several (W, H): predict picks the closest aspect per pair."""
+  snap = _with_config(refine_bn, tmp_path / "snap",
+                      lambda cj: cj.update(inference_resolution=[[140, 98], [98, 140]]))
+  model, _ = ufm_jax.load_official(snap)
+  assert model.config.inference_resolution == ((98, 140), (140, 98))
+  from ufm_jax.official import config as official_config
+  assert official_config.official_config_dict(model.config)["inference_resolution"] == [
+      [140, 98], [98, 140]]
+
+
+def test_random_view_rows_warn_and_use_row_one(tmp_path):
+  """use_rand_idx_pe_for_non_reference_views with more than two rows: the official forward is
+  random; the loader warns and view 2 gets row 1, as with the option off."""
+  src = _case_dir("base_v2_defaults" if "base_v2_defaults" in CASES else None)
+  snap = _with_config(src, tmp_path / "snap",
+                      lambda cj: cj["info_sharing_kwargs"].pop(
+                          "use_rand_idx_pe_for_non_reference_views"))
+  with pytest.warns(UserWarning, match=r"snap/config.json: .*left out \(default true\).*row 1"):
+    model, params = ufm_jax.load_official(snap)
+  assert model.config.info_sharing.use_rand_idx_pe_for_non_reference_views
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    fixed, fixed_params = ufm_jax.load_official(src)   # the same weights, option off: no warning
+  io = dict(np.load(src / "io.npz"))
+  a = jax.jit(model.apply)(ufm.variables(params), io["img1_uint8"], io["img2_uint8"])["flow"]
+  b = jax.jit(fixed.apply)(ufm.variables(fixed_params), io["img1_uint8"], io["img2_uint8"])["flow"]
+  np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+# --------------------------------------------------------------------------- Hub IDs
+
+
+def _hub_cache(root: pathlib.Path, repo_id: str, snapshot: pathlib.Path, commit: str):
+  """A Hugging Face cache in the standard layout (models--owner--name/{blobs, refs, snapshots})
+  holding `snapshot`'s two files at `commit`, with `main` pointing there."""
+  repo = root / ("models--" + repo_id.replace("/", "--"))
+  (repo / "refs").mkdir(parents=True)
+  (repo / "refs" / "main").write_text(commit)
+  snap = repo / "snapshots" / commit
+  snap.mkdir(parents=True)
+  (repo / "blobs").mkdir()
+  for name in ("config.json", "model.safetensors"):
+    data = (snapshot / name).read_bytes()
+    blob = repo / "blobs" / hashlib.sha256(data).hexdigest()
+    blob.write_bytes(data)
+    os.symlink(os.path.relpath(blob, snap), snap / name)
+
+
+def test_hub_ids_resolve_offline_from_the_standard_cache(tmp_path, reference_dir):
+  """load_official("owner/name") (and revision=), `infer --checkpoint ID --snapshot` and
+  model_init=snapshot:ID read a cache built here in huggingface_hub's layout with
+  HF_HUB_OFFLINE=1; an ID that is not cached fails naming the ID and the cache. In a fresh
+  process: huggingface_hub reads its environment once, at import."""
+  commit = "0123456789abcdef0123456789abcdef01234567"
+  _hub_cache(tmp_path / "hub", "infinity1096/UFM-Fixture", reference_dir / "base", commit)
+  io = dict(np.load(reference_dir / "base" / "io.npz"))
+  from ufm_jax.data.io import write_image
+  write_image(tmp_path / "src.png", io["hl1_src_uint8"])
+  write_image(tmp_path / "tgt.png", io["hl1_tgt_uint8"])
+  infer = ["infer", str(tmp_path / "src.png"), str(tmp_path / "tgt.png"), "--snapshot"]
+  script = f"""
+import contextlib, io, jax, numpy as np, ufm_jax
+from ufm_jax import cli, model_init
+m, p = ufm_jax.load_official("infinity1096/UFM-Fixture")
+m2, p2 = ufm_jax.load_official({str(reference_dir / "base")!r})
+assert m.config == m2.config
+jax.tree.map(np.testing.assert_array_equal, p, p2)
+ufm_jax.load_official("infinity1096/UFM-Fixture", revision={commit!r})
+_, rep = model_init.load_init_params("snapshot:infinity1096/UFM-Fixture", p2)
+assert not rep.left_at_init and not rep.unused
+assert cli.main({infer!r} + ["--checkpoint", "infinity1096/UFM-Fixture", "--out",
+                              {str(tmp_path / "out")!r}]) == 0
+err = io.StringIO()
+with contextlib.redirect_stderr(err):
+  rc = cli.main({infer!r} + ["--checkpoint", "infinity1096/UFM-Missing", "--out",
+                              {str(tmp_path / "o2")!r}])
+print("missing", rc, err.getvalue())
+"""
+  r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600,
+                     cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO), JAX_PLATFORMS="cpu",
+                                        HF_HUB_CACHE=str(tmp_path / "hub"), HF_HUB_OFFLINE="1"))
+  assert r.returncode == 0, r.stderr[-3000:]
+  np.testing.assert_allclose(np.load(tmp_path / "out" / "forward_flow.npy"),
+                             _nhwc(io["hl1_flow"])[0], atol=1e-2)
+  missing = r.stdout[r.stdout.index("missing"):]
+  assert missing.startswith("missing 2 ") and "infinity1096/UFM-Missing" in missing
+  assert str(tmp_path / "hub") in missing and "HF_HUB_OFFLINE" in missing
+
+
+def test_an_id_without_snapshot_says_so():
+  with pytest.raises(FileNotFoundError, match="model ID needs --snapshot"):
+    model_io.load_model("infinity1096/UFM-Base")

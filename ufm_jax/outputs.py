@@ -1,0 +1,52 @@
+"""The files `python -m ufm_jax infer` writes for one prediction: one suffix table, one writer,
+shared by the single pair (`infer SOURCE TARGET`) and the many-pair runs (`ufm_jax.sequence`).
+
+  <name>.flo                Middlebury flow at the source image's size (always)
+  <name>_flow.npy           the same flow, [H, W, 2] float32                     (--save npy)
+  <name>_covisibility.npy   covisibility probability, [H, W] float32             (--save npy)
+  <name>_covisibility.png   covisibility as 8-bit grey (255 = covisible)         (--save covis)
+  <name>_panel.png          source | target | flow colours | warped target       (--save panel)
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+# File kind -> name suffix, in the order they are written (.flo last: its presence marks a pair
+# done when a many-pair run resumes).
+SUFFIXES = {"npy": "_flow.npy", "cnpy": "_covisibility.npy", "cpng": "_covisibility.png",
+            "panel": "_panel.png", "flo": ".flo"}
+# --save choice -> the kinds it adds to the .flo.
+SAVE_CHOICES = {"npy": ("npy", "cnpy"), "covis": ("cpng",), "panel": ("panel",)}
+
+
+def paths(out_dir, name: str, save=tuple(SAVE_CHOICES)) -> dict[str, pathlib.Path]:
+  """{kind: path} of the files of prediction `name`: the .flo plus the `save` choices."""
+  bad = sorted(set(save) - set(SAVE_CHOICES))
+  if bad:
+    raise ValueError(f"--save {','.join(bad)}: expected a comma list of {','.join(SAVE_CHOICES)}")
+  kinds = {"flo"}.union(*(SAVE_CHOICES[s] for s in save))
+  return {k: pathlib.Path(out_dir) / f"{name}{suffix}" for k, suffix in SUFFIXES.items()
+          if k in kinds}
+
+
+def write(files: dict[str, pathlib.Path], source, target, pred) -> list[pathlib.Path]:
+  """Writes `files` ({kind: path} from `paths`) of one prediction, each atomically; returns the
+  paths. `pred`: {"flow": [H, W, 2], "covisibility": [H, W]} at the source image's size."""
+  from ufm_jax import viz
+  from ufm_jax.data import io
+  flow = np.asarray(pred["flow"], np.float32)
+  covis = np.asarray(pred["covisibility"], np.float32)
+  writers = {
+      "npy": lambda p: io.write_npy(p, flow),
+      "cnpy": lambda p: io.write_npy(p, covis),
+      "cpng": lambda p: io.write_image(p, viz.covisibility_to_image(covis)),
+      "panel": lambda p: io.write_image(p, viz.panel(source, target, flow, covis)),
+      "flo": lambda p: io.write_flo(p, flow),
+  }
+  for kind in SUFFIXES:  # the table's order: .flo last
+    if kind in files:
+      writers[kind](files[kind])
+  return list(files.values())
