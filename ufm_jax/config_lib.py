@@ -48,7 +48,7 @@ def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
   """The machinery keys every UFM training config shares (mesh, sharding, checkpoints, logging);
   the recipe itself (optim, loss, model, input) is written out in each config file."""
   c.seed = 0
-  c.total_steps = unset(int)    # None: num_epochs * pairs per epoch / batch size
+  c.total_steps = unset(int)    # None: num_epochs * (pairs per epoch // batch size)
   c.mesh = "data:-1,fsdp:1"     # e.g. "data:2,fsdp:4" to shard params/opt state over 4 devices
   # FSDP over the largest divisible dimension; tensors under `sharding_min_size` entries (biases,
   # norms, layer scales) stay replicated.
