@@ -93,3 +93,13 @@ def test_partial_flow_adaptor_override_scales_the_output():
   out = np.asarray(dpt.flow_adaptor(x, cfg.flow_adaptor))
   np.testing.assert_allclose(out[0, 0, 0], [25 * 672 / 224, 25 * 448 / 224])
   assert ufm.config_from_dict(ufm.config_to_dict(cfg)) == cfg
+
+
+def test_official_init_model_exports_to_an_official_snapshot(tmp_path):
+  """param_init is an initializer option, not structure: a model trained from it exports (the
+  snapshot has no such key and reads back as the same structure)."""
+  from ufm_jax import testing
+  from ufm_jax.official import snapshot
+  model = testing.official_small_model({"param_init": "official"})
+  notes = snapshot.save_official(model, trainer.random_params(model, 0), tmp_path / "export")
+  assert "not written (JAX-only option): param_init='official'" in notes
