@@ -61,19 +61,21 @@ def main(argv):
   # Global batches, the next `device_prefetch` already on their way to the devices.
   train_iter = sharding.DevicePrefetch(host_iter, mesh, config.get("device_prefetch", 2))
   pairs_per_epoch = int(data_info.get("pairs_per_epoch") or 0)
+  # Whole batches per epoch, as the official loaders (drop_last); epochs and warmup count these.
+  steps_per_epoch = pairs_per_epoch // config.input.batch_size or None
   if config.get("total_steps"):
     total_steps = int(config.total_steps)
-  elif config.get("num_epochs") and pairs_per_epoch:
-    total_steps = int(math.ceil(config.num_epochs * pairs_per_epoch / config.input.batch_size))
+  elif config.get("num_epochs") and steps_per_epoch:
+    total_steps = int(config.num_epochs * steps_per_epoch)
   else:
     raise ValueError("config needs total_steps, or num_epochs with a pipeline that knows its "
                      "pairs per epoch")
-  steps_per_epoch = pairs_per_epoch / config.input.batch_size if pairs_per_epoch else None
   sample_shape = data_info["image_shape"]  # (H, W) of the first training shape
   logging.info("data: %s", {k: v for k, v in data_info.items() if k != "iterator"})
 
   # --------------------------------------------------- model, optimizer, sharding, step
-  ts = trainer.setup(config, mesh, sample_shape, total_steps)
+  ts = trainer.setup(config, mesh, sample_shape, total_steps, steps_per_epoch=steps_per_epoch,
+                     dataset_names=tuple(data_info.get("datasets") or ()) or None)
   model, tx, schedules, init_fn = ts.model, ts.tx, ts.schedules, ts.init_fn
   abstract_state, param_sh, state_sh = ts.abstract_state, ts.param_sh, ts.state_sh
   p_train_step, p_predict = ts.train_step, ts.predict
@@ -143,15 +145,14 @@ def main(argv):
         rec = {"step": step, "epoch": step / steps_per_epoch if steps_per_epoch else None,
                **{k: float(v) for k, v in m.items()},
                "skipped": int(jax.device_get(state.skipped)),
-               "lr": lrs.get("default"), **{f"lr_{g}": v for g, v in lrs.items()},
+               "lr": max(lrs.values(), default=None), **{f"lr_{g}": v for g, v in lrs.items()},
                "pairs_per_s": pairs_s}
         writer.scalars("metrics.jsonl", step, rec, "train")
         logging.info("process %d metrics %s", jax.process_index(), json.dumps(rec))
         if is_main:
           ep = f" ep {rec['epoch']:.3f}" if rec["epoch"] is not None else ""
-          print(f"step {step}/{total_steps}{ep} loss {rec['loss']:.5f} "
-                f"flow {rec.get('loss_flow', float('nan')):.5f} "
-                f"covis {rec.get('loss_covis', float('nan')):.5f} "
+          terms = "".join(f"{k[5:]} {v:.5f} " for k, v in rec.items() if k.startswith("loss_"))
+          print(f"step {step}/{total_steps}{ep} loss {rec['loss']:.5f} {terms}"
                 f"lr " + " ".join(f"{g}={v:.2e}" for g, v in lrs.items()) +
                 f" {pairs_s:.1f} pairs/s ETA {_fmt_eta(eta)}" +
                 (f" skipped {rec['skipped']}" if rec["skipped"] else ""), flush=True)

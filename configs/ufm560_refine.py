@@ -1,14 +1,25 @@
-r"""UFM-Refine: the classification refiner on a frozen UFM-560 base (supplementary "Training the
-Refinement").
+r"""UFM-Refine: the official refinement recipe (`bash_scripts/training/megatraining_refinement_560.sh`
+of the UFM `train` branch; every setting and its source: docs/recipe.md): the classification
+refiner trained on a frozen UFM-560 base.
 
   python train.py --config=configs/ufm560_refine.py --workdir=DIRREF \
       --config.model_init=ckpt:DIR560 --config.input.data_root=/data/ufm
 
-The base model (encoder, fusion transformer, DPT heads) is frozen: it gets no gradient and no
-optimizer state; only the U-Net, classification head, combiners and the offset bias train, with
-the refinement cross-entropy (`ufm_jax.refine_training.refinement_loss`). 30 epochs, lr 1e-4,
-otherwise the 560 optimizer; BlendedMVS, MegaDepth, ScanNet++, StaticThings and Habitat with the
-official recipe's samples per epoch (`mixture.RECIPES['refine560']`: static_pinhole_100k.yaml).
+The base (encoder, fusion transformer, DPT heads) has lr 0, so it is frozen: no gradient, no
+optimizer state. Only the U-Net, classification head, combiners and the classification bias
+train (official groups `classification_head` and `unet_feature`), with two terms summed in this
+order: the plain EPE of the regressed flow (multiplier 0, which the official code ignores: it adds
+a constant, the base being frozen) and 10 x the refinement cross-entropy
+(`ufm_jax.refine_training.RefinementCE`) on at most 400k pixels, only on rows whose dataset the
+official code marks suitable for refinement. 24 unique pairs per step (48 symmetrized rows), 30
+epochs, lr 1e-4 with 3 warmup epochs, cosine to 1%, clipping at 1.0. Data: BlendedMVS, MegaDepth,
+ScanNet++, StaticThings and Habitat with the official recipe's samples per epoch
+(`mixture.RECIPES['refine560']`: static_pinhole_100k.yaml); of these only BlendedMVS trains the
+refiner.
+
+Model: the released UFM-Refine structure (`ufm_refine`). The official recipe trains another one
+(U-Net with BatchNorm, `modulate` feature combination, encoder taps [6, 23], no covisibility head);
+select it with `:model=<that variant>` once it exists (docs/recipe.md).
 
 Smoke run on a fresh machine (tiny refine model, embedded synthetic pairs, random base):
   python train.py --config=configs/ufm560_refine.py:model=tiny_refine,data=synthetic,steps=20 \
@@ -17,22 +28,22 @@ Smoke run on a fresh machine (tiny refine model, embedded synthetic pairs, rando
 
 import ml_collections
 
-from ufm_jax import config_lib
+from ufm_jax import config_lib, optim
 from ufm_jax.data import augment, mixture, pipeline
-
-# Top-level parameter collections of UFM-Refine that train (ufm_jax.refine_training.TRAINABLE).
-REFINER = ("unet_feature", "classification_head", "conv1", "conv2", "classification_bias")
 
 
 def get_config(arg=None):
   arg = config_lib.parse_arg(arg, model="ufm_refine", data="refine", steps=0)
   c = config_lib.training_defaults(ml_collections.ConfigDict())
+  c.seed = 42
   c.num_epochs = 30
+  # Rows of these datasets train the refiner (official `suitable_for_refinement`).
+  refine_datasets = ("blendedmvs", "flyingthings", "hypersim")
   if arg.data == "refine":
     # configs/dataset/static_pinhole.yaml: the 560_many_ar shapes (square included) and
     # Habitat's `cropping` yaml (crop augmentation and low light, unlike the 560 recipe).
     c.input = pipeline.input_config(
-        mixture.recipe("refine560"), batch_size=96, longest_side=560,
+        mixture.recipe("refine560"), batch_size=48, longest_side=560,
         shapes=augment.SHAPES_560_SQUARE,
         augment={"no_crop_datasets": (), "low_light_datasets": ("flyingchairs", "habitat"),
                  "fast_image_ops": True})
@@ -41,19 +52,51 @@ def get_config(arg=None):
                                     batch_size=2, longest_side=56, aspect_ratios=(1.0,),
                                     num_workers=0)
     c.log_training_steps = 1
+    refine_datasets = ("synthetic",)   # the smoke run's only source
   else:
     raise ValueError(f"configs/ufm560_refine.py: data={arg.data!r}; expected refine or synthetic")
   if arg.steps:
     c.total_steps = arg.steps
+
   c.model_name = arg.model
-  c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
   if arg.data == "synthetic":
     c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=True)
+  else:
+    c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
+  c.model.param_init = "official"      # the refiner starts as the official modules do
+  # As the 560 base was trained (it must match the checkpoint in model_init).
+  c.model.flow_adaptor = ml_collections.ConfigDict({
+      "flow_mean": (0.0, 0.0), "flow_std": (25.0, 25.0), "base_shape": (224, 224),
+      "scale_strategy": "scale_both"})
+  c.model.refinement_range = 7
   c.model_init = config_lib.unset(str)  # the UFM-560 base
-  c.loss = "refine"
-  c.loss_kwargs = {}
-  c.optim = config_lib.ufm_optim(lr=1e-4, encoder_lr=1e-4)
-  c.optim.trainable = r"^(" + "|".join(REFINER) + r")(/|$)"
+
+  c.optim = ml_collections.ConfigDict({
+      # uncertainty_head: official 0 as well (its refinement model has none; ours keeps it frozen).
+      "lr": {"encoder": 0.0, "info_sharing": 0.0, "output_head": 0.0, "uncertainty_head": 0.0,
+             "classification_head": 1e-4, "unet_feature": 1e-4},
+      "groups": dict(optim.PARAM_GROUPS),
+      "b1": 0.9, "b2": 0.95, "eps": 1e-8, "weight_decay": 0.05, "no_decay": config_lib.unset(str),
+      "grad_clip_norm": 1.0,
+      "warmup_epochs": 3.0, "fractional_warmup": True, "warmup_frac": config_lib.unset(float),
+      "min_lr_rate": 0.01,
+      "frozen": config_lib.unset(str), "trainable": config_lib.unset(str)})
+  if arg.data == "synthetic":   # a smoke run: warm up over its first 10% of steps, not 3 epochs
+    c.optim.warmup_epochs, c.optim.warmup_frac = None, 0.1
+
+  # configs/loss/refinement_only.yaml, terms summed in this order (temperature: the model's).
+  c.loss = ml_collections.ConfigDict({
+      "terms": ("epe", "refinement_cross_entropy"),
+      "epe": {"type": "epe", "range": "covisible", "multiplier": 0.0, "multiplier_applied": False,
+              "invalid_gt": "zero", "eps": 1e-4, "epe_eps": 0.0},
+      "refinement_cross_entropy": {
+          "type": "refinement_ce", "multiplier": 10.0, "datasets": refine_datasets,
+          "max_pixels": 400_000, "window_margin": 1e-4, "taps": "truncate",
+          "gather_dtype": "bfloat16", "eps": 1e-4},
+      "shared_cleanup": True,
+      # Official: DDP, each GPU's own loss over its rows, gradients averaged; the GPU count of
+      # the paper's runs is unknown (losses.Recipe.groups). 1: one loss over the global batch.
+      "groups": 1})
   c.evals = ml_collections.ConfigDict(
       {"sintel": config_lib.bench_eval("sintel")} if arg.data == "refine" else {})
   return c

@@ -11,7 +11,8 @@ from ufm_jax import config_lib
 CONFIGS = pathlib.Path(__file__).resolve().parents[1] / "configs"
 
 
-@pytest.mark.parametrize("name", ["ufm560", "ufm980", "ufm560_refine", "synthetic"])
+@pytest.mark.parametrize("name", ["ufm560", "ufm980", "ufm560_refine", "ufm980_refine",
+                                  "synthetic"])
 def test_model_init_is_a_typed_string_field(name):
   config = config_lib.load_config(str(CONFIGS / f"{name}.py"))
   assert config.get_ref("model_init").get_type() is str
@@ -33,17 +34,18 @@ def _parse(name, *overrides):
   return fv.config
 
 
-@pytest.mark.parametrize("name", ["ufm560", "ufm980", "ufm560_refine", "synthetic"])
+@pytest.mark.parametrize("name", ["ufm560", "ufm980", "ufm560_refine", "ufm980_refine",
+                                  "synthetic"])
 @pytest.mark.parametrize("impl", ["cudnn", "xla"])
 def test_model_options_override_from_the_command_line(name, impl):
-  from ufm_jax.models import ufm
+  from ufm_jax.models import variants
   assert _parse(name).model.attention_impl is None   # auto
   config = _parse(name, f"--config.model.attention_impl={impl}", "--config.model.scan_blocks=False",
                   "--config.model.head_dtype=bfloat16")
   assert config.model.attention_impl == impl
   assert config.model.scan_blocks is False and config.model.head_dtype == "bfloat16"
-  # Every key is a UFMConfig field, so the variant accepts the block (train.build_model).
-  cfg = ufm.UFMConfig().replace(**config.model.to_dict())
+  # Every key is a field of the variant's config, so it accepts the block (trainer.build_model).
+  cfg = variants.get(config.model_name, **config.model.to_dict())
   assert cfg.attention_impl == impl and cfg.scan_blocks is False
 
 
@@ -66,7 +68,8 @@ def _none_leaves(c, prefix=""):
 _NOT_SETTABLE = {"input.datasets.synthetic.root", "evals.heldout.root"}
 
 
-@pytest.mark.parametrize("name", ["ufm560", "ufm980", "ufm560_refine", "synthetic"])
+@pytest.mark.parametrize("name", ["ufm560", "ufm980", "ufm560_refine", "ufm980_refine",
+                                  "synthetic"])
 def test_every_none_default_can_be_set_from_the_command_line(name):
   """`--config.total_steps=1000` or `--config.matmul_precision=highest` on a plain None field
   stops train.py at flag parsing; each None default must carry its type."""

@@ -40,15 +40,67 @@ def test_labels_groups_and_frozen():
 
 
 def test_schedule_warmup_and_cosine_closed_form():
-  s = optim.lr_schedule(1e-4, total_steps=100, warmup_frac=0.1)
-  assert float(s(0)) == 0.0
-  assert float(s(5)) == pytest.approx(0.5e-4, rel=1e-6)
-  assert float(s(10)) == pytest.approx(1e-4, rel=1e-6)
+  s = optim.cosine_schedule(1e-4, total_steps=100, warmup_steps=10)
+  assert s(0) == 0.0 and float(s(jnp.int32(0))) == 0.0
+  assert s(5) == pytest.approx(0.5e-4, rel=1e-12)
+  assert s(10) == pytest.approx(1e-4, rel=1e-12)
   # cosine from step 10 to 100: lr = peak * 0.5 * (1 + cos(pi * (t-10)/90))
   for t in (30, 55, 90):
-    assert float(s(t)) == pytest.approx(1e-4 * 0.5 * (1 + math.cos(math.pi * (t - 10) / 90)),
-                                        rel=1e-5)
-  assert float(s(100)) == pytest.approx(0.0, abs=1e-12)
+    expect = 1e-4 * 0.5 * (1 + math.cos(math.pi * (t - 10) / 90))
+    assert s(t) == pytest.approx(expect, rel=1e-12)
+    assert float(s(jnp.int32(t))) == pytest.approx(expect, rel=6e-8)   # float64 rounded once
+  assert s(100) == pytest.approx(0.0, abs=1e-20) and s(1000) == s(100)
+
+
+def test_schedule_min_lr_rate_and_fractional_warmup():
+  # The official 560 recipe: 4.8 warmup epochs x 21 steps = 100.8 steps, 1% floor.
+  s = optim.cosine_schedule(1e-4, total_steps=1008, warmup_steps=100.8, min_lr_rate=0.01)
+  assert s(100) == pytest.approx(1e-4 * 100 / 100.8, rel=1e-12)
+  assert s(101) < 1e-4   # the peak itself is never reached
+  assert s(101) == pytest.approx(1e-4 * (0.01 + 0.99 * 0.5 * (1 + math.cos(
+      math.pi * 0.2 / 907.2))), rel=1e-12)
+  assert s(1008) == pytest.approx(1e-6, rel=1e-12)
+  c = ml_collections.ConfigDict({"warmup_epochs": 4.8, "fractional_warmup": True})
+  assert optim.warmup_steps(c, 1008, 21) == pytest.approx(100.8)
+  c.fractional_warmup = False
+  assert optim.warmup_steps(c, 1008, 21) == 101.0
+  with pytest.raises(ValueError, match="steps per epoch"):
+    optim.warmup_steps(c, 1008, None)
+  assert optim.warmup_steps(ml_collections.ConfigDict({"warmup_frac": 0.1}), 1008, None) == 101.0
+
+
+def test_zero_lr_groups_are_frozen_and_lr_keys_without_params_ignored():
+  params = _params()
+  c = _cfg(lr={"default": 1e-4, "encoder": 0.0, "unet_feature": 1e-3})
+  tx, labels, sched = optim.make_optimizer(c, params, total_steps=10)
+  assert labels["encoder"]["blocks_0"]["kernel"] == "frozen" and set(sched) == {"default"}
+  # Without "default", a parameter in no group is an error naming it.
+  c = _cfg()
+  c.lr = ml_collections.ConfigDict({"encoder": 1e-4})
+  with pytest.raises(ValueError, match="head1/conv/bias"):
+    optim.make_optimizer(c, params, total_steps=10)
+  c.lr = ml_collections.ConfigDict({"default": 1e-4})
+  with pytest.raises(ValueError, match="no learning rate for the groups \\['encoder'\\]"):
+    optim.make_optimizer(c, params, total_steps=10)
+
+
+def test_official_groups_of_our_parameter_paths():
+  paths = {"encoder/blocks/attn/qkv/kernel": "encoder", "info_sharing/norm/scale": "info_sharing",
+           "head1_0_0/scratch/refinenet1/out_conv/kernel": "output_head",
+           "uncertainty_head_0_1/conv1/bias": "uncertainty_head",
+           "classification_head/mlp/fc1/kernel": "classification_head",
+           "unet_feature/downs_0/conv_0/kernel": "unet_feature", "conv1/kernel": "unet_feature",
+           "conv2/bias": "unet_feature", "classification_bias": "unet_feature"}
+  tree = {}
+  for p in paths:
+    node = tree
+    *parents, leaf = p.split("/")
+    for k in parents:
+      node = node.setdefault(k, {})
+    node[leaf] = jnp.zeros(1)
+  labels = optim.param_labels(tree, optim.PARAM_GROUPS)
+  got = {optim.path_str(k): v for k, v in jax.tree_util.tree_flatten_with_path(labels)[0]}
+  assert got == paths
 
 
 def test_first_adamw_step_per_group_lr_and_decoupled_decay():

@@ -133,7 +133,7 @@ def test_pairs_folder_on_disk_with_a_truncated_png(tmp_path, caplog):
 
 def test_synthetic_config_shift_args_reach_the_pipeline():
   c = _synthetic_config("pairs=shift,loss=l1,steps=4,batch=4,size=28,max_shift=3,aligned=0.0")
-  assert dict(c.loss_kwargs)["alpha"] == 1.0 and dict(c.loss_kwargs)["c"] == 0.01
+  assert c.loss.robust_epe.alpha == 1.0 and c.loss.robust_epe.c == 0.01
   assert c.evals.heldout.kwargs.pair_type == "shift" and c.evals.heldout.kwargs.max_shift == 3
   # The curriculum (patch-aligned shifts) is for training only; the held-out pairs have none.
   assert c.input.datasets.synthetic.options.aligned_shift_frac == 0.0
@@ -145,7 +145,7 @@ def test_synthetic_config_shift_args_reach_the_pipeline():
     flow = b["flow"][k]
     assert (flow == flow[0, 0]).all() and np.abs(flow).max() <= 3
   np.testing.assert_array_equal(b["flow"][1], -b["flow"][0])  # symmetrized (a, b), (b, a)
-  assert dict(_synthetic_config(None).loss_kwargs)["alpha"] == 1.0  # the README run's
-  assert dict(_synthetic_config("loss=paper").loss_kwargs)["alpha"] == 0.5
+  assert _synthetic_config(None).loss.robust_epe.alpha == 1.0  # the README run's
+  assert _synthetic_config("loss=paper").loss.robust_epe.alpha == 0.5
   with pytest.raises(ValueError, match="loss must be"):
     _synthetic_config("loss=huber")

@@ -145,12 +145,15 @@ def test_trained_workdir_exports_and_loads_back(tmp_path, capsys):
   tx, labels, _ = optim.make_optimizer(ocfg, init, total_steps=3)
   state = optim.TrainState.create(init, tx)
 
+  recipe = losses.Recipe((("robust_epe", losses.FlowRegression(alpha=1.0, c=0.01)),
+                          ("covisibility_ce", losses.CovisibilityBCE())))
+
   @jax.jit
   def train_step(state, batch):
     def loss_fn(trainable, frozen):   # the synthetic config's loss (loss=l1: alpha 1, c 0.01)
       p = optim.merge_params(trainable, jax.lax.stop_gradient(frozen))
       out = model.apply({"params": p}, batch["image0"], batch["image1"])
-      return losses.ufm_loss(out, batch, alpha=1.0, c=0.01)[0]
+      return recipe(out, batch)[0]
     trainable, frozen = optim.split_trainable(state.params, labels)
     loss, g = jax.value_and_grad(loss_fn)(trainable, frozen)
     grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))

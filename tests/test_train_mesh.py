@@ -40,7 +40,7 @@ def test_sharded_step_equals_single_device(tmp_path):
   m_mesh, m_single = read_metrics(runs["mesh"]), read_metrics(runs["single"])
   for a, b in zip(m_mesh, m_single):
     assert a["loss"] == pytest.approx(b["loss"], rel=1e-5)
-    assert a["loss_flow"] == pytest.approx(b["loss_flow"], rel=1e-5)
+    assert a["loss_robust_epe"] == pytest.approx(b["loss_robust_epe"], rel=1e-5)
   s_mesh, _ = checkpoint.read_state_numpy(runs["mesh"], 2)
   s_single, _ = checkpoint.read_state_numpy(runs["single"], 2)
   flat_a = model_init.flatten(s_mesh["params"])

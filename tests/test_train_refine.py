@@ -45,4 +45,5 @@ def test_refine_stage_trains_only_the_refiner(tmp_path):
   n_state = sum(v.size for v in jax.tree.leaves(s3["opt_state"]) if np.ndim(v) > 0)
   assert n_state == 2 * n_refiner
   rec = [json.loads(l) for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
-  assert "loss_refine" in rec[-1] and "refine_inside_frac" in rec[-1]
+  assert "loss_refinement_cross_entropy" in rec[-1]
+  assert "refinement_cross_entropy/ratio_in_refinement_range" in rec[-1]

@@ -47,7 +47,8 @@ def test_synthetic_config_learns(tmp_path):
   first = sum(m["loss"] for m in metrics[:10]) / 10
   last = sum(m["loss"] for m in metrics[-10:]) / 10
   assert last < first, (first, last)
-  for key in ("step", "epoch", "loss", "loss_flow", "loss_covis", "lr", "lr_encoder", "pairs_per_s"):
+  for key in ("step", "epoch", "loss", "loss_robust_epe", "loss_covisibility_ce", "lr", "lr_encoder",
+              "pairs_per_s"):
     assert key in metrics[-1]
   # What users see besides the metrics: the config, the command and TensorBoard events.
   assert json.loads((tmp_path / "config.json").read_text())["model_name"] == "tiny"

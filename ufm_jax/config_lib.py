@@ -44,19 +44,11 @@ def unset(field_type) -> ml_collections.FieldReference:
   return ml_collections.FieldReference(None, field_type=field_type)
 
 
-def ufm_optim(lr=1e-4, encoder_lr=5e-6) -> ml_collections.ConfigDict:
-  """The paper's AdamW: (0.9, 0.95), weight decay 0.05, 10% warmup then cosine, per-group lr."""
-  return ml_collections.ConfigDict({
-      "lr": {"default": lr, "encoder": encoder_lr}, "groups": {"encoder": r"^encoder/"},
-      "b1": 0.9, "b2": 0.95, "eps": 1e-8, "weight_decay": 0.05, "no_decay": unset(str),
-      "warmup_frac": 0.1, "end_lr_frac": 0.0, "grad_clip_norm": unset(float),
-      "frozen": unset(str), "trainable": unset(str)})
-
-
 def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
-  """The keys every UFM training config shares (mesh, sharding, checkpoints, logging, loss)."""
+  """The machinery keys every UFM training config shares (mesh, sharding, checkpoints, logging);
+  the recipe itself (optim, loss, model, input) is written out in each config file."""
   c.seed = 0
-  c.total_steps = unset(int)    # None: num_epochs * pairs per epoch / batch size
+  c.total_steps = unset(int)    # None: num_epochs * (pairs per epoch // batch size)
   c.mesh = "data:-1,fsdp:1"     # e.g. "data:2,fsdp:4" to shard params/opt state over 4 devices
   # FSDP over the largest divisible dimension; tensors under `sharding_min_size` entries (biases,
   # norms, layer scales) stay replicated.
@@ -73,9 +65,6 @@ def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
   # Consecutive updates skipped for a non-finite loss or gradient before the run stops with exit
   # status 1 (a diverged run; restarting it would only replay the divergence). 0: never stop.
   c.max_nonfinite_steps = 100
-  c.loss = "ufm"
-  c.loss_kwargs = ml_collections.ConfigDict(
-      {"covis_weight": 10.0, "alpha": 0.5, "c": 0.24, "flow_pixels": "covisible"})
   c.apply_kwargs = {"symmetrized": True}  # rows (2i, 2i+1) are (a, b), (b, a): encode once
   c.matmul_precision = unset(str)  # e.g. "highest": float32 matmuls in full float32 on GPU
   return c

@@ -1,95 +1,356 @@
-"""Training losses of UFM (paper eq. 2-3): robust flow regression + covisibility BCE.
+"""The training losses of UFM as the official training code computes them.
 
-The refinement-stage cross-entropy lives with the refiner (`ufm_jax.refine_training`).
+Official: `uniflowmatch/loss/{epe,cross_entropy,refinement_cross_entropy_efficient}.py` and
+`training/train_pl.py:58-85` on the `train` branch of etola/UFM (d8c421e). A recipe is a list of
+terms summed in config order (the official YAML order, `configs/loss/*.yaml`):
+
+  type "robust"         RobustRegressionLoss: Barron's robust loss of the flow error (paper eq. 2)
+  type "epe"            FlowEPELoss: the end-point error itself
+  type "bce"            CrossEntropyLoss: covisibility BCE on logits (paper eq. 3)
+  type "refinement_ce"  RefinementCrossEntropyLossEfficient (ufm_jax.refine_training)
+  type "refinement_ce_eval"  RefinementCrossEntropyLoss, the refine recipes' test loss
+
+Every official quirk is a field of its term with the official behaviour as default; the field's
+comment says what the alternative changes. docs/recipe.md lists them with their file:line.
+
+Batch (NHWC, `ufm_jax.data.pipeline`): flow [B,H,W,2] (may hold NaN or huge values where the
+dataset stores invalid flow that way), covisibility [B,H,W] (official `non_occluded_mask`),
+covis_valid (official `occlusion_supervision_mask`), flow_valid (no official counterpart; used only
+where said), dataset_id. Outputs: flow [B,H,W,2], covisibility_logits [B,H,W]; refinement models
+also flow_before_refinement, feature_map_0/1 [B,H,W,C], attention_bias [P*P]. The regression
+terms read `flow_before_refinement` when present: in training mode the official refinement model
+returns the regressed flow as `flow.flow_output` (models/ufm.py:1000-1022).
+
+Official batches are symmetrized ((a, b), (b, a) rows) and every loss averages over all rows
+together (`batch[0]` holds both directions after `make_batch_symmetric`).
 """
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any, Mapping, Optional, Sequence, Tuple
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-# The paper follows RoMa: alpha=0.5, c=0.24 (supplementary "Visualization on the Robust Charbonnier
-# Loss"). dL/dx peaks at x = c*sqrt(3) ~ 0.416 px and is still ~0.124 at 500 px.
-ALPHA = 0.5
-SCALE = 0.24
-COVIS_WEIGHT = 10.0
+# Thresholds (px) of the official outlier-ratio logs (loss/epe.py:190, 309).
+OUTLIER_THRESHOLDS = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0)
+# |GT component| above which the official code treats flow as an invalid marker (KITTI/HD1K
+# store 4000): loss/epe.py:174, 282.
+MAX_GT = 2048.0
 
 
-def robust_charbonnier(x, alpha: float = ALPHA, c: float = SCALE):
-  """Barron's general robust loss, rho(x) = |a-2|/a * (((x/c)^2/|a-2| + 1)^(a/2) - 1).
+def end_point_error(d, eps: float = 0.0):
+  """|d| over the last axis. eps = 0: the plain norm with torch's zero gradient at an exactly zero
+  residual (a naive jnp norm gives NaN there); eps > 0: sqrt(|d|^2 + eps^2), smooth everywhere."""
+  sq = jnp.sum(jnp.square(d), axis=-1)
+  if eps:
+    return jnp.sqrt(sq + eps * eps)
+  return jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
 
-  Valid for alpha not in {0, 2}; UFM only uses alpha=0.5. Applied to the (non-negative) end-point
-  error, so it is a function of the squared error and smooth at 0.
-  """
+
+def robust_charbonnier(x, alpha: float = 0.5, c: float = 0.24):
+  """Barron's general robust loss of an error x, as a function of x^2 (smooth at 0):
+  |a-2|/a * (((x/c)^2/|a-2| + 1)^(a/2) - 1); alpha not in {0, 2}."""
+  return _robust_of_squared(jnp.square(x / c), alpha)
+
+
+def _robust_of_squared(e, alpha):
   if alpha in (0.0, 2.0):
-    raise ValueError(f"robust_charbonnier: alpha={alpha} needs the limit form; UFM uses 0.5")
+    raise ValueError(f"robust loss: alpha={alpha} needs the limit form; UFM uses 0.5")
   b = abs(alpha - 2.0)
-  return b / alpha * ((jnp.square(x / c) / b + 1.0) ** (alpha / 2.0) - 1.0)
+  return b / alpha * ((e / b + 1.0) ** (alpha / 2.0) - 1.0)
 
 
-def masked_mean(values, mask):
-  mask = mask.astype(values.dtype)
-  # max(.,1): a batch without any valid pixel contributes 0 rather than NaN.
-  return jnp.sum(values * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+def masked_mean(values, mask, eps: Optional[float]):
+  """sum(values * mask) / (sum(mask) + eps); eps None: / max(sum(mask), 1)."""
+  m = mask.astype(values.dtype)
+  n = jnp.sum(m)
+  return jnp.sum(values * m) / (n + eps if eps is not None else jnp.maximum(n, 1.0))
 
 
-def end_point_error(flow_pred, flow_gt):
-  """Per-pixel EPE [..., H, W] with a gradient that stays finite at zero error."""
-  sq = jnp.sum(jnp.square(flow_pred - flow_gt), axis=-1)
-  # sqrt'(0) is inf; the robust loss is a function of sq anyway, but the EPE itself is logged.
-  safe = jnp.where(sq > 0, sq, 1.0)
-  return jnp.where(sq > 0, jnp.sqrt(safe), 0.0)
+def _ones_like_mask(x):
+  return jnp.ones(x.shape[:-1], bool)
 
 
-def flow_loss(flow_pred, flow_gt, flow_valid, alpha: float = ALPHA, c: float = SCALE):
-  """L_EPE: robust Charbonnier of the EPE averaged over `flow_valid` pixels (all images pooled)."""
-  epe = end_point_error(flow_pred.astype(jnp.float32), flow_gt.astype(jnp.float32))
-  return masked_mean(robust_charbonnier(epe, alpha, c), flow_valid)
+def pixel_grid(h: int, w: int):
+  """(x [1,1,W], y [1,H,1]) float32 integer pixel indices (the official meshgrids)."""
+  return (jnp.arange(w, dtype=jnp.float32)[None, None, :],
+          jnp.arange(h, dtype=jnp.float32)[None, :, None])
 
 
-def covisibility_bce(logits, covisibility, covis_valid):
-  """Binary cross-entropy on logits averaged over `covis_valid` pixels.
+def invalid_gt_mask(gt, max_gt: float = MAX_GT):
+  """Pixels whose GT the official code filters out of its logs and refinement: any NaN
+  component or |u| + |v| >= max_gt (a NaN sum compares False, so NaN is caught twice)."""
+  return jnp.isnan(gt).any(-1) | ~(jnp.sum(jnp.abs(gt), -1) < max_gt)
 
-  Uses log-sigmoid (softplus) forms, so large |logits| neither overflow nor produce log(0).
+
+@dataclasses.dataclass(frozen=True)
+class FlowRegression:
+  """RobustRegressionLoss (kind "robust", loss/epe.py:215-329) and FlowEPELoss (kind "epe",
+  loss/epe.py:10-212): the masked mean of a per-pixel flow error.
+
+  Mask: range "covisible" = `covisibility` (official supervision_range 'occlusion'); "all" = the
+  GT target (integer pixel index + flow) inside [-margin W, (1+margin) W) x [-margin H,
+  (1+margin) H) (official 'all' with fov_threshold = margin, loss/epe.py:75-105), and only where
+  the batch has ground truth (flow_valid: the official datasets encode missing flow as 4000 px,
+  which that range test excludes).
   """
-  logits = logits.astype(jnp.float32)
-  target = covisibility.astype(jnp.float32)
-  per_pixel = -(target * jax.nn.log_sigmoid(logits) + (1.0 - target) * jax.nn.log_sigmoid(-logits))
-  return masked_mean(per_pixel, covis_valid)
+  kind: str = "robust"              # "robust" | "epe"
+  range: str = "covisible"          # "covisible" | "all"
+  margin: float = 0.25              # range "all": tolerance as a fraction of W and H
+  alpha: float = 0.5                # robust: Barron alpha (paper / RoMa)
+  c: float = 0.24                   # robust: scale (px)
+  multiplier: float = 1.0
+  # Quirk (epe.py:209, 329: the loss is returned without `multiplier`): False adds the plain
+  # mean to the total whatever the multiplier (the refine-560 `epe` term, multiplier 0, adds its
+  # full value); True multiplies it in.
+  multiplier_applied: bool = False
+  # Quirk (epe.py:271-282): "zero" sets NaN GT components and components beyond max_gt to 0 and
+  # keeps the pixel in the mean (a residual against 0; in range "all" a NaN target passes the
+  # margin test); "drop" removes such pixels, and pixels with flow_valid False, from the mask.
+  invalid_gt: str = "zero"
+  max_gt: float = MAX_GT
+  # Quirk (epe.py:186, 293): the mean divides by sum(mask) + eps; None divides by max(sum, 1).
+  eps: Optional[float] = 1e-4
+  # Quirk (kind "epe", epe.py:177): 0 = the plain norm, gradient 0 at an exactly zero residual
+  # (torch's linalg.norm backward); > 0: sqrt(|r|^2 + epe_eps^2).
+  epe_eps: float = 0.0
+
+  def __post_init__(self):
+    _check_choice("kind", self.kind, ("robust", "epe"))
+    _check_choice("range", self.range, ("covisible", "all"))
+    _check_choice("invalid_gt", self.invalid_gt, ("zero", "drop"))
+
+  def mask(self, batch, gt):
+    """(supervision mask, the official NaN/max_gt-filtered mask used by the logs)."""
+    flow_valid = batch.get("flow_valid")
+    flow_valid = _ones_like_mask(gt) if flow_valid is None else flow_valid.astype(bool)
+    nan = jnp.isnan(gt).any(-1)
+    if self.range == "covisible":
+      base = batch["covisibility"].astype(bool)
+    else:
+      h, w = gt.shape[1:3]
+      xs, ys = pixel_grid(h, w)
+      tx, ty = xs + gt[..., 0], ys + gt[..., 1]
+      m = self.margin
+      outside = (tx < -m * w) | (ty < -m * h) | (tx >= (1 + m) * w) | (ty >= (1 + m) * h)
+      base = ~outside & (flow_valid | nan)
+    filtered = base & ~invalid_gt_mask(gt, self.max_gt)
+    mask = base if self.invalid_gt == "zero" else filtered & flow_valid
+    return mask, filtered
+
+  def __call__(self, outputs, batch, shared, ctx):
+    gt, pred = shared["gt"], shared["pred"]
+    mask, filtered = self.mask(batch, gt)
+    gt = jnp.where(jnp.isnan(gt), 0.0, gt)
+    gt = jnp.where(jnp.abs(gt) > self.max_gt, 0.0, gt)
+    pred = jnp.where(jnp.isnan(pred), 0.0, pred)
+    d = pred - gt
+    if self.kind == "robust":
+      per_pixel = _robust_of_squared(jnp.sum(jnp.square(d / self.c), -1), self.alpha)
+    else:
+      per_pixel = end_point_error(d, self.epe_eps)
+    value = masked_mean(per_pixel, mask, self.eps)
+    loss = value * self.multiplier if self.multiplier_applied else value
+    logs = self._logs(value, jax.lax.stop_gradient(d), mask, filtered)
+    return loss, logs, dict(shared, gt=gt, pred=pred)
+
+  def _logs(self, value, d, mask, filtered):
+    """The official log dict (epe.py:188-209, 295-327), keyed as there."""
+    where = "non_occluded_mask" if self.range == "covisible" else "all"
+    epe = end_point_error(d)
+    n = jnp.sum(filtered.astype(jnp.float32))
+    mean_epe = masked_mean(epe, mask, self.eps)
+    px = jnp.sum(jnp.where(filtered, epe, 0.0)) / n          # NaN when nothing is supervised
+    if self.kind == "robust":
+      logs = {f"robust_epe@{where}": value, f"flow_epe[flow_output]@{where}": mean_epe,
+              f"px_robust_epe@{where}": px}
+      prefix = "flow_output_pixel_outlier"
+    else:
+      logs = {f"flow_epe@{where}": value, f"px_flow_epe@{where}": px}
+      prefix = "pixel_outlier"
+    for i, t in enumerate(OUTLIER_THRESHOLDS):
+      count = jnp.sum((filtered & (epe > t)).astype(jnp.float32))
+      logs[f"{prefix}/lv{i + 1}"] = jnp.where(n > 0, count / jnp.maximum(n, 1.0), count)
+    return logs
 
 
-def flow_supervision_mask(batch, flow_pixels: str = "covisible"):
-  """Pixels whose flow is supervised: "covisible" (paper eq. 2, UFM-560: flow_valid & covisible)
-  or "all" (the 980 bootstrap: every pixel with ground-truth flow, as optical-flow benchmarks)."""
-  if flow_pixels == "covisible":
-    return batch["flow_valid"].astype(bool) & batch["covisibility"].astype(bool)
-  if flow_pixels == "all":
-    return batch["flow_valid"].astype(bool)
-  raise ValueError(f"flow_pixels must be 'covisible' or 'all', got {flow_pixels!r}")
+@dataclasses.dataclass(frozen=True)
+class CovisibilityBCE:
+  """CrossEntropyLoss with target 'occlusion' (loss/cross_entropy.py:76-103): binary
+  cross-entropy of `covisibility_logits` against `covisibility`, summed over `covis_valid`."""
+  multiplier: float = 10.0
+  # Quirk (cross_entropy.py:98): divides by sum(valid) + eps; None divides by max(sum, 1).
+  eps: Optional[float] = 1e-6
+
+  def __call__(self, outputs, batch, shared, ctx):
+    x = outputs["covisibility_logits"].astype(jnp.float32)
+    t = batch["covisibility"].astype(jnp.float32)
+    per_pixel = -(t * jax.nn.log_sigmoid(x) + (1.0 - t) * jax.nn.log_sigmoid(-x))
+    ce = masked_mean(per_pixel, batch["covis_valid"], self.eps)
+    return self.multiplier * ce, {"occlusion_ce": ce}, shared
 
 
-def ufm_loss(outputs, batch, covis_weight: float = COVIS_WEIGHT, alpha: float = ALPHA,
-             c: float = SCALE, flow_pixels: str = "covisible"):
-  """Total loss L = L_EPE + covis_weight * L_BCE, plus the terms and a few diagnostics.
+def _check_choice(name, value, choices):
+  if value not in choices:
+    raise ValueError(f"loss option {name}={value!r}; expected one of {choices}")
 
-  `outputs`: model dict with "flow" [B,H,W,2] and "covisibility_logits" [B,H,W].
-  `batch`: dict with "flow", "covisibility", "flow_valid", "covis_valid".
-  `flow_pixels`: see `flow_supervision_mask`.
-  Returns (loss, aux) with aux = {loss_flow, loss_covis, epe, covis_acc}.
+
+def term_types() -> dict:
+  """Config `type` -> term class."""
+  from ufm_jax import refine_training
+  return {"robust": FlowRegression, "epe": FlowRegression, "bce": CovisibilityBCE,
+          "refinement_ce": refine_training.RefinementCE,
+          "refinement_ce_eval": refine_training.RefinementCEEval}
+
+
+def make_term(spec: Mapping[str, Any], name: str = "?"):
+  """A term from its config block {"type": ..., field: value, ...}; unknown fields raise."""
+  spec = dict(spec)
+  kind = spec.pop("type", None)
+  types = term_types()
+  if kind not in types:
+    raise ValueError(f"loss term {name!r}: type {kind!r}; expected one of {sorted(types)}")
+  cls = types[kind]
+  if cls is FlowRegression:
+    spec["kind"] = kind
+  fields = {f.name for f in dataclasses.fields(cls)}
+  unknown = sorted(set(spec) - fields)
+  if unknown:
+    raise ValueError(f"loss term {name!r} ({kind}): unknown keys {unknown}; known: "
+                     f"{sorted(fields - {'kind'})}")
+  return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in spec.items()})
+
+
+def from_official(class_name: str, kwargs: Mapping[str, Any]) -> dict:
+  """The term config equivalent to an official loss YAML entry (`class`, `kwargs`)."""
+  kw = dict(kwargs)
+  kw.pop("minimum_mask_threshold", None)   # stored but never used (epe.py:179-181)
+  mult = float(kw.pop("multiplier", 1.0))
+
+  def supervision_range():
+    r = kw.pop("supervision_range", "occlusion")
+    if r not in ("occlusion", "all"):
+      raise ValueError(f"{class_name}: supervision_range {r!r} has no equivalent here")
+    return "covisible" if r == "occlusion" else "all"
+
+  if class_name in ("RobustRegressionLoss", "FlowEPELoss"):
+    out = {"type": "robust" if class_name == "RobustRegressionLoss" else "epe",
+           "multiplier": mult, "range": supervision_range(),
+           "margin": float(kw.pop("fov_threshold", 0.0))}
+    if class_name == "RobustRegressionLoss":
+      out["alpha"] = float(kw.pop("alpha", 0.5))
+      out["c"] = float(kw.pop("c", 0.03))
+      if kw.pop("target", "flow_output") != "flow_output":
+        raise ValueError("RobustRegressionLoss: only target 'flow_output' is supported")
+  elif class_name == "CrossEntropyLoss":
+    if kw.pop("target", "occlusion") != "occlusion" or \
+       kw.pop("target_supervision_mask", None) != "occlusion_supervision_mask":
+      raise ValueError("CrossEntropyLoss: only target 'occlusion' with target_supervision_mask "
+                       "'occlusion_supervision_mask' is supported")
+    out = {"type": "bce", "multiplier": mult}
+  elif class_name in ("RefinementCrossEntropyLossEfficient", "RefinementCrossEntropyLoss"):
+    if supervision_range() != "covisible" or \
+       kw.pop("supervision_strategy", "4_point_average") != "4_point_average":
+      raise ValueError(f"{class_name}: only supervision_range 'occlusion' with "
+                       "supervision_strategy '4_point_average' is supported")
+    out = {"type": "refinement_ce" if class_name.endswith("Efficient") else "refinement_ce_eval",
+           "multiplier": mult}
+  else:
+    raise ValueError(f"official loss class {class_name!r} has no equivalent here")
+  if kw:
+    raise ValueError(f"{class_name}: unsupported kwargs {sorted(kw)}")
+  return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+  """Terms summed in order; `__call__(outputs, batch, rng=, suitable_rows=)` -> (loss, aux).
+
+  aux: "loss_<term>" (what the term adds to the total) and "<term>/<official log key>".
   """
-  flow_mask = flow_supervision_mask(batch, flow_pixels)
-  l_flow = flow_loss(outputs["flow"], batch["flow"], flow_mask, alpha, c)
-  l_covis = covisibility_bce(outputs["covisibility_logits"], batch["covisibility"],
-                             batch["covis_valid"])
-  loss = l_flow + covis_weight * l_covis
-  epe = end_point_error(jax.lax.stop_gradient(outputs["flow"]).astype(jnp.float32),
-                        batch["flow"].astype(jnp.float32))
-  pred_covis = outputs["covisibility_logits"] > 0
-  acc = (pred_covis == batch["covisibility"].astype(bool)).astype(jnp.float32)
-  aux = {
-      "loss_flow": l_flow,
-      "loss_covis": l_covis,
-      "epe": masked_mean(epe, flow_mask),
-      "covis_acc": masked_mean(acc, batch["covis_valid"]),
-  }
-  return loss, aux
+  terms: Tuple[Tuple[str, Any], ...]
+  # Quirk (epe.py:274-282, refinement_cross_entropy_efficient.py:184): the official terms zero NaN
+  # (and > max_gt) GT and NaN predictions *in place*, in the tensors every later term reads, so
+  # e.g. the refinement loss after a regression term supervises NaN-GT pixels towards 0. False:
+  # each term sees the batch and outputs as given.
+  shared_cleanup: bool = True
+  temperature: Optional[float] = None    # the refinement model's (RefinementCE reads it)
+  # Rows in official batches that may supervise the refinement: dataset names -> per-row flags.
+  dataset_names: Optional[Tuple[str, ...]] = None
+  # The official runs are DDP: each of N GPUs takes the loss over its own rows (its own means
+  # and pixel cap) and the gradients are averaged, i.e. the total is the mean of N per-group
+  # losses over consecutive row blocks. N of the paper's runs is not known (the 560 script's
+  # comment mentions 8 GPUs); 1 pools the whole batch.
+  groups: int = 1
+
+  def __call__(self, outputs, batch, rng=None, suitable_rows=None):
+    if rng is None:
+      rng = jax.random.PRNGKey(0)
+    if suitable_rows is None:
+      suitable_rows = self.suitable_rows(batch)
+    if self.groups == 1:
+      return self._pooled(outputs, batch, rng, suitable_rows)
+    b = batch["flow"].shape[0]
+    if b % self.groups:
+      raise ValueError(f"loss.groups={self.groups} does not divide the batch of {b} rows")
+
+    def split(tree):   # [B, ...] leaves -> [G, B/G, ...]; others (attention_bias) shared
+      return jax.tree.map(lambda x: x.reshape((self.groups, b // self.groups) + x.shape[1:])
+                          if getattr(x, "ndim", 0) and x.shape[0] == b else x, tree)
+
+    def axes(tree):
+      return jax.tree.map(lambda x: 0 if getattr(x, "ndim", 0) and x.shape[0] == b else None,
+                          tree)
+
+    total, aux = jax.vmap(self._pooled, in_axes=(axes(outputs), axes(batch), 0,
+                                                 None if suitable_rows is None else 0))(
+        split(outputs), split(batch), jax.random.split(rng, self.groups), split(suitable_rows))
+    return jnp.mean(total), jax.tree.map(jnp.mean, aux)
+
+  def _pooled(self, outputs, batch, rng, suitable_rows):
+    pred = outputs.get("flow_before_refinement", outputs.get("flow"))
+    shared = {"gt": batch["flow"].astype(jnp.float32),
+              "pred": None if pred is None else pred.astype(jnp.float32)}
+    ctx = {"temperature": self.temperature, "suitable_rows": suitable_rows}
+    total = jnp.zeros((), jnp.float32)
+    aux = {}
+    for i, (name, term) in enumerate(self.terms):
+      ctx["rng"] = jax.random.fold_in(rng, i)
+      loss, logs, after = term(outputs, batch, shared, ctx)
+      if self.shared_cleanup:
+        shared = after
+      total = total + loss
+      aux[f"loss_{name}"] = loss
+      aux.update({f"{name}/{k}": v for k, v in logs.items()})
+    return total, aux
+
+  def suitable_rows(self, batch):
+    """Per-row `suitable_for_refinement` from batch["dataset_id"] (None: every row)."""
+    datasets = [t.datasets for _, t in self.terms if getattr(t, "datasets", None) is not None]
+    if not datasets or self.dataset_names is None or "dataset_id" not in batch:
+      return None
+    table = np.array([n in datasets[0] for n in self.dataset_names], bool)
+    return jnp.asarray(table)[batch["dataset_id"]]
+
+
+def recipe_from_config(cfg: Mapping[str, Any], temperature: Optional[float] = None,
+                       dataset_names: Optional[Sequence[str]] = None) -> Recipe:
+  """`config.loss` -> Recipe: {"terms": (names in order), name: {type, fields}, shared_cleanup,
+  groups}."""
+  cfg = dict(cfg.to_dict() if hasattr(cfg, "to_dict") else cfg)
+  names = tuple(cfg.pop("terms", ()))
+  if not names:
+    raise ValueError("config.loss.terms is empty: name the loss terms in the order they sum")
+  missing = [n for n in names if n not in cfg]
+  if missing:
+    raise ValueError(f"config.loss.terms names {missing} without a config.loss.<name> block")
+  terms = tuple((n, make_term(cfg.pop(n), n)) for n in names)
+  shared_cleanup = bool(cfg.pop("shared_cleanup", True))
+  groups = int(cfg.pop("groups", 1))
+  if cfg:
+    raise ValueError(f"config.loss: unknown keys {sorted(cfg)} (blocks not named in terms?)")
+  return Recipe(terms, shared_cleanup, temperature,
+                None if dataset_names is None else tuple(dataset_names), groups)

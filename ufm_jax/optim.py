@@ -1,19 +1,30 @@
-"""AdamW with per-group learning rates, cosine schedules, trainable filters and skip-on-non-finite.
+"""AdamW with per-group learning rates, the official cosine schedule, frozen groups and
+skip-on-non-finite.
 
-Parameter groups are chosen by regexes on the "/"-joined parameter path (first match wins, the rest
-is "default"); frozen parameters are labelled "frozen", get `optax.set_to_zero()` and therefore no
-optimizer state, and the train step takes no gradient for them (`split_trainable`).
+Parameter groups are chosen by regexes on the "/"-joined parameter path (first match wins; the
+rest is "default" when config.optim.lr has that key, else an error naming them, as the official
+`configure_optimizers` asserts every parameter is in a group). `PARAM_GROUPS` maps our paths to
+the official group names (`get_parameter_groups`, models/ufm.py:455-471, 664-682, 1213-1250 of
+the train branch). A group whose learning rate is 0 is frozen, as the official code drops it from
+the optimizer (train_pl.py:190-206): its parameters are labelled "frozen", get
+`optax.set_to_zero()` and no optimizer state, and the train step takes no gradient for them
+(`split_trainable`). Learning-rate keys of groups the model does not have are ignored (the
+official refinement model has no uncertainty head, yet its scripts set that group's rate).
 
 Config block (`config.optim`):
-  lr: {"default": 1e-4, "encoder": 5e-6, ...}   peak learning rate per group
-  groups: {"encoder": r"^encoder/"}              group name -> regex on the param path
-  frozen: r"..." or None                        params matching are frozen (e.g. the refine base)
-  trainable: r"..." or None                     if set, everything NOT matching is frozen
-  b1, b2, weight_decay, eps, warmup_frac, end_lr_frac, grad_clip_norm (None/0 = off)
+  lr: {"encoder": 5e-6, "info_sharing": 1e-4, ...}  peak learning rate per group (0: frozen)
+  groups: {"encoder": r"^encoder/", ...}              group name -> regex on the param path
+  frozen: r"..." or None                              params matching are frozen as well
+  trainable: r"..." or None                           if set, everything NOT matching is frozen
+  b1, b2, eps, weight_decay (on every parameter unless no_decay: a regex of exempt paths),
+  grad_clip_norm (one global norm over all gradients; None/0 = off),
+  warmup_epochs (official: epochs x steps per epoch, a float) or warmup_frac (of all steps),
+  fractional_warmup, min_lr_rate: see `cosine_schedule`.
 """
 
 from __future__ import annotations
 
+import math
 import re
 from typing import Any, Callable
 
@@ -21,10 +32,23 @@ import flax
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import traverse_util
 
 FROZEN = "frozen"
+
+# Our parameter paths -> the official parameter groups (module attributes of
+# UniFlowMatchConfidence / UniFlowMatchClassificationRefinement; the U-Net group also holds the
+# two feature combiners and the classification bias, models/ufm.py:1234-1239).
+PARAM_GROUPS = {
+    "encoder": r"^encoder/",
+    "info_sharing": r"^info_sharing/",
+    "output_head": r"^head1_",
+    "uncertainty_head": r"^uncertainty_head_",
+    "classification_head": r"^classification_head/",
+    "unet_feature": r"^(unet_feature/|conv1/|conv2/|classification_bias$)",
+}
 
 
 def path_str(path) -> str:
@@ -55,31 +79,86 @@ def param_labels(params, groups: dict[str, str] | None = None, frozen: str | Non
   return jax.tree_util.tree_map_with_path(label, params)
 
 
-def lr_schedule(peak: float, total_steps: int, warmup_frac: float = 0.1, end_frac: float = 0.0):
-  """Linear warmup from 0 over warmup_frac*total_steps, then cosine to end_frac*peak at total."""
-  warmup = int(round(warmup_frac * total_steps))
+class Schedule:
+  """A learning-rate schedule as a table over steps 0..total_steps, computed in float64 on the
+  host (`values`) and read on the device as float32: `schedule(count)` with a Python int gives
+  the float64 value, with an array (optax's step count) the float32 table entry. Steps past the
+  end keep the last value. float32 arithmetic of the cosine on the device would be off by up to
+  3e-7 relative; the table is the float64 value rounded once (< 6e-8)."""
+
+  def __init__(self, values: np.ndarray):
+    self.values = np.asarray(values, np.float64)
+
+  def __call__(self, count):
+    last = len(self.values) - 1
+    if isinstance(count, (int, np.integer)):
+      return float(self.values[min(max(int(count), 0), last)])
+    table = jnp.asarray(self.values.astype(np.float32))
+    return table[jnp.clip(count, 0, last)]
+
+
+def cosine_schedule(peak: float, total_steps: int, warmup_steps: float,
+                    min_lr_rate: float = 0.0) -> Schedule:
+  """transformers' get_cosine_with_min_lr_schedule_with_warmup (num_cycles 0.5) times `peak`:
+  factor(k) = k / max(1, W) for k < W, else max(0, f (1 - min_lr_rate) + min_lr_rate) with
+  f = 0.5 (1 + cos(pi * (k - W) / max(1, N - W))). The official recipes pass a fractional W
+  (4.8 epochs x 21 steps = 100.8: the peak itself is never used) and min_lr_rate 0.01; step 0
+  gets 0 whenever W > 0."""
   if total_steps <= 0:
     raise ValueError(f"total_steps must be positive, got {total_steps}")
-  return optax.warmup_cosine_decay_schedule(
-      init_value=0.0, peak_value=peak, warmup_steps=warmup,
-      decay_steps=max(total_steps, warmup + 1), end_value=peak * end_frac)
+  k = np.arange(total_steps + 1, dtype=np.float64)
+  progress = (k - warmup_steps) / float(max(1, total_steps - warmup_steps))
+  decay = np.maximum(0.0, 0.5 * (1.0 + np.cos(math.pi * 0.5 * 2.0 * progress))
+                     * (1 - min_lr_rate) + min_lr_rate)
+  factor = np.where(k < warmup_steps, k / float(max(1, warmup_steps)), decay)
+  return Schedule(peak * factor)
 
 
-def make_optimizer(ocfg, params, total_steps: int, trainable_fn=None):
+def warmup_steps(ocfg, total_steps: int, steps_per_epoch: float | None) -> float:
+  """Warmup length in (possibly fractional) steps: `warmup_epochs` x steps per epoch (rounded
+  to whole steps when `fractional_warmup` is False), else `warmup_frac` of all steps (rounded)."""
+  epochs = ocfg.get("warmup_epochs")
+  if epochs is None:
+    frac = ocfg.get("warmup_frac", 0.1)
+    if frac is None:
+      raise ValueError("config.optim: set warmup_epochs or warmup_frac")
+    return float(int(round(frac * total_steps)))
+  if not steps_per_epoch:
+    raise ValueError("config.optim.warmup_epochs needs the steps per epoch (num_epochs and a "
+                     "pipeline that knows its pairs per epoch); set optim.warmup_frac instead")
+  w = float(epochs) * steps_per_epoch
+  return w if ocfg.get("fractional_warmup", True) else float(round(w))
+
+
+def make_optimizer(ocfg, params, total_steps: int, trainable_fn=None,
+                   steps_per_epoch: float | None = None):
   """Returns (tx, labels, schedules): an optax transformation over the *full* param tree.
 
   `trainable_fn(path_str) -> bool` overrides `ocfg.trainable` (used for the refine stage filter).
+  `steps_per_epoch` turns `warmup_epochs` into steps (the official `len(train_dataloader) //
+  accumulate_grad_batches`). Schedules exist for the groups that train (lr > 0).
   """
-  lr = dict(ocfg.lr)
+  lr = {k: float(v) for k, v in dict(ocfg.lr).items()}
   groups = dict(ocfg.get("groups", {}) or {})
-  unknown = set(groups) - set(lr)
-  if unknown or "default" not in lr:
-    raise ValueError(f"config.optim.lr needs 'default' and one entry per group {sorted(groups)}; "
-                     f"got lr keys {sorted(lr)}")
   labels = param_labels(params, groups, ocfg.get("frozen"), trainable_fn or ocfg.get("trainable"))
-  used = set(jax.tree.leaves(labels))
-  schedules = {g: lr_schedule(lr[g], total_steps, ocfg.get("warmup_frac", 0.1),
-                              ocfg.get("end_lr_frac", 0.0)) for g in lr}
+  flat = traverse_util.flatten_dict(flax.core.unfreeze(labels), sep="/")
+  if "default" in flat.values() and "default" not in lr:
+    orphans = sorted(p for p, l in flat.items() if l == "default")
+    raise ValueError(f"{len(orphans)} parameters are in no group of config.optim.groups "
+                     f"({sorted(groups)}) and config.optim.lr has no 'default': "
+                     f"{', '.join(orphans[:5])}{' ...' if len(orphans) > 5 else ''}")
+  used = set(flat.values()) - {FROZEN}
+  missing = sorted(used - set(lr))
+  if missing:
+    raise ValueError(f"config.optim.lr has no learning rate for the groups {missing} "
+                     f"(it has {sorted(lr)})")
+  frozen_groups = {g for g in used if lr[g] == 0}
+  if frozen_groups:
+    labels = jax.tree.map(lambda l: FROZEN if l in frozen_groups else l, labels)
+  w = warmup_steps(ocfg, total_steps, steps_per_epoch)
+  min_rate = ocfg.get("min_lr_rate", 0.0)
+  schedules = {g: cosine_schedule(lr[g], total_steps, w, min_rate)
+               for g in sorted(used - frozen_groups)}
   wd = ocfg.get("weight_decay", 0.05)
   no_decay = ocfg.get("no_decay")
   wd_mask = None
@@ -90,7 +169,7 @@ def make_optimizer(ocfg, params, total_steps: int, trainable_fn=None):
   transforms = {
       g: optax.adamw(schedules[g], b1=ocfg.get("b1", 0.9), b2=ocfg.get("b2", 0.95),
                      eps=ocfg.get("eps", 1e-8), weight_decay=wd, mask=wd_mask)
-      for g in lr if g in used}
+      for g in schedules}
   transforms[FROZEN] = optax.set_to_zero()
   tx = optax.multi_transform(transforms, labels)
   clip = ocfg.get("grad_clip_norm")
@@ -159,4 +238,4 @@ def apply_gradients(state: TrainState, grads, loss, tx) -> tuple[TrainState, jnp
 
 def current_lrs(schedules, step) -> dict[str, float]:
   """Learning rate per group at `step` (the step whose update is being applied)."""
-  return {g: float(s(step)) for g, s in schedules.items()}
+  return {g: s(int(step)) for g, s in schedules.items()}

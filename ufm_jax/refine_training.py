@@ -1,106 +1,203 @@
-"""Training the refiner (paper, supplementary "Training the Refinement").
+"""The refinement losses of the official training code (supplementary "Training the Refinement").
 
-The base model is frozen; only the refinement stage trains. The P x P attention of each pixel is a
-distribution over offsets around the regressed flow; it is supervised with cross-entropy against a
-soft target that spreads the ground-truth location bilinearly over its 4 adjacent offsets, on
-covisible pixels whose ground truth falls inside the window.
+The P x P attention of a pixel is a distribution over integer offsets around the regressed flow;
+it is supervised with cross-entropy against the ground-truth location spread bilinearly over its
+4 neighbouring offsets ("4_point_average"), on covisible pixels whose residual lies inside the
+window.
+
+  RefinementCE      RefinementCrossEntropyLossEfficient, the train loss of the refine recipes
+                    (loss/refinement_cross_entropy_efficient.py): recomputes the attention from
+                    the two feature maps at the supervised pixels only.
+  RefinementCEEval  RefinementCrossEntropyLoss, their test loss (loss/refinement_cross_entropy.py):
+                    reads the model's log-softmax windows.
+
+Both are terms of a `ufm_jax.losses.Recipe`; the windows are row-major over (dy, dx), index
+dy_index * P + dx_index, offset = index - P // 2.
 """
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Optional, Tuple
 
 import jax
 import jax.numpy as jnp
-import optax
+import numpy as np
 
-# Top-level param collections of UFM-Refine that train in this stage (names as in PyTorch).
-TRAINABLE = ("unet_feature", "classification_head", "conv1", "conv2", "classification_bias")
+from ufm_jax import losses
 
-
-def refinement_target(flow_regressed, flow_gt, radius):
-  """Soft classification target and the in-window mask.
-
-  Args:
-    flow_regressed: [..., 2] flow the window is centred on (the base model's output).
-    flow_gt: [..., 2] ground-truth flow.
-    radius: R (window offsets -R..R on each axis, P = 2R+1).
-  Returns:
-    target [..., P, P] with [..., a, b] <-> offset (dx, dy) = (b - R, a - R): for the GT offset
-    (dx, dy) = flow_gt - flow_regressed at window position (gx, gy) = (dx + R, dy + R), the four taps
-    (y0|y0+1, x0|x0+1) around it get (1-alpha)(1-beta), alpha(1-beta), (1-alpha)beta, alpha*beta with
-    alpha = gx - x0, beta = gy - y0; zero everywhere when outside.
-    inside [...] bool: 0 <= gx <= 2R and 0 <= gy <= 2R (the GT lies in the closed window).
-  """
-  p = 2 * radius + 1
-  g = flow_gt - flow_regressed + radius                                     # [..., 2] (gx, gy)
-  inside = jnp.all((g >= 0) & (g <= 2 * radius), axis=-1)
-  # x0 in 0..2R-1 so both neighbours exist; a GT on the last tap gets alpha = 1 there.
-  lo = jnp.clip(jnp.floor(g), 0, 2 * radius - 1)
-  frac = jnp.clip(g - lo, 0.0, 1.0)
-  taps = jnp.arange(p, dtype=g.dtype)
-
-  def axis_weights(lo_, f):   # [..., P]: (1-f) at lo, f at lo+1
-    return (jnp.where(taps == lo_[..., None], 1 - f[..., None], 0.0)
-            + jnp.where(taps == lo_[..., None] + 1, f[..., None], 0.0))
-
-  wx = axis_weights(lo[..., 0], frac[..., 0])
-  wy = axis_weights(lo[..., 1], frac[..., 1])
-  target = wy[..., :, None] * wx[..., None, :]
-  return jnp.where(inside[..., None, None], target, 0.0), inside
+_DTYPES = {"bfloat16": jnp.bfloat16, "float32": jnp.float32}
 
 
-def refinement_loss(log_softmax, flow_regressed, flow_gt, covisible, valid=None):
-  """Cross-entropy of the attention distribution against the soft target.
+def _window_weights(start_xy, frac_xy, p: int):
+  """[..., P*P] bilinear weights of the 4 window cells around a location: (1-fy)(1-fx) at
+  (y0, x0), fy(1-fx) at (y0+1, x0), (1-fy)fx at (y0, x0+1), fy fx at (y0+1, x0+1), as the
+  official scatter of w0..w3 at offsets 0, P, 1, P+1 (start_xy [..., 2] int, frac_xy float)."""
+  fx, fy = frac_xy[..., 0], frac_xy[..., 1]
+  base = start_xy[..., 1] * p + start_xy[..., 0]
+  cells = jnp.arange(p * p)
+  out = 0.0
+  for w, off in (((1 - fy) * (1 - fx), 0), (fy * (1 - fx), p), ((1 - fy) * fx, 1), (fy * fx, p + 1)):
+    out = out + jnp.where(cells == (base + off)[..., None], w[..., None], 0.0)
+  return out
 
-  Args:
-    log_softmax: [B, H, W, P, P] the model's "log_softmax" output.
-    flow_regressed: [B, H, W, 2] the model's "flow_before_refinement" (gradient stopped here).
-    flow_gt: [B, H, W, 2]; covisible: [B, H, W] bool ground-truth covisibility;
-    valid: optional [B, H, W] bool (e.g. flow_valid & covis_valid of the sample).
-  Returns:
-    (loss, aux): loss = mean over supervised pixels (covisible, valid, GT inside the window) of
-    -sum target * log_softmax; 0 when no pixel is supervised. aux has "refine_pixels" (count) and
-    "refine_inside_frac" (fraction of covisible valid pixels whose GT is in the window).
-  """
-  radius = log_softmax.shape[-1] // 2
-  target, inside = refinement_target(jax.lax.stop_gradient(flow_regressed).astype(jnp.float32),
-                                     flow_gt.astype(jnp.float32), radius)
-  eligible = covisible.astype(bool)
-  if valid is not None:
-    eligible = eligible & valid.astype(bool)
-  mask = eligible & inside
-  ce = -jnp.sum(target * log_softmax.astype(jnp.float32), axis=(-1, -2))
+
+def cap_pixels(mask, max_pixels: Optional[int], rng):
+  """The official cap (refinement_cross_entropy_efficient.py:301-311): with n > max_pixels
+  selected pixels, each is kept independently with probability max_pixels / n."""
+  if max_pixels is None:
+    return mask
   n = jnp.sum(mask)
-  loss = jnp.sum(jnp.where(mask, ce, 0.0)) / jnp.maximum(n, 1)
-  aux = {"refine_pixels": n,
-         "refine_inside_frac": n / jnp.maximum(jnp.sum(eligible), 1)}
-  return loss, aux
+  keep = jax.random.uniform(rng, mask.shape) < max_pixels / jnp.maximum(n, 1).astype(jnp.float32)
+  return jnp.where(n > max_pixels, mask & keep, mask)
 
 
-def _require_refiner(params):
-  if not any(k in params for k in TRAINABLE):
-    raise ValueError(f"no refinement parameters ({', '.join(TRAINABLE)}) in the tree; top-level "
-                     f"keys are {sorted(params)}")
+def buffer_size(num_pixels: int, max_pixels: Optional[int]) -> int:
+  """Static number of pixel slots: every pixel, or the cap plus 8 standard deviations of the
+  Bernoulli count (beyond that the surplus pixels are dropped; chance below 1e-15)."""
+  if max_pixels is None:
+    return num_pixels
+  return min(num_pixels, max_pixels + 8 * math.isqrt(max_pixels) + 8)
 
 
-def trainable_mask(params):
-  """Pytree of bools like `params`: True for the refinement stage (U-Net, classification head,
-  combiner convs, classification bias), False for the frozen base model."""
-  _require_refiner(params)
-  return {k: jax.tree_util.tree_map(lambda _: k in TRAINABLE, v) for k, v in params.items()}
+@dataclasses.dataclass(frozen=True)
+class RefinementCE:
+  """RefinementCrossEntropyLossEfficient (refinement_cross_entropy_efficient.py:85-311).
+
+  A pixel is supervised iff its residual r = GT - regressed flow (no gradient to the flow) lies in
+  [-P/2 + 0.5 + window_margin, P/2 - 0.5 - window_margin) on both axes (float32 compare), it is
+  covisible, its GT has no NaN and |u| + |v| < max_gt, and its row's dataset is in `datasets`.
+  The target map is read at (P+1)^2 integer taps around the regressed target and blended
+  bilinearly into the P x P window; score = <target window, source feature> / temperature +
+  attention_bias; loss = multiplier * sum(CE) / (eps + number of pixels).
+  """
+  multiplier: float = 10.0
+  # Datasets whose rows train the refiner (`suitable_for_refinement` in the official dataset
+  # classes: blendedmvs.py:105, flyingthings3d.py:113, hypersim.py:144; every other is False).
+  # None: every row.
+  datasets: Optional[Tuple[str, ...]] = ("blendedmvs", "flyingthings", "hypersim")
+  # At most this many pixels per loss evaluation, drawn as the official cap (cap_pixels; the
+  # official evaluates per GPU). None: no cap.
+  max_pixels: Optional[int] = 400_000
+  # Quirk (efficient.py:209-211): the window bounds are shrunk by this margin; 0 gives the
+  # eval loss's [0.5, P - 0.5) on r + P/2.
+  window_margin: float = 1e-4
+  # Quirk (efficient.py:41): "truncate" takes the taps with `.long()` (towards zero: a tap at a
+  # position in (-1, 0) reads row/column 0 instead of the zero padding); "floor" rounds down.
+  taps: str = "truncate"
+  # Quirk (efficient.py:46, 64): the gathered target features are cast to this dtype before the
+  # bilinear blend (their gradients pass through the cast); "float32" keeps them exact.
+  gather_dtype: str = "bfloat16"
+  # Quirk (efficient.py:292): the mean divides by count + eps; None divides by max(count, 1).
+  eps: Optional[float] = 1e-4
+  max_gt: float = losses.MAX_GT
+  temperature: Optional[float] = None   # None: the model's (Recipe.temperature)
+
+  def __post_init__(self):
+    losses._check_choice("taps", self.taps, ("truncate", "floor"))
+    losses._check_choice("gather_dtype", self.gather_dtype, tuple(_DTYPES))
+
+  def __call__(self, outputs, batch, shared, ctx):
+    f0 = outputs["feature_map_0"].astype(jnp.float32)
+    f1 = outputs["feature_map_1"].astype(jnp.float32)
+    bias = outputs["attention_bias"].astype(jnp.float32)
+    p = int(math.sqrt(bias.shape[0] + 1e-6))
+    temperature = self.temperature if self.temperature is not None else ctx["temperature"]
+    if temperature is None:
+      raise ValueError("refinement_ce: no temperature (set it on the term or the recipe)")
+    gt, regression = shared["gt"], shared["pred"]
+    ref_mask = batch["covisibility"].astype(bool) & ~losses.invalid_gt_mask(gt, self.max_gt)
+    gt = jnp.where(jnp.isnan(gt), 0.0, gt)
+    regression = jax.lax.stop_gradient(regression)
+    r = gt - regression
+    lo = np.float32(-p / 2 + 0.5 + self.window_margin)
+    hi = np.float32(p / 2 - 0.5 - self.window_margin)
+    ok = jnp.all(r >= lo, -1) & jnp.all(r < hi, -1) & ref_mask
+    rows = ctx.get("suitable_rows")
+    if rows is not None:
+      ok = ok & rows[:, None, None]
+    ok = cap_pixels(ok, self.max_pixels, ctx["rng"])
+
+    b, h, w = ok.shape
+    k = buffer_size(b * h * w, self.max_pixels)
+    count = jnp.minimum(jnp.sum(ok), k)
+    (flat,) = jnp.nonzero(ok.reshape(-1), size=k, fill_value=0)
+    sel = jnp.arange(k) < count
+    bi, yi, xi = flat // (h * w), (flat // w) % h, flat % w
+
+    src = f0[bi, yi, xi]                                                    # [K, C]
+    xs, ys = losses.pixel_grid(h, w)
+    target = (regression + jnp.stack(jnp.broadcast_arrays(xs, ys), -1)) + 0.5
+    # Unused slots (beyond `count`) read pixel 0; keep them finite so no NaN reaches a gradient.
+    t = jnp.where(sel[:, None], target[bi, yi, xi], 0.5)                   # [K, 2]
+    window = self._window_features(f1, bi, t, p)                            # [K, P, P, C]
+    scores = jnp.einsum("kac,kc->ka", window.reshape(k, p * p, -1), src,
+                        precision=jax.lax.Precision.HIGHEST) / temperature + bias
+    logp = jax.nn.log_softmax(scores, axis=-1)
+
+    rk = jnp.where(sel[:, None], r[bi, yi, xi], 0.0) + p / 2                # [K, 2] in the window
+    start = (rk - 0.5).astype(jnp.int32)                                   # >= 0 where selected
+    frac = rk - (start.astype(jnp.float32) + 0.5)
+    weights = _window_weights(start, frac, p)
+    ce = -jnp.sum(weights * logp, axis=-1)
+    n = count.astype(jnp.float32)
+    value = jnp.sum(jnp.where(sel, ce, 0.0)) / (n + self.eps if self.eps is not None
+                                                 else jnp.maximum(n, 1.0))
+    logs = {"refinement_cross_entropy@non_occluded_mask": value,
+            "ratio_in_refinement_range": n / (1e-4 + jnp.sum(ref_mask.astype(jnp.float32)))}
+    return self.multiplier * value, logs, dict(shared, gt=gt)
+
+  def _window_features(self, f1, bi, t, p):
+    """The official obtain_neighboirhood_features_batched (efficient.py:13-82) at positions t
+    (pixel index + flow + 0.5) of the rows bi: [K, P, P, C] float32."""
+    _, h, w, _ = f1.shape
+    offsets = jnp.arange(p + 1, dtype=jnp.float32) - (p // 2) - 0.5
+    pos_x = offsets[None, None, :] + t[:, None, None, 0]                   # [K, 1, P+1]
+    pos_y = offsets[None, :, None] + t[:, None, None, 1]                   # [K, P+1, 1]
+    rnd = (lambda v: v.astype(jnp.int32)) if self.taps == "truncate" else \
+        (lambda v: jnp.floor(v).astype(jnp.int32))
+    qx, qy = jnp.broadcast_arrays(rnd(pos_x), rnd(pos_y))                  # [K, P+1, P+1]
+    valid = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h)
+    taps = f1[bi[:, None, None], jnp.clip(qy, 0, h - 1), jnp.clip(qx, 0, w - 1)]
+    taps = jnp.where(valid[..., None], taps, 0.0).astype(_DTYPES[self.gather_dtype])
+    frac = (t - 0.5) - jnp.floor(t - 0.5)                                  # [K, 2]
+    rx, ry = frac[:, 0, None, None, None], frac[:, 1, None, None, None]
+    rx1, ry1 = 1 - rx, 1 - ry
+    # float32 weights times the (bfloat16) taps, summed in the official order.
+    return (rx1 * ry1 * taps[:, :-1, :-1] + rx1 * ry * taps[:, 1:, :-1]
+            + rx * ry1 * taps[:, :-1, 1:] + rx * ry * taps[:, 1:, 1:])
 
 
-def split_params(params):
-  """(trainable, frozen) top-level sub-dicts; differentiate w.r.t. the first only, so the base
-  gets no gradient at all (not even a computed-then-dropped one)."""
-  _require_refiner(params)
-  trainable = {k: v for k, v in params.items() if k in TRAINABLE}
-  frozen = {k: v for k, v in params.items() if k not in TRAINABLE}
-  return trainable, frozen
+@dataclasses.dataclass(frozen=True)
+class RefinementCEEval:
+  """RefinementCrossEntropyLoss (refinement_cross_entropy.py:79-185), the refine recipes' test
+  loss, on the model's log-softmax windows [B, H, W, P, P]: the target weights stay
+  differentiable w.r.t. the regressed flow; window [0.5, P - 0.5) on GT - flow + P/2, computed
+  as (GT + pixel) - (flow + pixel) as the official code does."""
+  multiplier: float = 10.0
+  max_gt: float = losses.MAX_GT
+  eps: Optional[float] = 1e-4
 
-
-def merge_params(trainable, frozen):
-  return {**frozen, **trainable}
-
-
-def masked_optimizer(tx, params):
-  """`tx` on the refinement stage only; frozen params get zero updates and hold no optimizer state."""
-  labels = jax.tree_util.tree_map(lambda t: "train" if t else "freeze", trainable_mask(params))
-  return optax.multi_transform({"train": tx, "freeze": optax.set_to_zero()}, labels)
+  def __call__(self, outputs, batch, shared, ctx):
+    logp = outputs["log_softmax"].astype(jnp.float32)
+    p = logp.shape[-1]
+    gt, regression = shared["gt"], shared["pred"]
+    covis = batch["covisibility"].astype(bool)
+    ref_mask = covis & ~losses.invalid_gt_mask(gt, self.max_gt)
+    gt = jnp.where(jnp.isnan(gt), 0.0, gt)
+    h, w = gt.shape[1:3]
+    xs, ys = losses.pixel_grid(h, w)
+    grid = jnp.stack(jnp.broadcast_arrays(xs, ys), -1)
+    local = (gt + grid) - (regression + grid) + p / 2                     # [B, H, W, (x, y)]
+    inside = jnp.all(local >= 0.5, -1) & jnp.all(local < p - 0.5, -1)
+    start = (local - 0.5).astype(jnp.int32)
+    frac = local - (start.astype(jnp.float32) + 0.5)
+    weights = _window_weights(start, frac, p)
+    mask = inside & ref_mask
+    ce = -jnp.sum(weights * logp.reshape(logp.shape[:3] + (p * p,)), axis=-1)
+    value = losses.masked_mean(jnp.where(mask, ce, 0.0), mask, self.eps)
+    n = jnp.sum(mask.astype(jnp.float32))
+    logs = {"refinement_cross_entropy@non_occluded_mask": value,
+            "ratio_in_refinement_range": n / (1e-4 + jnp.sum(covis.astype(jnp.float32)))}
+    return self.multiplier * value, logs, dict(shared, gt=gt)

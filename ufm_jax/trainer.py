@@ -81,46 +81,46 @@ def build_input(config, process_batch: int, seed: int):
   return pipeline.make_train_iterator(config.input, process_batch=process_batch, seed=seed)
 
 
-def build_loss(config):
-  """loss(model outputs, batch) -> (loss, aux dict of scalars)."""
-  from ufm_jax import losses, refine_training
-  kwargs = dict(config.get("loss_kwargs", {}))
-  if config.get("loss", "ufm") == "refine":
+def build_loss(config, model=None, dataset_names=None):
+  """loss(model outputs, batch, rng) -> (loss, aux dict of scalars): the recipe of config.loss
+  (`ufm_jax.losses.recipe_from_config`). `model` supplies the refinement temperature,
+  `dataset_names` (the pipeline's, in dataset_id order) the rows that may train the refiner."""
+  from ufm_jax import losses
+  if not config.get("loss"):
+    raise ValueError("config.loss is missing: the loss terms of the recipe (see configs/ufm560.py)")
+  temperature = getattr(getattr(model, "config", None), "temperature", None)
+  recipe = losses.recipe_from_config(config.loss, temperature=temperature,
+                                     dataset_names=dataset_names)
 
-    def refine_loss(out, batch):
-      loss, aux = refine_training.refinement_loss(
-          out["log_softmax"], out["flow_before_refinement"], batch["flow"],
-          batch["covisibility"], batch["flow_valid"], **kwargs)
-      epe = losses.end_point_error(out["flow"], batch["flow"])
-      mask = losses.flow_supervision_mask(batch)
-      aux = dict(aux, loss_refine=loss, epe=losses.masked_mean(epe, mask))
-      return loss, aux
-    return refine_loss
-  return functools.partial(losses.ufm_loss, **kwargs)
+  def loss_fn(out, batch, rng=None):
+    return recipe(out, batch, rng=rng)
+  return loss_fn
 
 
-def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None):
+def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None, seed: int = 0):
   """train_step(state, batch) -> (state, metrics): one optimizer update.
 
   Gradients are taken w.r.t. the trainable params only (frozen ones enter through stop_gradient,
   so e.g. the refine stage runs no backward pass through the base model). `gather_params`
-  (sharding.gathered) is applied to the params the forward pass uses.
+  (sharding.gathered) is applied to the params the forward pass uses. The loss gets a key of its
+  own per step (PRNGKey(seed) folded with the step: the refinement loss draws its pixel cap).
   """
   import jax
   import jax.numpy as jnp
   import optax
   from ufm_jax import optim
 
-  def loss_and_aux(trainable, frozen, batch):
+  def loss_and_aux(trainable, frozen, batch, rng):
     params = optim.merge_params(trainable, jax.lax.stop_gradient(frozen))
     if gather_params is not None:
       params = gather_params(params)
     out = model.apply({"params": params}, batch["image0"], batch["image1"], **apply_kwargs)
-    return loss_fn(out, batch)
+    return loss_fn(out, batch, rng)
 
   def train_step(state, batch):
     trainable, frozen = optim.split_trainable(state.params, labels)
-    (loss, aux), g = jax.value_and_grad(loss_and_aux, has_aux=True)(trainable, frozen, batch)
+    rng = jax.random.fold_in(jax.random.PRNGKey(seed), state.step)
+    (loss, aux), g = jax.value_and_grad(loss_and_aux, has_aux=True)(trainable, frozen, batch, rng)
     grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
     new_state, ok = optim.apply_gradients(state, grads, loss, tx)
     metrics = dict(aux, loss=loss, grad_norm=optax.global_norm(g), update_ok=ok)
@@ -203,10 +203,14 @@ class TrainSetup:
                         self.abstract_state, self.state_sh)
 
 
-def setup(config, mesh, image_shape, total_steps: int) -> TrainSetup:
+def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
+          dataset_names=None) -> TrainSetup:
   """Model (activations constrained to the batch sharding of `mesh`), optimizer, parameter and
   state shardings (config.sharding_rules, config.sharding_min_size), the jitted train step and
-  eval predict. Nothing is allocated: params exist only as shapes until `init_fn` runs."""
+  eval predict. Nothing is allocated: params exist only as shapes until `init_fn` runs.
+
+  steps_per_epoch: optimizer steps per epoch (for warmup counted in epochs; default
+  total_steps / config.num_epochs). dataset_names: the pipeline's, in dataset_id order."""
   import jax
   from ufm_jax import optim, sharding
   gather_params, layer_gather = sharding.fsdp_gathers(mesh, config)
@@ -215,15 +219,20 @@ def setup(config, mesh, image_shape, total_steps: int) -> TrainSetup:
   init_fn = functools.partial(init_params, model, tuple(image_shape))
   abstract_params = jax.eval_shape(init_fn, jax.random.PRNGKey(0))
   trainable_fn = import_attr(config.trainable_filter) if config.get("trainable_filter") else None
+  if steps_per_epoch is None and config.get("num_epochs"):
+    steps_per_epoch = total_steps / config.num_epochs
   tx, labels, schedules = optim.make_optimizer(config.optim, abstract_params, total_steps,
-                                               trainable_fn=trainable_fn)
+                                               trainable_fn=trainable_fn,
+                                               steps_per_epoch=steps_per_epoch)
   min_size = int(config.get("sharding_min_size", 0) or 0)
   param_sh = sharding.tree_shardings(abstract_params, mesh, config.sharding_rules, min_size)
   abstract_state = jax.eval_shape(lambda p: optim.TrainState.create(p, tx), abstract_params)
   state_sh = sharding.tree_shardings(abstract_state, mesh, config.sharding_rules, min_size)
   batch_sh = sharding.batch_sharding(mesh)
   repl = sharding.replicated(mesh)
-  step = make_train_step(model, build_loss(config), tx, labels, apply_kwargs, gather_params)
+  loss_fn = build_loss(config, model, dataset_names)
+  step = make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params,
+                         seed=int(config.get("seed", 0)))
   train_step = jax.jit(step, in_shardings=(state_sh, batch_sh), out_shardings=(state_sh, repl),
                        donate_argnums=(0,))
   predict = jax.jit(make_predict(model, apply_kwargs, gather_params),

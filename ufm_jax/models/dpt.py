@@ -39,6 +39,25 @@ class FlowAdaptorConfig:
                        "none, scale_width, scale_height or scale_both")
 
 
+# The ConvTranspose modules of DPTFeature (by name): torch's default init counts their fan-in
+# over the output channels (torch_default_init).
+CONV_TRANSPOSE = ("input_process_0_0_1", "input_process_1_0_1")
+
+
+def torch_default_init(key, kernel_shape, transposed: bool = False, dtype=jnp.float32):
+  """(kernel, bias) as torch's Conv2d / ConvTranspose2d / Linear `reset_parameters` draws them:
+  both U(-1/sqrt(fan_in), 1/sqrt(fan_in)) (kaiming_uniform with a = sqrt(5)); fan_in = every axis
+  but the output one (our kernels are HWIO or [in, out]), or for a transposed conv the output
+  channels times the window (torch reads it from dim 1 of its [in, out, kh, kw] weight)."""
+  shape = tuple(kernel_shape)
+  fan_in = int(np.prod(shape[:-2])) * shape[-1] if transposed else int(np.prod(shape[:-1]))
+  bound = 1.0 / np.sqrt(fan_in)
+  kk, kb = jax.random.split(key)
+  kernel = jax.random.uniform(kk, shape, dtype, -bound, bound)
+  bias = jax.random.uniform(kb, shape[-1:], dtype, -bound, bound)
+  return kernel, bias
+
+
 def _conv(features, k, stride=1, pad=0, bias=True, name=None, dtype=None):
   return nn.Conv(features, (k, k), strides=(stride, stride), padding=((pad, pad), (pad, pad)),
                  use_bias=bias, dtype=dtype, name=name)

@@ -460,8 +460,9 @@ class UFMRefine(ufm.UFM):
   """UniFlowMatchClassificationRefinement.
 
   apply(...) returns the base contract with "flow" = refined flow, plus "flow_before_refinement",
-  "residual", "log_softmax" [B, H, W, P, P] ([..., a, b] <-> offset dy = a - R, dx = b - R) and the
-  refinement feature maps "feature_map_0" / "feature_map_1" [B, H, W, C].
+  "residual", "log_softmax" [B, H, W, P, P] ([..., a, b] <-> offset dy = a - R, dx = b - R), the
+  refinement feature maps "feature_map_0" / "feature_map_1" [B, H, W, C] and "attention_bias"
+  [P*P] (the classification bias; the training loss recomputes the attention from these).
   """
   config: UFMRefineConfig
 
@@ -522,7 +523,8 @@ class UFMRefine(ufm.UFM):
     residual, log_p = self.refiner.refine(f1, f2, flow)
     residual, log_p = self.constrain(residual), self.constrain(log_p)
     return dict(out, flow=flow + residual, flow_before_refinement=flow, residual=residual,
-                log_softmax=log_p, feature_map_0=f1, feature_map_1=f2)
+                log_softmax=log_p, feature_map_0=f1, feature_map_1=f2,
+                attention_bias=self.refiner.classification_bias)
 
 
 def refine_model_from_config(cfg: UFMRefineConfig, **kw) -> UFMRefine:

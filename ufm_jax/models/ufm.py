@@ -12,12 +12,14 @@ Internals are sown into the "intermediates" collection (read them with `mutable=
 
 import dataclasses
 import json
-from typing import Any, Dict, Optional, Tuple
+import re
+from typing import Any, Dict, Mapping, Optional, Tuple
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import traverse_util
 
 from ufm_jax.models import dinov2, dpt, layers, scan
 from ufm_jax.models import info_sharing as info_sharing_lib
@@ -54,6 +56,10 @@ class UFMConfig:
   # Compute dtype of the DPT heads: "float32" (as the official code, even under autocast) or
   # "bfloat16" (half the head activation memory); params and outputs stay float32.
   head_dtype: str = "float32"
+  # Initializers of a fresh model (`UFM.init`): "flax" (the modules' flax defaults, lecun_normal)
+  # or "official" (as the official PyTorch modules: `official_init`). Pretrained weights loaded
+  # afterwards replace either.
+  param_init: str = "flax"
   # The official config.json this model was read from (JSON text), kept so that save_official
   # writes it back as the official code wrote it while it still describes the model. Not part
   # of the structure: equality, hashing and repr ignore it.
@@ -69,11 +75,23 @@ class UFMConfig:
     if self.attention_impl not in layers.ATTENTION_IMPLS:
       raise ValueError(f"UFMConfig.attention_impl {self.attention_impl!r}; expected one of "
                        f"{layers.ATTENTION_IMPLS}")
+    if self.param_init not in ("flax", "official"):
+      raise ValueError(f"UFMConfig.param_init {self.param_init!r}; expected 'flax' or 'official'")
+    if self.param_init == "official" and self.info_sharing.tied_qk_init is not None:
+      raise ValueError("UFMConfig: param_init='official' redraws the fusion transformer, which "
+                       "discards info_sharing.tied_qk_init; set one of them")
     if len(self.info_sharing.indices) != 2:
       raise ValueError("UFM feeds exactly two info-sharing intermediates to the DPT heads; "
                        f"got info_sharing.indices={self.info_sharing.indices}")
 
   def replace(self, **kw) -> "UFMConfig":
+    """dataclasses.replace; a mapping for a sub-config (e.g. flow_adaptor={"flow_std": ...},
+    as a training config's `model` block gives it) replaces only the fields it names."""
+    for k, v in kw.items():
+      if k in _SUB and isinstance(v, Mapping):
+        kw[k] = dataclasses.replace(getattr(self, k), **{kk: _tuplify(vv) for kk, vv in v.items()})
+      elif isinstance(v, list):
+        kw[k] = _tuplify(v)
     return dataclasses.replace(self, **kw)
 
 
@@ -197,6 +215,17 @@ class UFM(nn.Module):
   def constrain(self, x):
     return x if self.activation_sharding is None else self.activation_sharding(x)
 
+  @nn.nowrap
+  def init(self, rngs, *args, **kwargs):
+    """flax's init; with config.param_init "official" the fresh parameters are then redrawn as
+    the official modules draw them (`official_init`)."""
+    variables = super().init(rngs, *args, **kwargs)
+    if self.config.param_init == "flax" or kwargs.get("method") is not None:
+      return variables
+    key = rngs["params"] if isinstance(rngs, Mapping) else rngs
+    params = official_init(variables["params"], jax.random.fold_in(key, 0x0FF1C1A1))
+    return {**variables, "params": params}
+
   def setup(self):
     cfg = self.config
     compute = DTYPES[cfg.dtype]
@@ -259,6 +288,42 @@ class UFM(nn.Module):
     del train  # no BatchNorm or dropout here; the refinement model's U-Net has BatchNorm
     b = self.backbone(source, target, symmetrized)
     return self.heads(b["head_features"], b["hw"])
+
+
+def _transposed(module_path) -> bool:
+  """Whether a module of the tree is a transposed convolution: DPTFeature's two, and the
+  refinement U-Net's up-convolutions (`unet_feature/ups_{2k}`, refine.UpConv2x2)."""
+  name = module_path[-1]
+  return name in dpt.CONV_TRANSPOSE or (
+      module_path[0] == "unet_feature" and re.fullmatch(r"ups_\d*[02468]", name) is not None)
+
+
+def official_init(params, key):
+  """Fresh parameters redrawn as the official PyTorch model initialises them, for training from
+  scratch: the fusion transformer's Linear weights xavier_uniform with zero biases (UniCeption
+  global_attention_transformer.py:197-211 at the train branch's pin 1cff080); every other Linear
+  / Conv2d / ConvTranspose2d (DPT heads, refiner) with PyTorch's defaults
+  (`dpt.torch_default_init`). Norm scales 1 and biases 0, LayerScale and the classification bias
+  are already as the official ones; the encoder is left as drawn (the recipes load pretrained
+  DINOv2 into it). Works on the per-layer and the scanned (stacked) layouts alike."""
+  flat = traverse_util.flatten_dict(params)
+  out = dict(flat)
+  modules = sorted({path[:-1] for path in flat if path[-1] == "kernel"})
+  for i, module in enumerate(modules):
+    if module[0] == "encoder":
+      continue
+    k = jax.random.fold_in(key, i)
+    kernel = flat[module + ("kernel",)]
+    if module[0] == "info_sharing":
+      batch = tuple(range(kernel.ndim - 2))   # the stacked layout's leading depth axis
+      out[module + ("kernel",)] = jax.nn.initializers.xavier_uniform(batch_axis=batch)(
+          k, kernel.shape, kernel.dtype)
+      continue
+    w, b = dpt.torch_default_init(k, kernel.shape, _transposed(module), kernel.dtype)
+    out[module + ("kernel",)] = w
+    if module + ("bias",) in flat:
+      out[module + ("bias",)] = b
+  return traverse_util.unflatten_dict(out)
 
 
 def model_from_config(cfg: UFMConfig, **kw) -> UFM:

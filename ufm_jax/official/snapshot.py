@@ -97,7 +97,7 @@ def load_official(snapshot, revision: Optional[str] = None):
 # UFMConfig fields a snapshot does not carry: compute options and initialisers (the encoder's
 # LayerScale initial value included; the loader sets the hub's 1.0).
 JAX_ONLY_FIELDS = ("dtype", "remat", "attention_impl", "refine_chunk", "encoder.pos_embed_init",
-                   "encoder.init_values", "info_sharing.tied_qk_init")
+                   "encoder.init_values", "info_sharing.tied_qk_init", "param_init")
 
 
 def _check_export(model, params, cj: dict, state: Dict[str, np.ndarray], class_name: str

@@ -39,6 +39,16 @@ def require_extra(extra: str, modules) -> None:
                  f"pip install -e '.[{extra}]'", "CI installs the test extra, which includes it")
 
 
+def training_fixtures_root() -> pathlib.Path:
+  """Where the official training-code fixtures are looked for (`UFM_TRAINING_FIXTURES`, default
+  `../shared/fixtures/ufm_training` beside the repository), without checking it exists: for
+  discovering the cases a folder lists when pytest collects (missing: no cases)."""
+  import os
+  repo = pathlib.Path(__file__).resolve().parents[2]
+  default = repo.parent / "shared" / "fixtures" / "ufm_training"
+  return pathlib.Path(os.environ.get("UFM_TRAINING_FIXTURES", default))
+
+
 def training_fixtures(subdir: str | None = None) -> pathlib.Path:
   """The folder of the official training-code fixtures (`UFM_TRAINING_FIXTURES`, default
   `../shared/fixtures/ufm_training` beside the repository), or `subdir` of it.
@@ -46,11 +56,7 @@ def training_fixtures(subdir: str | None = None) -> pathlib.Path:
   Missing: skips the calling test with a reason naming UFM_TRAINING_FIXTURES; under CI=true
   fails instead, so CI can never pass the training parity tests by skipping them.
   """
-  import os
-  repo = pathlib.Path(__file__).resolve().parents[2]
-  default = repo.parent / "shared" / "fixtures" / "ufm_training"
-  root = pathlib.Path(os.environ.get("UFM_TRAINING_FIXTURES", default))
-  folder = root / subdir if subdir else root
+  folder = training_fixtures_root() / subdir if subdir else training_fixtures_root()
   if not folder.is_dir():
     skip_or_fail(f"official training fixtures not found at {folder}: set UFM_TRAINING_FIXTURES "
                  "to the folder that holds losses/, schedules/, labels/, processed/",

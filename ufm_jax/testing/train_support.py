@@ -82,6 +82,9 @@ def tiny_config(**overrides):
       "lr": {"default": 3e-3, "encoder": 1e-3}, "groups": {"encoder": "^encoder/"},
       "b1": 0.9, "b2": 0.95, "weight_decay": 0.05, "warmup_frac": 0.1, "grad_clip_norm": 1.0,
       "frozen": None, "trainable": None})
+  c.loss = ml_collections.ConfigDict({   # the official 560 terms at their defaults
+      "terms": ("robust_epe", "covisibility_ce"), "robust_epe": {"type": "robust"},
+      "covisibility_ce": {"type": "bce"}})
   c.evals = ml_collections.ConfigDict()
   for k, v in overrides.items():
     c[k] = v

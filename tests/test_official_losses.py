@@ -1,0 +1,144 @@
+"""The training losses against the official training code (fixtures in UFM_TRAINING_FIXTURES,
+`losses/`): every case that `cases.json` lists, each loss file's term and every recipe's whole
+`train_loss` run in config order.
+
+Values within 1e-5 relative, gradients (jax.grad of our loss w.r.t. the same inputs) within 1e-4
+of each gradient's largest magnitude, and every logged scalar the official code logs.
+"""
+
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ufm_jax import losses, testing
+
+pytestmark = pytest.mark.official_training
+
+NON_CASE_KEYS = ("generator", "provenance", "recipe_totals")
+
+
+def _discover():
+  path = testing.training_fixtures_root() / "losses" / "cases.json"
+  try:
+    spec = json.loads(path.read_text())
+  except OSError:
+    return [pytest.param(None, None, id="fixtures-missing")]
+  out = [pytest.param(k, c, id=f"{k}-{c}") for k, v in spec.items() if k not in NON_CASE_KEYS
+         for c in v["cases"]]
+  out += [pytest.param("recipe_totals", r, id=f"recipe_totals-{r}")
+          for r in spec.get("recipe_totals", {})]
+  return out
+
+
+def _nhwc(x):
+  return jnp.asarray(np.moveaxis(x, 1, -1))
+
+
+def _official_key(ours: str) -> str:
+  """Our log key in the fixtures' spelling ('@' -> '_at_', '/' and '[' -> '_', ']' dropped)."""
+  return ours.replace("@", "_at_").replace("/", "_").replace("[", "_").replace("]", "")
+
+
+def _inputs(z, pre):
+  """(differentiable outputs, batch, suitable_rows) from the fixture arrays of one case."""
+  g = lambda k: z[pre + k] if pre + k in z.files else None  # noqa: E731
+  outputs = {}
+  flow = g("pred_flow") if g("pred_flow") is not None else g("regression_flow")
+  if flow is not None:
+    outputs["flow"] = _nhwc(flow)
+  if g("covis_logits") is not None:
+    outputs["covisibility_logits"] = jnp.asarray(g("covis_logits")[:, 0])
+  gt = g("gt_flow")
+  if gt is None:                      # the BCE cases hold no flow
+    logits = g("covis_logits")
+    gt = np.zeros((logits.shape[0], 2) + logits.shape[2:], np.float32)
+  for k in ("feature_map_0", "feature_map_1"):
+    if g(k) is not None:
+      outputs[k] = _nhwc(g(k))
+  if g("attention_bias") is not None:
+    outputs["attention_bias"] = jnp.asarray(g("attention_bias"))
+  if g("log_softmax") is not None:
+    outputs["log_softmax"] = jnp.asarray(g("log_softmax"))
+  covis = g("non_occluded_mask")
+  if covis is None:                   # the 'all' range reads no mask
+    covis = np.zeros(gt.shape[:1] + gt.shape[2:], bool)
+  batch = {"flow": _nhwc(gt), "covisibility": jnp.asarray(covis)}
+  sup = g("occlusion_supervision_mask")
+  batch["covis_valid"] = jnp.asarray(sup if sup is not None else np.zeros_like(covis))
+  rows = g("suitable_for_refinement")
+  return outputs, batch, None if rows is None else jnp.asarray(rows)
+
+
+def _grad_keys(name):
+  """Fixture names of the gradient w.r.t. one of our outputs."""
+  return {"flow": ("pred_flow", "regression_flow"),
+          "covisibility_logits": ("covis_logits",)}.get(name, (name,))
+
+
+def _close(ours, ref, what):
+  ours, ref = float(ours), float(ref)
+  if math.isnan(ref):
+    assert math.isnan(ours), f"{what}: {ours} vs NaN"
+    return
+  tol = 1e-5 * abs(ref) if ref != 0 else 1e-7
+  assert abs(ours - ref) <= tol, f"{what}: ours {ours!r} vs official {ref!r}"
+
+
+@pytest.mark.parametrize("kind,case", _discover())
+def test_loss_matches_official(kind, case):
+  folder = testing.training_fixtures("losses")
+  spec = json.loads((folder / "cases.json").read_text())
+  if kind == "recipe_totals":
+    entry = spec["recipe_totals"][case]
+    configs = entry["term_configs"]
+    names = entry["terms_in_order"]
+  else:
+    entry = spec[kind]["cases"][case]
+    configs = None
+  z = np.load(folder / f"{kind}.npz")
+  pre = f"{case}_"
+  if configs is None:
+    names = [k[len(pre) + 5:] for k in z.files
+             if k.startswith(pre + "loss_") and k != pre + "loss_total"]
+    assert len(names) == 1, names
+    configs = {names[0]: spec[kind]["config"]}
+  temperature = float(z[pre + "temperature"]) if pre + "temperature" in z.files else None
+  recipe = losses.Recipe(
+      tuple((n, losses.make_term(losses.from_official(configs[n]["class"], configs[n]["kwargs"]),
+                                 n)) for n in names), temperature=temperature)
+  outputs, batch, rows = _inputs(z, pre)
+
+  def total(out):
+    return recipe(out, batch, suitable_rows=rows)
+
+  (loss, aux), grads = jax.value_and_grad(total, has_aux=True)(outputs)
+  _close(loss, z[pre + "loss_total"], f"{kind}/{case} total")
+  for n in names:
+    _close(aux[f"loss_{n}"], z[pre + f"loss_{n}"], f"{kind}/{case} {n}")
+    ours = {f"{pre}log_{n}__{_official_key(k[len(n) + 1:])}": v for k, v in aux.items()
+            if k.startswith(n + "/")}
+    logged = [k for k in z.files if k.startswith(f"{pre}log_{n}__")]
+    assert logged and set(logged) <= set(ours), sorted(set(logged) - set(ours))
+    for k in logged:
+      _close(ours[k], z[k], f"{kind}/{case} log {k[len(pre):]}")
+  checked = 0
+  for name, g in grads.items():
+    key = next((pre + "grad_" + k for k in _grad_keys(name) if pre + "grad_" + k in z.files), None)
+    if key is None:
+      continue
+    checked += 1
+    ref = z[key]
+    ours = np.asarray(g)
+    if ref.ndim == 4 and ours.ndim == 4 and name != "log_softmax":
+      ours = np.moveaxis(ours, -1, 1)
+    elif name == "covisibility_logits":
+      ours = ours[:, None]
+    scale = float(np.abs(ref).max())
+    err = float(np.abs(ours - ref).max())
+    assert err <= 1e-4 * scale + (0.0 if scale else 1e-12), \
+        f"{kind}/{case} d/d{name}: max error {err:.3g} vs max |grad| {scale:.3g}"
+  assert checked == len([k for k in z.files if k.startswith(pre + "grad_")]), "gradient not compared"
