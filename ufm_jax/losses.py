@@ -34,11 +34,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ufm_jax import refine_training
+from ufm_jax.loss_common import (MAX_GT, check_choice, invalid_gt_mask, masked_mean,
+                                 pixel_grid)
+
 # Thresholds (px) of the official outlier-ratio logs (loss/epe.py:190, 309).
 OUTLIER_THRESHOLDS = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0)
-# |GT component| above which the official code treats flow as an invalid marker (KITTI/HD1K
-# store 4000): loss/epe.py:174, 282.
-MAX_GT = 2048.0
 
 
 def end_point_error(d, eps: float = 0.0):
@@ -63,27 +64,8 @@ def _robust_of_squared(e, alpha):
   return b / alpha * ((e / b + 1.0) ** (alpha / 2.0) - 1.0)
 
 
-def masked_mean(values, mask, eps: Optional[float]):
-  """sum(values * mask) / (sum(mask) + eps); eps None: / max(sum(mask), 1)."""
-  m = mask.astype(values.dtype)
-  n = jnp.sum(m)
-  return jnp.sum(values * m) / (n + eps if eps is not None else jnp.maximum(n, 1.0))
-
-
 def _ones_like_mask(x):
   return jnp.ones(x.shape[:-1], bool)
-
-
-def pixel_grid(h: int, w: int):
-  """(x [1,1,W], y [1,H,1]) float32 integer pixel indices (the official meshgrids)."""
-  return (jnp.arange(w, dtype=jnp.float32)[None, None, :],
-          jnp.arange(h, dtype=jnp.float32)[None, :, None])
-
-
-def invalid_gt_mask(gt, max_gt: float = MAX_GT):
-  """Pixels whose GT the official code filters out of its logs and refinement: any NaN
-  component or |u| + |v| >= max_gt (a NaN sum compares False, so NaN is caught twice)."""
-  return jnp.isnan(gt).any(-1) | ~(jnp.sum(jnp.abs(gt), -1) < max_gt)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,9 +101,9 @@ class FlowRegression:
   epe_eps: float = 0.0
 
   def __post_init__(self):
-    _check_choice("kind", self.kind, ("robust", "epe"))
-    _check_choice("range", self.range, ("covisible", "all"))
-    _check_choice("invalid_gt", self.invalid_gt, ("zero", "drop"))
+    check_choice("kind", self.kind, ("robust", "epe"))
+    check_choice("range", self.range, ("covisible", "all"))
+    check_choice("invalid_gt", self.invalid_gt, ("zero", "drop"))
 
   def mask(self, batch, gt):
     """(supervision mask, the official NaN/max_gt-filtered mask used by the logs)."""
@@ -193,14 +175,8 @@ class CovisibilityBCE:
     return self.multiplier * ce, {"occlusion_ce": ce}, shared
 
 
-def _check_choice(name, value, choices):
-  if value not in choices:
-    raise ValueError(f"loss option {name}={value!r}; expected one of {choices}")
-
-
 def term_types() -> dict:
   """Config `type` -> term class."""
-  from ufm_jax import refine_training
   return {"robust": FlowRegression, "epe": FlowRegression, "bce": CovisibilityBCE,
           "refinement_ce": refine_training.RefinementCE,
           "refinement_ce_eval": refine_training.RefinementCEEval}

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ufm_jax import losses
+from ufm_jax import loss_common
 
 _DTYPES = {"bfloat16": jnp.bfloat16, "float32": jnp.float32}
 
@@ -91,12 +91,12 @@ class RefinementCE:
   gather_dtype: str = "bfloat16"
   # Quirk (efficient.py:292): the mean divides by count + eps; None divides by max(count, 1).
   eps: Optional[float] = 1e-4
-  max_gt: float = losses.MAX_GT
+  max_gt: float = loss_common.MAX_GT
   temperature: Optional[float] = None   # None: the model's (Recipe.temperature)
 
   def __post_init__(self):
-    losses._check_choice("taps", self.taps, ("truncate", "floor"))
-    losses._check_choice("gather_dtype", self.gather_dtype, tuple(_DTYPES))
+    loss_common.check_choice("taps", self.taps, ("truncate", "floor"))
+    loss_common.check_choice("gather_dtype", self.gather_dtype, tuple(_DTYPES))
 
   def __call__(self, outputs, batch, shared, ctx):
     f0 = outputs["feature_map_0"].astype(jnp.float32)
@@ -107,7 +107,7 @@ class RefinementCE:
     if temperature is None:
       raise ValueError("refinement_ce: no temperature (set it on the term or the recipe)")
     gt, regression = shared["gt"], shared["pred"]
-    ref_mask = batch["covisibility"].astype(bool) & ~losses.invalid_gt_mask(gt, self.max_gt)
+    ref_mask = batch["covisibility"].astype(bool) & ~loss_common.invalid_gt_mask(gt, self.max_gt)
     gt = jnp.where(jnp.isnan(gt), 0.0, gt)
     regression = jax.lax.stop_gradient(regression)
     r = gt - regression
@@ -127,7 +127,7 @@ class RefinementCE:
     bi, yi, xi = flat // (h * w), (flat // w) % h, flat % w
 
     src = f0[bi, yi, xi]                                                    # [K, C]
-    xs, ys = losses.pixel_grid(h, w)
+    xs, ys = loss_common.pixel_grid(h, w)
     target = (regression + jnp.stack(jnp.broadcast_arrays(xs, ys), -1)) + 0.5
     # Unused slots (beyond `count`) read pixel 0; keep them finite so no NaN reaches a gradient.
     t = jnp.where(sel[:, None], target[bi, yi, xi], 0.5)                   # [K, 2]
@@ -176,7 +176,7 @@ class RefinementCEEval:
   differentiable w.r.t. the regressed flow; window [0.5, P - 0.5) on GT - flow + P/2, computed
   as (GT + pixel) - (flow + pixel) as the official code does."""
   multiplier: float = 10.0
-  max_gt: float = losses.MAX_GT
+  max_gt: float = loss_common.MAX_GT
   eps: Optional[float] = 1e-4
 
   def __call__(self, outputs, batch, shared, ctx):
@@ -184,10 +184,10 @@ class RefinementCEEval:
     p = logp.shape[-1]
     gt, regression = shared["gt"], shared["pred"]
     covis = batch["covisibility"].astype(bool)
-    ref_mask = covis & ~losses.invalid_gt_mask(gt, self.max_gt)
+    ref_mask = covis & ~loss_common.invalid_gt_mask(gt, self.max_gt)
     gt = jnp.where(jnp.isnan(gt), 0.0, gt)
     h, w = gt.shape[1:3]
-    xs, ys = losses.pixel_grid(h, w)
+    xs, ys = loss_common.pixel_grid(h, w)
     grid = jnp.stack(jnp.broadcast_arrays(xs, ys), -1)
     local = (gt + grid) - (regression + grid) + p / 2                     # [B, H, W, (x, y)]
     inside = jnp.all(local >= 0.5, -1) & jnp.all(local < p - 0.5, -1)
@@ -196,7 +196,7 @@ class RefinementCEEval:
     weights = _window_weights(start, frac, p)
     mask = inside & ref_mask
     ce = -jnp.sum(weights * logp.reshape(logp.shape[:3] + (p * p,)), axis=-1)
-    value = losses.masked_mean(jnp.where(mask, ce, 0.0), mask, self.eps)
+    value = loss_common.masked_mean(jnp.where(mask, ce, 0.0), mask, self.eps)
     n = jnp.sum(mask.astype(jnp.float32))
     logs = {"refinement_cross_entropy@non_occluded_mask": value,
             "ratio_in_refinement_range": n / (1e-4 + jnp.sum(covis.astype(jnp.float32)))}
