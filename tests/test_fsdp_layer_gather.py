@@ -4,13 +4,14 @@ gathered at the start of the step ("step"), while its compiled step gathers the 
 one layer at a time inside the loop and never gathers a whole stack."""
 
 import json
-import os
 import pathlib
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+
+from ufm_jax import testing
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -57,8 +58,7 @@ print(json.dumps(out))
 @pytest.mark.slow
 @pytest.mark.parametrize("remat", ["true", "false"])
 def test_layer_gathers_train_as_step_gathers(remat):
-  env = dict(os.environ, PYTHONPATH=str(REPO), JAX_PLATFORMS="cpu",
-             XLA_FLAGS="--xla_force_host_platform_device_count=8")
+  env = testing.fake_devices_env(8)
   r = subprocess.run([sys.executable, "-c", _SCRIPT, remat], capture_output=True, text=True,
                      env=env, cwd=REPO, timeout=1200)
   assert r.returncode == 0, r.stderr[-3000:]

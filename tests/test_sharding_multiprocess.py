@@ -2,7 +2,6 @@
 train.py job on a 4-device mesh: both must see the same losses, and equal the 1-process run."""
 
 import json
-import os
 import pathlib
 import re
 import socket
@@ -10,6 +9,8 @@ import subprocess
 import sys
 
 import pytest
+
+from ufm_jax import testing
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -33,10 +34,8 @@ def test_two_processes_same_loss(tmp_path):
   port = _free_port()
   procs = []
   for pid in range(2):
-    env = dict(os.environ)
+    env = testing.fake_devices_env(2)
     env.update({
-        "PYTHONPATH": str(REPO),
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu",
         "JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}", "JAX_NUM_PROCESSES": "2",
         "JAX_PROCESS_ID": str(pid), "JAX_CPU_COLLECTIVES_IMPLEMENTATION": "gloo"})
     cmd = [sys.executable, str(REPO / "train.py"), f"--config={REPO}/ufm_jax/testing/train_support.py",
@@ -58,8 +57,7 @@ def test_two_processes_same_loss(tmp_path):
   l0, l1 = _losses(outs[0][2]), _losses(outs[1][2])
   assert sorted(l0) == [1, 2] and l0 == l1
   # Same global batch and mesh size as a single process with 4 devices.
-  env = dict(os.environ, PYTHONPATH=str(REPO),
-             XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+  env = testing.fake_devices_env(4)
   r = subprocess.run([sys.executable, str(REPO / "train.py"),
                       f"--config={REPO}/ufm_jax/testing/train_support.py",
                       f"--workdir={tmp_path / 'sp'}", "--config.total_steps=2",

@@ -1,7 +1,6 @@
 """One train step on a (data=4, fsdp=2) mesh of 8 fake CPU devices equals the 1-device step."""
 
 import json
-import os
 import pathlib
 import subprocess
 import sys
@@ -9,17 +8,13 @@ import sys
 import numpy as np
 import pytest
 
-from ufm_jax import checkpoint, model_init
+from ufm_jax import checkpoint, model_init, testing
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
 def run_train(workdir, *overrides, devices=8, env_extra=None, timeout=240):
-  env = dict(os.environ)
-  env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
-  env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
-  env["JAX_PLATFORMS"] = "cpu"
-  env.update(env_extra or {})
+  env = testing.fake_devices_env(devices, **(env_extra or {}))
   cmd = [sys.executable, str(REPO / "train.py"), f"--config={REPO}/ufm_jax/testing/train_support.py",
          f"--workdir={workdir}", *overrides]
   return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout, cwd=REPO)

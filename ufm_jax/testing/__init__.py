@@ -29,6 +29,25 @@ def skip_or_fail(reason: str, ci_note: str) -> None:
   pytest.skip(reason)
 
 
+def fake_devices_env(devices: int, **extra) -> dict:
+  """Environment for a subprocess with `devices` fake CPU devices (the repository on its
+  PYTHONPATH): multi-device tests run their step in a child process, since the device count is
+  fixed when jax starts. XLA:CPU runs each fake device's program on a shared thread pool and ends
+  the process when a collective waits more than 40 s for its peers; on CI's 2 cores, with
+  another test worker beside it, a step of 8 fake devices can wait that long without anything
+  being wrong, so the limit is raised to 15 minutes (a real deadlock still ends the test)."""
+  import os
+  repo = str(pathlib.Path(__file__).resolve().parents[2])
+  env = dict(os.environ)
+  env["PYTHONPATH"] = os.pathsep.join(p for p in (repo, env.get("PYTHONPATH", "")) if p)
+  env["JAX_PLATFORMS"] = "cpu"
+  env["XLA_FLAGS"] = (f"--xla_force_host_platform_device_count={devices}"
+                      " --xla_cpu_collective_call_terminate_timeout_seconds=900"
+                      " --xla_cpu_collective_timeout_seconds=900")
+  env.update(extra)
+  return env
+
+
 def require_extra(extra: str, modules) -> None:
   """Skips the calling test when an optional extra's modules are missing, naming the pip command;
   fails instead under CI=true (CI installs the test extra, which includes every extra tested)."""
