@@ -91,14 +91,16 @@ def main(argv):
       train_iter)
   if state is None:
     start_step = 0
-    params = jax.jit(init_fn, out_shardings=param_sh)(rng)
+    # {"params"}, and "batch_stats" (BatchNorm running statistics) for a model that has them.
+    variables = jax.jit(init_fn, out_shardings=ts.variables_sh)(rng)
     if config.get("model_init"):
-      host_params = jax.tree.map(np.asarray, params)
-      loaded, report = model_init.load_init_params(config.model_init, host_params, model.config)
+      host = jax.tree.map(np.asarray, variables)
+      loaded, report = model_init.load_init_variables(
+          config.model_init, host, getattr(model, "config", None), config.get("model"))
       if is_main:
         print(report.summary(), flush=True)
-      params = jax.device_put(loaded, param_sh)
-    state = jax.jit(lambda p: optim.TrainState.create(p, tx), out_shardings=state_sh)(params)
+      variables = jax.device_put(loaded, ts.variables_sh)
+    state = ts.create_state(variables)
   else:
     print(f"resumed from step {start_step}", flush=True)
 
@@ -109,7 +111,7 @@ def main(argv):
   def run_evals(step, force=False):
     for name, ev in evaluators.items():
       if force or (ev.every and step % ev.every == 0):
-        res = ev.run(p_predict, state.params)
+        res = ev.run(p_predict, state.variables())
         if not res.scalars:
           continue
         rec = {"step": step, "eval": name, **res.scalars}

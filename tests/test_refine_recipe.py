@@ -11,7 +11,7 @@ from safetensors.numpy import load_file, save_file
 
 import ufm_jax
 from ufm_jax import testing
-from ufm_jax.models import dinov2, refine, ufm, variants
+from ufm_jax.models import refine, ufm, variants
 from ufm_jax.official import config as official_config
 from ufm_jax.official import keymap
 
@@ -83,20 +83,10 @@ def test_tiny_recipe_trains_batch_stats_and_infers_from_them(tiny):
   np.testing.assert_allclose(np.asarray(again["flow"]), np.asarray(out["flow"]), atol=1e-5)
 
 
-def _small_recipe():
-  """ufm_refine_recipe's options on the smallest structure the official classes build."""
-  base = testing.official_small_config(
-      encoder=dinov2.dinov2_config("small", depth=2, indices=(0, 1)), covisibility_head=None)
-  fields = {f: getattr(base, f) for f in ufm.UFMConfig.__dataclass_fields__}
-  return refine.UFMRefineConfig(**fields, unet_features=(8, 16), refine_feature_dim=8,
-                                refine_mlp_ratio=2.0, use_unet_batchnorm=True,
-                                feature_combine_method="modulate")
-
-
 def test_recipe_snapshot_both_ways(tmp_path):
   """Random variables -> official state dict + config.json -> load_official (same config,
   params and batch statistics) -> save_official (the same tensors, batch counts as int64)."""
-  cfg = _small_recipe()
+  cfg = testing.official_small_refine_recipe_config()
   model = ufm.model_from_config(cfg)
   variables = _variables(model, 3)
   variables["batch_stats"] = jax.tree.map(lambda s: s + 41, variables["batch_stats"])

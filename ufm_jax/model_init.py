@@ -7,11 +7,24 @@ Sources (a string, optionally prefixed with a kind; without one, `model_io.what_
   dinov2:PATH    DINOv2 weights for the encoder: HF `facebook/dinov2-*` model.safetensors (or its
                  folder), transformers naming, no torch needed; or the original `dinov2_vit*14*.pth`
                  (needs the optional torch extra)
+
+BatchNorm running statistics ("batch_stats") come along from a source that has them for the same
+modules (a refinement-recipe workdir or snapshot); otherwise they stay fresh (a base model's
+weights into a refinement model: its U-Net is new).
+
+The source's model config must agree with the training config in every field that changes the
+model's outputs without changing its parameters (the flow adaptor's normalisation above all: the
+official flow_mean / flow_std are buffers that a snapshot carries, base_shape and scale_strategy
+config values). A run's config is what rebuilds its model later (config.json of the workdir), so
+a difference is refused before training (`check_structure`), naming both values and the
+--config override that adopts the source's, rather than training a model whose output scale the
+config does not describe.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import pathlib
 import re
 from typing import Any
 
@@ -92,31 +105,151 @@ def source_kind(spec: str) -> tuple[str, str]:
 
 
 def load_init_params(spec: str, template, config=None) -> tuple[Any, InitReport]:
-  """Parameters for `template` (the freshly initialised tree) from the `model_init` source.
+  """Parameters for `template` (the freshly initialised parameter tree) from the `model_init`
+  source: `load_init_variables` on {"params": template}."""
+  variables, report = load_init_variables(spec, {"params": template}, config)
+  return variables["params"], report
 
-  `config` (the model's UFMConfig) puts the loaded blocks into the template's layout: per-layer
-  sources (snapshots, DINOv2, unscanned runs) stacked for a `scan_blocks` model, stacked ones
-  (scan runs) split for a per-layer model. Without it the layouts must already agree.
-  """
-  kind, path = source_kind(spec)
+
+def _read_source(kind: str, path: str, want_config: bool):
+  """(variables {"params"[, "batch_stats"]} as flat "a/b" dicts, the source's model config (None
+  for DINOv2 weights, a model without one, or when not `want_config`), the report's name of the
+  source)."""
+  from ufm_jax.models import ufm
   if kind == "dinov2":
     from ufm_jax.models import dinov2
-    loaded = dinov2.load(path)
-  elif kind == "snapshot":
+    return {"params": dinov2.load(path)}, None, f"{kind}:{path}"
+  model = None
+  if kind == "snapshot":
     from ufm_jax.official import snapshot
-    _, params = snapshot.load_official(path)
-    loaded = {k: np.asarray(v) for k, v in flatten(params).items()}
+    model, variables = snapshot.load_official(path)
   elif model_io.what_is(path) == model_io.WORKDIR:
     from ufm_jax import checkpoint
     state, step = checkpoint.read_state_numpy(path)
-    loaded, path = flatten(state["params"]), f"{path}@{step}"
+    variables = model_io.state_variables(state)
+    if want_config:
+      model = model_io.workdir_model(_workdir_root(path))
+    path = f"{path}@{step}"
   else:
-    _, params = model_io.load(path)
-    loaded = {k: np.asarray(v) for k, v in flatten(params).items()}
+    model, variables = model_io.load(path)
+  variables = ufm.variables(variables)
+  out = {c: {k: np.asarray(v) for k, v in flatten(tree).items()}
+         for c, tree in variables.items() if c in ("params", "batch_stats")}
+  return out, getattr(model, "config", None), f"{kind}:{path}"
+
+
+def _workdir_root(path):
+  """A train.py workdir from itself or its checkpoints/ folder (config.json sits in the root)."""
+  p = pathlib.Path(path)
+  return p.parent if p.name == "checkpoints" and not (p / "config.json").exists() else p
+
+
+def load_init_variables(spec: str, template: dict, config=None,
+                        model_block=None) -> tuple[dict, InitReport]:
+  """Variables for `template` ({"params"[, "batch_stats"]}, freshly initialised) from the
+  `model_init` source.
+
+  `config` (the model's UFMConfig) puts the loaded blocks into the template's layout: per-layer
+  sources (snapshots, DINOv2, unscanned runs) stacked for a `scan_blocks` model, stacked ones
+  (scan runs) split for a per-layer model; and the source's model config (a snapshot's
+  config.json, a workdir's, a converted checkpoint's) is checked against it (`check_structure`;
+  `model_block`, the training config's `model` block, makes the error name --config overrides
+  that exist). Without it the layouts must already agree and nothing is checked. BatchNorm
+  statistics the source lacks stay as initialised; the report lists them under "left at init"
+  with a "batch_stats/" prefix.
+  """
+  kind, path = source_kind(spec)
+  loaded, source_config, source = _read_source(kind, path, want_config=config is not None)
+  if config is not None and source_config is not None:
+    check_structure(source_config, config, source, model_block)
+  params = loaded["params"]
   if config is not None:
     from ufm_jax.models import scan
-    tree = traverse_util.unflatten_dict(loaded, sep="/")
-    loaded = flatten(scan.to_layout(tree, config))
-  params, report = merge_into(template, loaded, f"{kind}:{path}")
+    tree = traverse_util.unflatten_dict(params, sep="/")
+    params = flatten(scan.to_layout(tree, config))
+  out = {}
+  out["params"], report = merge_into(template["params"], params, source)
+  stats = loaded.get("batch_stats", {})
+  if "batch_stats" in template:
+    out["batch_stats"], rep = merge_into(template["batch_stats"], stats, source, resizable=r"(?!)")
+    report.loaded += [f"batch_stats/{k}" for k in rep.loaded]
+    report.left_at_init += [f"batch_stats/{k}" for k in rep.left_at_init]
+    report.unused += [f"batch_stats/{k}" for k in rep.unused]
+  else:
+    report.unused += [f"batch_stats/{k}" for k in sorted(stats)]
   logging.info("%s", report.summary())
-  return params, report
+  return out, report
+
+
+# UFMConfig fields that may differ between a model_init source and the model it initialises:
+# compute options and initialisers (they change no output of trained weights), where `predict`
+# resizes to, a training-only gradient switch, and the position table (resized on load).
+INIT_FREE_FIELDS = ("dtype", "remat", "attention_impl", "scan_blocks", "head_dtype", "param_init",
+                    "official_kwargs", "refine_chunk", "inference_resolution",
+                    "detach_uncertainty_head", "encoder.pos_embed_init", "encoder.init_values",
+                    "encoder.pos_grid", "info_sharing.tied_qk_init")
+
+
+def structure_differences(source_config, config) -> list[tuple[str, Any, Any]]:
+  """(field, source value, config value) for every model-structure field on which the two
+  disagree. Fields only one side has (a base model's source for a refinement model: the refiner's
+  fields; a head one side lacks: the refinement recipe has no uncertainty head) are not compared,
+  nor `INIT_FREE_FIELDS`; of `encoder.indices` only the last, the block the fusion transformer and
+  the heads read (the refinement recipe adds an earlier tap for its refiner)."""
+  a = traverse_util.flatten_dict(dataclasses.asdict(source_config), sep=".")
+  b = traverse_util.flatten_dict(dataclasses.asdict(config), sep=".")
+  out = []
+  for k in sorted(set(a) & set(b)):
+    if k in INIT_FREE_FIELDS:
+      continue
+    va, vb = a[k], b[k]
+    if k == "encoder.indices":
+      va, vb = tuple(va)[-1:], tuple(vb)[-1:]
+    if _norm(va) != _norm(vb):
+      out.append((k, va, vb))
+  return out
+
+
+def _norm(v):
+  return tuple(_norm(x) for x in v) if isinstance(v, (list, tuple)) else v
+
+
+def check_structure(source_config, config, source: str, model_block=None) -> None:
+  """ValueError when the source's model differs from `config` in a field that changes outputs
+  (`structure_differences`), naming each field's two values and how to adopt the source's."""
+  diffs = structure_differences(source_config, config)
+  if not diffs:
+    return
+  lines = []
+  for k, va, vb in diffs:
+    hint = _override_hint(k, va, model_block)
+    lines.append(f"{k}: source {_show(va)}, config {_show(vb)}" + (f"  ->  {hint}" if hint else ""))
+  raise ValueError(
+      f"model_init {source}: the source model differs from this run's model config in fields "
+      "that change its outputs (its weights were trained for the source's values; a run's "
+      "config.json is what rebuilds its model later, so the config must state them):\n  " +
+      "\n  ".join(lines) + "\nSet the config to the source's values (the overrides above), or "
+      "start from a source trained with this config.")
+
+
+def _show(v) -> str:
+  return repr(tuple(v)) if isinstance(v, (list, tuple)) else repr(v)
+
+
+def _override_hint(field: str, value, model_block) -> str:
+  """--config.model.FIELD=VALUE where the training config's model block has that key (a locked
+  ml_collections config takes no other), else where to set it."""
+  flag_value = _show(value)
+  if isinstance(value, (list, tuple)) or " " in flag_value:
+    flag_value = f"'{flag_value}'"
+  node, found = model_block, model_block is not None
+  for part in field.split("."):
+    try:
+      node = node[part]
+    except (KeyError, TypeError, AttributeError):
+      found = False
+      break
+  if found:
+    return f"--config.model.{field}={flag_value}"
+  return f"set config.model.{field} = {_show(value)} in the config file (or pick a model " \
+         "variant that has it)"

@@ -85,13 +85,23 @@ def official_hub_id(name: str) -> bool:
 
 def load_workdir(path: str | os.PathLike, step: int | None = None):
   """(model, params) of the latest (or given) checkpoint step of a train.py workdir; the model is
-  rebuilt from the workdir's config.json by `trainer.build_model`, as training built it."""
+  rebuilt from the workdir's config.json by `trainer.build_model`, as training built it. params:
+  the parameter tree, or {"params", "batch_stats"} for a model with BatchNorm (`state_variables`).
+  """
+  from ufm_jax import checkpoint
+
+  model = workdir_model(path)
+  state, _ = checkpoint.read_state_numpy(path, step)
+  return model, state_variables(state)
+
+
+def workdir_model(path: str | os.PathLike):
+  """The model a train.py workdir trained, rebuilt from its config.json (no parameters)."""
   import ml_collections
 
-  from ufm_jax import checkpoint, trainer
+  from ufm_jax import trainer
 
-  p = pathlib.Path(path)
-  cfg_path = p / "config.json"
+  cfg_path = pathlib.Path(path) / "config.json"
   if not cfg_path.is_file():
     raise FileNotFoundError(f"{cfg_path} not found: a train.py workdir holds the config it was "
                             "trained with")
@@ -99,9 +109,16 @@ def load_workdir(path: str | os.PathLike, step: int | None = None):
   if not cfg.get("model_fn") and not cfg.get("model_name"):
     raise ValueError(f"{cfg_path}: neither model_fn nor model_name; cannot rebuild the model")
   cfg["model"] = cfg.get("model") or {}
-  model = trainer.build_model(ml_collections.ConfigDict(cfg))
-  state, _ = checkpoint.read_state_numpy(p, step)
-  return model, state["params"]
+  return trainer.build_model(ml_collections.ConfigDict(cfg))
+
+
+def state_variables(state: dict):
+  """A saved TrainState (as `checkpoint.read_state_numpy` reads it) -> the model's variables in
+  the loaders' convention: the parameter tree, or {"params", "batch_stats"} when the run kept
+  BatchNorm running statistics."""
+  if state.get("batch_stats") is None:
+    return state["params"]
+  return {"params": state["params"], "batch_stats": state["batch_stats"]}
 
 
 # ----------------------------------------------------------------------------- our own format

@@ -203,15 +203,37 @@ def count_params(params, labels=None) -> dict[str, int]:
 
 @flax.struct.dataclass
 class TrainState:
+  """What a training run checkpoints. `batch_stats`: the BatchNorm running statistics of a model
+  that has them (the refinement recipe's U-Net), outside the optimizer (no gradient, no weight
+  decay, no parameter group); None, and absent from the pytree and its checkpoints, otherwise
+  (`create` returns a `TrainStateWithStats` only when there are statistics, so the checkpoints of
+  models without BatchNorm keep the layout they always had)."""
   step: jnp.ndarray
   params: Any
   opt_state: Any
   skipped: jnp.ndarray  # number of updates skipped for a non-finite loss or gradient
+  batch_stats = None    # not a field here: see TrainStateWithStats
 
   @classmethod
-  def create(cls, params, tx):
-    return cls(step=jnp.zeros((), jnp.int32), params=params, opt_state=tx.init(params),
-               skipped=jnp.zeros((), jnp.int32))
+  def create(cls, params, tx, batch_stats=None):
+    kw = dict(step=jnp.zeros((), jnp.int32), params=params, opt_state=tx.init(params),
+              skipped=jnp.zeros((), jnp.int32))
+    if batch_stats is None:
+      return TrainState(**kw)
+    return TrainStateWithStats(**kw, batch_stats=batch_stats)
+
+  def variables(self):
+    """The model's variables in the loaders' convention (`ufm_jax.models.ufm.variables`): the
+    parameter tree, or {"params", "batch_stats"} for a model with BatchNorm."""
+    if self.batch_stats is None:
+      return self.params
+    return {"params": self.params, "batch_stats": self.batch_stats}
+
+
+@flax.struct.dataclass
+class TrainStateWithStats(TrainState):
+  """TrainState of a model with BatchNorm: the running statistics are a field (checkpointed)."""
+  batch_stats: Any
 
 
 def apply_gradients(state: TrainState, grads, loss, tx) -> tuple[TrainState, jnp.ndarray]:

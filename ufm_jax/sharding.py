@@ -145,13 +145,15 @@ def tree_shardings(tree, mesh: Mesh, rules, min_size: int = 0) -> Any:
   """NamedSharding for every leaf of `tree` (arrays or ShapeDtypeStructs) by the config rules;
   "fsdp" leaves with fewer than `min_size` entries are replicated.
 
-  Leaves that are scalars (step counters) are replicated.
+  Leaves that are scalars (step counters) are replicated, and so are BatchNorm running statistics
+  (under a "batch_stats" key): small, and updated from statistics every device computes whole.
   """
   rules = [tuple(r) for r in (rules or [])]
 
   def one(path, x):
     shape = getattr(x, "shape", ())
-    if len(shape) == 0:
+    if len(shape) == 0 or any(getattr(k, "name", getattr(k, "key", None)) == "batch_stats"
+                              for k in path):
       return NamedSharding(mesh, P())
     return NamedSharding(mesh, spec_for(optim.path_str(path), shape, rules, mesh, min_size))
 

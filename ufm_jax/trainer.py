@@ -36,12 +36,24 @@ def build_model(config, activation_sharding=None, layer_gather=None):
                                layer_gather=layer_gather)
 
 
-def init_params(model, image_shape, rng):
+# The variable collections a training run keeps: parameters, and BatchNorm running statistics
+# where the model has them (the refinement recipe's U-Net). "intermediates" (sown) are not state.
+STATE_COLLECTIONS = ("params", "batch_stats")
+
+
+def init_variables(model, image_shape, rng):
   """The model's own initializers (`model.init`) traced on one (H, W) pair: the one init path of
-  training from scratch (jit it, or eval_shape it for the abstract tree)."""
+  training from scratch (jit it, or eval_shape it for the abstract tree). {"params"}, plus
+  "batch_stats" for a model with BatchNorm."""
   import jax.numpy as jnp
   dummy = jnp.zeros((1, *image_shape, 3), jnp.uint8)
-  return model.init(rng, dummy, dummy)["params"]
+  variables = model.init(rng, dummy, dummy)
+  return {k: variables[k] for k in STATE_COLLECTIONS if k in variables}
+
+
+def init_params(model, image_shape, rng):
+  """The parameters of `init_variables`."""
+  return init_variables(model, image_shape, rng)["params"]
 
 
 # Initialisation runs once, so for small models XLA's backend optimisations only cost compile time
@@ -104,25 +116,42 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
   so e.g. the refine stage runs no backward pass through the base model). `gather_params`
   (sharding.gathered) is applied to the params the forward pass uses. The loss gets a key of its
   own per step (PRNGKey(seed) folded with the step: the refinement loss draws its pixel cap).
+
+  A model with BatchNorm (`state.batch_stats`) runs with train=True: it normalises with the
+  batch's statistics (over the global batch: every device's rows) and the step stores the
+  running statistics it returns, unless the update is skipped as non-finite. Other models are
+  called exactly as before (no `train` argument).
   """
   import jax
   import jax.numpy as jnp
   import optax
   from ufm_jax import optim
 
-  def loss_and_aux(trainable, frozen, batch, rng):
+  def loss_and_aux(trainable, frozen, batch_stats, batch, rng):
     params = optim.merge_params(trainable, jax.lax.stop_gradient(frozen))
     if gather_params is not None:
       params = gather_params(params)
-    out = model.apply({"params": params}, batch["image0"], batch["image1"], **apply_kwargs)
-    return loss_fn(out, batch, rng)
+    if batch_stats is None:
+      out = model.apply({"params": params}, batch["image0"], batch["image1"], **apply_kwargs)
+      new_stats = None
+    else:
+      out, updated = model.apply({"params": params, "batch_stats": batch_stats}, batch["image0"],
+                                 batch["image1"], **apply_kwargs, train=True,
+                                 mutable=["batch_stats"])
+      new_stats = updated["batch_stats"]
+    loss, aux = loss_fn(out, batch, rng)
+    return loss, (aux, new_stats)
 
   def train_step(state, batch):
     trainable, frozen = optim.split_trainable(state.params, labels)
     rng = jax.random.fold_in(jax.random.PRNGKey(seed), state.step)
-    (loss, aux), g = jax.value_and_grad(loss_and_aux, has_aux=True)(trainable, frozen, batch, rng)
+    (loss, (aux, new_stats)), g = jax.value_and_grad(loss_and_aux, has_aux=True)(
+        trainable, frozen, state.batch_stats, batch, rng)
     grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
     new_state, ok = optim.apply_gradients(state, grads, loss, tx)
+    if new_stats is not None:   # a skipped (non-finite) step leaves the running statistics too
+      new_state = new_state.replace(batch_stats=jax.tree.map(
+          lambda new, old: jnp.where(ok, new, old), new_stats, state.batch_stats))
     metrics = dict(aux, loss=loss, grad_norm=optax.global_norm(g), update_ok=ok)
     return new_state, metrics
 
@@ -130,19 +159,24 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
 
 
 def make_predict(model, apply_kwargs, gather_params=None):
-  """predict(params, batch) -> {"flow", "covisibility"} for evaluation batches.
+  """predict(variables, batch) -> {"flow", "covisibility"} for evaluation batches; "covisibility"
+  only from a model that has an uncertainty head. `variables`: the parameter tree, or
+  {"params", "batch_stats"} for a model with BatchNorm (`TrainState.variables`), which then
+  normalises with its running statistics (train=False).
 
   Training batches are symmetrized ((a, b), (b, a) rows whose images are encoded once); evaluation
   pairs are not, so `symmetrized` is dropped: with it every odd row would be predicted for the
   reverse of the pair before it.
   """
+  from ufm_jax.models import ufm
   kwargs = {k: v for k, v in apply_kwargs.items() if k != "symmetrized"}
 
-  def predict(params, batch):
+  def predict(variables, batch):
+    variables = ufm.variables(variables)
     if gather_params is not None:
-      params = gather_params(params)
-    out = model.apply({"params": params}, batch["image0"], batch["image1"], **kwargs)
-    return {"flow": out["flow"], "covisibility": out["covisibility"]}
+      variables = dict(variables, params=gather_params(variables["params"]))
+    out = model.apply(variables, batch["image0"], batch["image1"], **kwargs)
+    return {k: out[k] for k in ("flow", "covisibility") if k in out}
 
   return predict
 
@@ -154,14 +188,15 @@ class TrainSetup:
   tx: Any
   labels: Any
   schedules: Any
-  init_fn: Callable            # rng -> params (the modules' own initializers)
+  init_fn: Callable            # rng -> {"params"[, "batch_stats"]} (the modules' initializers)
   abstract_params: Any
   abstract_state: Any
   param_sh: Any
   state_sh: Any
   batch_sh: Any
   train_step: Callable         # jitted (state, batch) -> (state, metrics); state donated
-  predict: Callable            # jitted (params, batch) -> {"flow", "covisibility"}
+  predict: Callable            # jitted (state.variables(), batch) -> {"flow"[, "covisibility"]}
+  variables_sh: Any = None     # shardings of init_fn's output
 
   def abstract_batch(self, batch_size: int, image_shape):
     """ShapeDtypeStructs of a global training batch, sharded as the step expects (AOT)."""
@@ -179,10 +214,15 @@ class TrainSetup:
   def init_state(self, seed: int = 0):
     """A fresh sharded TrainState from the modules' initializers (benchmarks, smoke runs)."""
     import jax
+    variables = jax.jit(self.init_fn, out_shardings=self.variables_sh)(jax.random.PRNGKey(seed))
+    return self.create_state(variables)
+
+  def create_state(self, variables):
+    """The sharded TrainState (step 0, fresh optimizer state) of {"params"[, "batch_stats"]}."""
+    import jax
     from ufm_jax import optim
-    params = jax.jit(self.init_fn, out_shardings=self.param_sh)(jax.random.PRNGKey(seed))
-    return jax.jit(lambda p: optim.TrainState.create(p, self.tx),
-                   out_shardings=self.state_sh)(params)
+    return jax.jit(lambda v: optim.TrainState.create(v["params"], self.tx, v.get("batch_stats")),
+                   out_shardings=self.state_sh)(variables)
 
   def random_batch(self, mesh, batch_size: int, image_shape, seed: int = 0):
     """A global batch of random images and labels in the training layout (benchmarks)."""
@@ -216,8 +256,10 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   gather_params, layer_gather = sharding.fsdp_gathers(mesh, config)
   model = build_model(config, sharding.activation_constraint(mesh), layer_gather)
   apply_kwargs = dict(config.get("apply_kwargs", {}))
-  init_fn = functools.partial(init_params, model, tuple(image_shape))
-  abstract_params = jax.eval_shape(init_fn, jax.random.PRNGKey(0))
+  init_fn = functools.partial(init_variables, model, tuple(image_shape))
+  abstract_variables = jax.eval_shape(init_fn, jax.random.PRNGKey(0))
+  # Parameter groups, learning rates and weight decay see the parameters only.
+  abstract_params = abstract_variables["params"]
   trainable_fn = import_attr(config.trainable_filter) if config.get("trainable_filter") else None
   if steps_per_epoch is None and config.get("num_epochs"):
     steps_per_epoch = total_steps / config.num_epochs
@@ -226,8 +268,12 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
                                                steps_per_epoch=steps_per_epoch)
   min_size = int(config.get("sharding_min_size", 0) or 0)
   param_sh = sharding.tree_shardings(abstract_params, mesh, config.sharding_rules, min_size)
-  abstract_state = jax.eval_shape(lambda p: optim.TrainState.create(p, tx), abstract_params)
+  abstract_state = jax.eval_shape(
+      lambda v: optim.TrainState.create(v["params"], tx, v.get("batch_stats")), abstract_variables)
   state_sh = sharding.tree_shardings(abstract_state, mesh, config.sharding_rules, min_size)
+  variables_sh = {"params": param_sh}
+  if abstract_state.batch_stats is not None:
+    variables_sh["batch_stats"] = state_sh.batch_stats
   batch_sh = sharding.batch_sharding(mesh)
   repl = sharding.replicated(mesh)
   loss_fn = build_loss(config, model, dataset_names)
@@ -235,10 +281,11 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
                          seed=int(config.get("seed", 0)))
   train_step = jax.jit(step, in_shardings=(state_sh, batch_sh), out_shardings=(state_sh, repl),
                        donate_argnums=(0,))
+  eval_sh = param_sh if abstract_state.batch_stats is None else variables_sh
   predict = jax.jit(make_predict(model, apply_kwargs, gather_params),
-                    in_shardings=(param_sh, batch_sh), out_shardings=repl)
+                    in_shardings=(eval_sh, batch_sh), out_shardings=repl)
   return TrainSetup(model, tx, labels, schedules, init_fn, abstract_params, abstract_state,
-                    param_sh, state_sh, batch_sh, train_step, predict)
+                    param_sh, state_sh, batch_sh, train_step, predict, variables_sh)
 
 
 class Writer:

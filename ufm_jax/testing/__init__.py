@@ -194,6 +194,23 @@ def official_small_model(model_kw=None):
   return ufm.model_from_config(official_small_config(**dict(model_kw or {})))
 
 
+def official_small_refine_recipe_config(**overrides) -> refine.UFMRefineConfig:
+  """`variants.ufm_refine_recipe`'s options (BatchNorm U-Net, "modulate", no uncertainty head, an
+  extra early encoder tap) on the smallest structure the official classes build: what a test
+  trains and exports to an official snapshot (a `tiny_refine_recipe` encoder is no DINOv2 size)."""
+  base = official_small_config(encoder=dinov2.dinov2_config("small", depth=2, indices=(0, 1)),
+                               covisibility_head=None)
+  cfg = _refine(base, unet_features=(8, 16), refine_feature_dim=8, refine_mlp_ratio=2.0,
+                use_unet_batchnorm=True, feature_combine_method="modulate")
+  return cfg.replace(**overrides)
+
+
+def official_small_refine_recipe_model(model_kw=None):
+  """`model_fn` of a train.py config for `official_small_refine_recipe_config`."""
+  kw = model_kw.to_dict() if hasattr(model_kw, "to_dict") else dict(model_kw or {})
+  return ufm.model_from_config(official_small_refine_recipe_config(**kw))
+
+
 def hf_dinov2(depth=2, dim=8, grid=3, seed=0):
   """Random weights in the transformers Dinov2Model naming."""
   rng = np.random.default_rng(seed)
