@@ -184,16 +184,19 @@ def _add_export_parser(sub) -> None:
   p.add_argument("--dtype", default="float32", choices=export.DTYPES,
                  help="compute dtype of encoder + transformer (heads stay float32)")
   p.add_argument("--format", default="stablehlo", choices=export.FORMATS)
-  p.add_argument("--outputs", default=",".join(export.DEFAULT_OUTPUTS),
-                 help="comma-separated model outputs to keep (refinement models also have "
-                      "flow_before_refinement, residual, log_softmax, ...)")
+  p.add_argument("--outputs", default=None,
+                 help="comma-separated model outputs to keep (default: "
+                      f"{','.join(export.DEFAULT_OUTPUTS)}, flow alone for a model without "
+                      "covisibility; refinement models also have flow_before_refinement, "
+                      "residual, log_softmax, ...)")
   p.set_defaults(func=_export_main)
 
 
 def _export_main(args) -> int:
   from ufm_jax import export
   model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
-  outputs = [k.strip() for k in args.outputs.split(",") if k.strip()]
+  outputs = (None if args.outputs is None else
+             [k.strip() for k in args.outputs.split(",") if k.strip()])
   written = export.export(model, params, args.size, args.out, fmt=args.format, batch=args.batch,
                           dtype=args.dtype, outputs=outputs,
                           checkpoint=(pathlib.Path(args.checkpoint).absolute()

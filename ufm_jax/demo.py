@@ -142,7 +142,8 @@ class Analyser:
     check_size(source, "source", self.max_side, self.min_side)
     check_size(target, "target", self.max_side, self.min_side)
     key, pred, ms = self.predict(source, target)
-    flow, covis = pred["flow"], pred["covisibility"]
+    # A model without covisibility: matches_from_dense refuses it, naming why.
+    flow, covis = pred["flow"], pred.get("covisibility")
     threshold, num = float(threshold), int(num)
     colours, warped = viz.flow_views(target, flow, covis, threshold=threshold)
     m = matching.matches_from_dense(flow, covis, num=num, min_covisibility=threshold,

@@ -5,7 +5,8 @@
 
 Both formats take `source`, `target` uint8 [B, H, W, 3] RGB (H, W the export size) and return
 `flow` [B, H, W, 2] float32 pixels and `covisibility` [B, H, W] (plus any extra outputs named with
---outputs, e.g. a refinement model's `flow_before_refinement`). Images must already be at the
+--outputs, e.g. a refinement model's `flow_before_refinement`). A model without an uncertainty
+head (the refinement training recipe's) exports `flow` alone by default (a warning says so). Images must already be at the
 export size: resize on the host (ufm_jax.predict does it the official way) or export at the
 camera's resolution.
 
@@ -70,9 +71,9 @@ def _prepare(model, params, size, dtype, outputs, attention_impl=None):
   if h <= 0 or w <= 0 or h % patch or w % patch:
     raise ExportError(f"--size {h}x{w}: H and W must be positive multiples of the patch size "
                       f"{patch} (e.g. {max(patch, h // patch * patch)}x{max(patch, w // patch * patch)})")
-  outputs = tuple(outputs)
   spec = jax.ShapeDtypeStruct((1, h, w, 3), jnp.uint8)
   available = jax.eval_shape(lambda s, t: model.apply(ufm.variables(params), s, t), spec, spec)
+  outputs = resolve_outputs(outputs, available, model)
   missing = [k for k in outputs if k not in available]
   if missing or not outputs:
     raise ExportError(f"outputs {missing or list(outputs)} not produced by {type(model).__name__}; "
@@ -85,6 +86,20 @@ def _prepare(model, params, size, dtype, outputs, attention_impl=None):
   return forward, model, outputs
 
 
+def resolve_outputs(outputs, available, model=None) -> tuple[str, ...]:
+  """The output names to export: `outputs`, or for None the default ones the model produces
+  (`DEFAULT_OUTPUTS`: no covisibility from a model without an uncertainty head, with a warning)."""
+  if outputs is not None:
+    return tuple(outputs)
+  chosen = tuple(k for k in DEFAULT_OUTPUTS if k in available)
+  if chosen != DEFAULT_OUTPUTS:
+    from absl import logging
+    logging.log_first_n(logging.WARNING, "%s produces no %s (no uncertainty head): exporting %s",
+                        1, type(model).__name__,
+                        ", ".join(sorted(set(DEFAULT_OUTPUTS) - set(chosen))), ", ".join(chosen))
+  return chosen
+
+
 def _batch_dim(batch):
   if batch == "dynamic":
     from jax import export as jax_export
@@ -95,7 +110,7 @@ def _batch_dim(batch):
 
 
 def export_stablehlo(model, params, size, *, batch=1, dtype="float32",
-                     outputs: Sequence[str] = DEFAULT_OUTPUTS, platforms=PLATFORMS):
+                     outputs: Sequence[str] | None = None, platforms=PLATFORMS):
   """The forward as a `jax.export.Exported` (parameters are constants inside it)."""
   import jax
   import jax.numpy as jnp
@@ -187,7 +202,7 @@ def write_onnx(fn, specs, input_names, output_names, path) -> None:
 
 
 def export_onnx(model, params, size, path, *, batch=1, dtype="float32",
-                outputs: Sequence[str] = DEFAULT_OUTPUTS):
+                outputs: Sequence[str] | None = None):
   """Writes the forward as one ONNX graph (inputs source/target, outputs named as `outputs`)."""
   import jax
   import jax.numpy as jnp
@@ -232,7 +247,7 @@ def _sidecar(fmt, model, size, batch, dtype, outputs, shapes, checkpoint, platfo
 
 
 def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32",
-           outputs: Sequence[str] = DEFAULT_OUTPUTS, checkpoint=None,
+           outputs: Sequence[str] | None = None, checkpoint=None,
            platforms=PLATFORMS) -> list[pathlib.Path]:
   """Exports (model, params) at `size` (H, W) to `out` + its JSON sidecar; returns the paths."""
   import jax
@@ -257,6 +272,7 @@ def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32
                        .exists() else [])
   spec = jax.ShapeDtypeStruct((1,) + size + (3,), jnp.uint8)
   avals = jax.eval_shape(lambda s, t: model.apply(ufm.variables(params), s, t), spec, spec)
+  outputs = resolve_outputs(outputs, avals, model)
   shapes = {}
   for k in outputs:
     shapes[k], shapes[k + ":dtype"] = tuple(avals[k].shape), str(avals[k].dtype)

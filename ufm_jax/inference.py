@@ -12,6 +12,9 @@ utils/flow_resizing.py) step by step:
 
 The resize and unmap run in numpy on the host (they are cheap and must match PyTorch's float32
 arithmetic); the forward pass is jitted once per model and traced once per inference shape.
+
+A model without an uncertainty head (the refinement training recipe's, `ufm_refine_recipe`)
+predicts flow only: its predictions have no "covisibility" key (a warning says so once).
 """
 
 from __future__ import annotations
@@ -216,7 +219,9 @@ def _forward_fn(model):
 
     def fwd(params, source, target):
       out = model.apply(ufm.variables(params), source, target)
-      return {"flow": out["flow"], "covisibility": out["covisibility"]}
+      if "covisibility" not in out:
+        _warn_no_covisibility(model)
+      return {k: out[k] for k in ("flow", "covisibility") if k in out}
     entry = (model, jax.jit(fwd), set())
     _FORWARDS[id(model)] = entry
   return entry[1], entry[2]
@@ -244,13 +249,27 @@ def prepare_pair(source, target, resolutions):
   return src, tgt, book
 
 
+_NO_COVISIBILITY_WARNED: set = set()
+
+
+def _warn_no_covisibility(model) -> None:
+  """Says once per model class and config that its predictions carry no covisibility."""
+  from absl import logging
+  key = (type(model).__name__, getattr(model, "config", None))
+  if key not in _NO_COVISIBILITY_WARNED:
+    _NO_COVISIBILITY_WARNED.add(key)
+    logging.warning("%s has no uncertainty head: predictions have flow only, no covisibility",
+                    type(model).__name__)
+
+
 def unmap_prediction(flow, covisibility, book) -> dict[str, np.ndarray]:
-  """Forward outputs of one pair at inference resolution -> source-resolution dict."""
-  return {
-      "flow": unmap_flow(flow, book["region0"], book["src_hw"], book["tgt_hw"]),
-      "covisibility": unmap_channels(np.asarray(covisibility, np.float32), book["region0"],
-                                     book["src_hw"]),
-  }
+  """Forward outputs of one pair at inference resolution -> source-resolution dict (no
+  "covisibility" when `covisibility` is None)."""
+  out = {"flow": unmap_flow(flow, book["region0"], book["src_hw"], book["tgt_hw"])}
+  if covisibility is not None:
+    out["covisibility"] = unmap_channels(np.asarray(covisibility, np.float32), book["region0"],
+                                         book["src_hw"])
+  return out
 
 
 def predict(model, params, source, target, *, batch_size: int = 8, resolutions=None,
@@ -267,7 +286,8 @@ def predict(model, params, source, target, *, batch_size: int = 8, resolutions=N
       (device time of the jitted forward only: no resize, unmap or I/O).
   Returns:
     {"flow": [H, W, 2] float32 px, "covisibility": [H, W] float32} at the SOURCE size for a single
-    pair; a list of such dicts for lists; stacked [B, ...] arrays for [B, H, W, 3] inputs.
+    pair; a list of such dicts for lists; stacked [B, ...] arrays for [B, H, W, 3] inputs. No
+    "covisibility" from a model without an uncertainty head.
   """
   if getattr(source, "ndim", None) == 4:
     source, target = np.asarray(source), np.asarray(target)
@@ -276,7 +296,7 @@ def predict(model, params, source, target, *, batch_size: int = 8, resolutions=N
                        "both be [B, H, W, 3] with the same B")
     outs = predict(model, params, list(source), list(target), batch_size=batch_size,
                    resolutions=resolutions, timings=timings)
-    return {k: np.stack([o[k] for o in outs]) for k in ("flow", "covisibility")}
+    return {k: np.stack([o[k] for o in outs]) for k in outs[0]}
   single = not isinstance(source, (list, tuple))
   sources = [source] if single else list(source)
   targets = [target] if single else list(target)
@@ -304,7 +324,9 @@ def predict(model, params, source, target, *, batch_size: int = 8, resolutions=N
       if timings is not None and src.shape in compiled_shapes:
         timings.append((time.perf_counter() - t0, len(chunk)))
       compiled_shapes.add(src.shape)
-      flow, covis = np.asarray(out["flow"], np.float32), np.asarray(out["covisibility"], np.float32)
+      flow = np.asarray(out["flow"], np.float32)
+      covis = np.asarray(out["covisibility"], np.float32) if "covisibility" in out else None
       for j, i in enumerate(chunk):
-        results[i] = unmap_prediction(flow[j], covis[j], prepared[i][2])
+        results[i] = unmap_prediction(flow[j], None if covis is None else covis[j],
+                                      prepared[i][2])
   return results[0] if single else results

@@ -40,6 +40,10 @@ def matches_from_dense(flow, covisibility, *, num=5000, min_covisibility=0.5, ta
   backward error <= max_fb_error_px) are drawn.
   """
   flow = np.asarray(flow, np.float32)
+  if covisibility is None:
+    raise ValueError("matches are drawn by predicted covisibility, and this model predicts none "
+                     "(it has no uncertainty head, as the refinement training recipe's model); "
+                     "use a model with covisibility (UFM-Base, UFM-Refine)")
   covis = np.asarray(covisibility, np.float32)
   if backward_flow is not None:
     covis = np.where(forward_backward_error(flow, backward_flow) <= max_fb_error_px, covis, 0.0)
@@ -59,7 +63,7 @@ def match(model, params, source, target, num=5000, min_covisibility=0.5, bidirec
     fwd, bwd = inference.predict(model, params, [source, target], [target, source])
   else:
     fwd, bwd = inference.predict(model, params, source, target), None
-  return matches_from_dense(fwd["flow"], fwd["covisibility"], num=num,
+  return matches_from_dense(fwd["flow"], fwd.get("covisibility"), num=num,
                             min_covisibility=min_covisibility, target_hw=target.shape[:2],
                             backward_flow=None if bwd is None else bwd["flow"],
                             max_fb_error_px=max_fb_error_px, seed=seed)

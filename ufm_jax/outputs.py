@@ -6,6 +6,9 @@ shared by the single pair (`infer SOURCE TARGET`) and the many-pair runs (`ufm_j
   <name>_covisibility.npy   covisibility probability, [H, W] float32             (--save npy)
   <name>_covisibility.png   covisibility as 8-bit grey (255 = covisible)         (--save covis)
   <name>_panel.png          source | target | flow colours | warped target       (--save panel)
+
+A model without an uncertainty head (the refinement training recipe's) predicts no covisibility:
+its covisibility files are not written (`written`) and its panel greys nothing out.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ SUFFIXES = {"npy": "_flow.npy", "cnpy": "_covisibility.npy", "cpng": "_covisibil
             "panel": "_panel.png", "flo": ".flo"}
 # --save choice -> the kinds it adds to the .flo.
 SAVE_CHOICES = {"npy": ("npy", "cnpy"), "covis": ("cpng",), "panel": ("panel",)}
+COVISIBILITY_KINDS = ("cnpy", "cpng")
 
 
 def paths(out_dir, name: str, save=tuple(SAVE_CHOICES)) -> dict[str, pathlib.Path]:
@@ -32,13 +36,23 @@ def paths(out_dir, name: str, save=tuple(SAVE_CHOICES)) -> dict[str, pathlib.Pat
           if k in kinds}
 
 
+def written(files: dict[str, pathlib.Path], pred) -> dict[str, pathlib.Path]:
+  """The files of `files` that `write` writes for `pred`: all, but the covisibility ones only
+  when the prediction has covisibility."""
+  return {k: p for k, p in files.items()
+          if k not in COVISIBILITY_KINDS or pred.get("covisibility") is not None}
+
+
 def write(files: dict[str, pathlib.Path], source, target, pred) -> list[pathlib.Path]:
-  """Writes `files` ({kind: path} from `paths`) of one prediction, each atomically; returns the
-  paths. `pred`: {"flow": [H, W, 2], "covisibility": [H, W]} at the source image's size."""
+  """Writes `written(files, pred)` ({kind: path} from `paths`) of one prediction, each
+  atomically; returns their paths. `pred`: {"flow": [H, W, 2], "covisibility": [H, W]
+  (absent for a model without an uncertainty head)} at the source image's size."""
   from ufm_jax import viz
   from ufm_jax.data import io
+  files = written(files, pred)
   flow = np.asarray(pred["flow"], np.float32)
-  covis = np.asarray(pred["covisibility"], np.float32)
+  covis = pred.get("covisibility")
+  covis = None if covis is None else np.asarray(covis, np.float32)
   writers = {
       "npy": lambda p: io.write_npy(p, flow),
       "cnpy": lambda p: io.write_npy(p, covis),

@@ -150,8 +150,10 @@ def run(model, params, pairs, out_dir, *, batch: int = 1, save=(), overwrite=Fal
         for (it, (x, y)), pred in zip(good, preds):
           writes.append(pool.submit(outputs.write, it[5], x, y, pred))
           manifest.write(json.dumps({"pair": [it[2], it[3]], "name": it[4],
-                                     "files": [str(f) for f in it[5].values()],
-                                     "mean_covisibility": float(np.mean(pred["covisibility"])),
+                                     "files": [str(f) for f in
+                                               outputs.written(it[5], pred).values()],
+                                     **({"mean_covisibility": float(np.mean(pred["covisibility"]))}
+                                        if "covisibility" in pred else {}),
                                      "ms": round(ms, 2)}) + "\n")
           counts["done"] += 1
       while len(writes) > ahead:

@@ -107,8 +107,9 @@ def relpath_of(sample: dict, index: int) -> str:
 
 
 class PredictionWriter:
-  """--save_predictions: flow (.flo) + covisibility PNG per pair, panels for the first N pairs
-  of each bench, under <root>/<bench>/<the dataset's GT relative path>."""
+  """--save_predictions: flow (.flo) + covisibility PNG per pair (when the model predicts
+  covisibility), panels for the first N pairs of each bench, under <root>/<bench>/<the dataset's
+  GT relative path>."""
 
   def __init__(self, root: str | os.PathLike | None, num_panels: int = 8):
     self.root = None if root is None else pathlib.Path(root)
@@ -125,13 +126,15 @@ class PredictionWriter:
     base = self.root / bench / rel
     base.parent.mkdir(parents=True, exist_ok=True)
     io.write_flo(base.with_suffix(".flo"), pred["flow"])
-    io.write_image(base.parent / (base.name + "_covisibility.png"),
-                  viz.covisibility_to_image(pred["covisibility"]))
+    covis = pred.get("covisibility")   # None: a model without an uncertainty head
+    if covis is not None:
+      io.write_image(base.parent / (base.name + "_covisibility.png"),
+                     viz.covisibility_to_image(covis))
     if self.written.get(bench, 0) < self.num_panels:
       panels = self.root / bench / "panels"
       panels.mkdir(parents=True, exist_ok=True)
       io.write_image(panels / (str(rel).replace("/", "__") + ".png"),
-                    viz.panel(sample["image0"], sample["image1"], pred["flow"], pred["covisibility"]))
+                     viz.panel(sample["image0"], sample["image1"], pred["flow"], covis))
     self.written[bench] = self.written.get(bench, 0) + 1
 
 

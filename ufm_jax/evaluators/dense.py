@@ -20,12 +20,15 @@ out-of-view pixels out of `epe_occluded`, and covis_valid keeps only pixels whos
 depth can decide.
 With `baselines`, `epe_zero` (the EPE that predicting no motion gets on the `epe` pixels: the bar
 a model that matches must beat) and `covis_acc` (pixels with covis_valid whose thresholded
-covisibility >= 0.5 is right) are added.
+covisibility >= 0.5 is right) are added; `covis_acc` only for a model that predicts covisibility
+(the refinement recipe's has no uncertainty head: a warning says so once).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from absl import logging
 
 from ufm_jax import geometry, metrics
 
@@ -54,6 +57,10 @@ class DenseMetrics:
     if self.baselines:
       self.pooled.add("epe_zero", np.linalg.norm(np.asarray(sample["flow"], np.float64), axis=-1),
                       covis)
+      if pred.get("covisibility") is None:
+        logging.log_first_n(logging.WARNING, "the model predicts no covisibility (no uncertainty "
+                            "head): covis_acc is not computed", 1)
+        return
       right = (np.asarray(pred["covisibility"]) >= 0.5) == covis_gt
       self.pooled.add("covis_acc", right, covis_valid)
 

@@ -17,6 +17,10 @@ import numpy as np
 from ufm_jax import metrics
 
 
+class NoCovisibilityError(ValueError):
+  """A metric that needs the model's covisibility, from a model without an uncertainty head."""
+
+
 class PoseMetrics:
   def __init__(self, thresholds=(5, 10, 15), runs: int = 5, num_matches: int = 5000, seed: int = 0):
     self.thresholds, self.runs, self.num = tuple(thresholds), runs, num_matches
@@ -29,6 +33,10 @@ class PoseMetrics:
       if meta.get(key) is None:
         raise ValueError(f"pose benchmark: sample meta lacks {key!r} (dataset "
                          f"{meta.get('dataset', '?')}, scene {meta.get('scene', '?')})")
+    if pred.get("covisibility") is None:
+      raise NoCovisibilityError("pose benchmark: matches are sampled by predicted covisibility, "
+                                "and this model predicts none (no uncertainty head, as the "
+                                "refinement training recipe's model)")
     R_gt, t_gt = metrics.relative_pose(meta["cam2world0"], meta["cam2world1"])
     kp0, kp1 = metrics.sample_matches(pred["flow"], pred["covisibility"], self.num, self.rng,
                                       target_hw=sample["image1"].shape[:2])

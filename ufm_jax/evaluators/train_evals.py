@@ -15,6 +15,7 @@ import numpy as np
 from absl import logging
 
 from ufm_jax.evaluators.dense import DenseMetrics
+from ufm_jax.evaluators.pose import NoCovisibilityError
 
 
 class EvalResult:
@@ -75,13 +76,16 @@ class HeldoutEval:
       local = {k: v[pid * per:(pid + 1) * per] for k, v in batch.items()}
       out = jax.device_get(predict(params, sharding.make_global_batch(local, self.mesh)))
       for j in range(real):
+        # No covisibility from a model without an uncertainty head: DenseMetrics then skips
+        # covis_acc (and says so once), the panel greys nothing out.
         pred = {"flow": np.asarray(out["flow"][j], np.float32),
-                "covisibility": np.asarray(out["covisibility"][j])}
+                **({"covisibility": np.asarray(out["covisibility"][j])}
+                   if "covisibility" in out else {})}
         acc(chunk[j], pred)
         i = start + j
         if i < self.num_images:
           images[f"pair{i}"] = viz.panel(chunk[j]["image0"], chunk[j]["image1"], pred["flow"],
-                                         pred["covisibility"])
+                                         pred.get("covisibility"))
           images[f"pair{i}_gt"] = viz.panel(chunk[j]["image0"], chunk[j]["image1"],
                                             chunk[j]["flow"], chunk[j]["covisibility"])
     return EvalResult({**acc.result(), "num_pairs": float(n)}, images)
@@ -92,7 +96,8 @@ class BenchEval:
 
   Config: bench (e.g. sintel), every, max_pairs, resolution (560 | 980 | native), data_root,
   protocol (default "native"; "official" needs no resolution: docs/benchmarks.md).
-  Benches whose data is absent are skipped with a warning (once).
+  Benches whose data is absent, and pose benches of a model without covisibility, are skipped
+  with a warning (once).
   """
 
   def __init__(self, cfg, model):
@@ -110,7 +115,7 @@ class BenchEval:
       metrics, _ = evaluators.run_bench(self.cfg.bench, runner, self.cfg.get("data_root"),
                                         max_pairs=self.cfg.get("max_pairs"), progress=False,
                                         protocol=self.cfg.get("protocol", "native"))
-    except evaluators.MissingDataError as e:
+    except (evaluators.MissingDataError, NoCovisibilityError) as e:
       logging.warning("eval %s skipped from now on: %s", self.cfg.bench, e)
       self.missing = True
       return EvalResult({})
