@@ -17,13 +17,21 @@ ScanNet++, StaticThings and Habitat with the official recipe's samples per epoch
 (`mixture.RECIPES['refine560']`: static_pinhole_100k.yaml); of these only BlendedMVS trains the
 refiner.
 
-Model: the released UFM-Refine structure (`ufm_refine`). The official recipe trains another one
-(U-Net with BatchNorm, `modulate` feature combination, encoder taps [6, 23], no covisibility head);
-select it with `:model=<that variant>` once it exists (docs/recipe.md).
+Model: the official recipe's refinement structure (`ufm_refine_recipe`, train branch
+configs/model/uniflowmatch_refinement.yaml): a U-Net with BatchNorm (its running statistics are
+train state, saved with the checkpoints and used for evaluation), `modulate` feature combination,
+encoder taps [6, 23], no uncertainty head (so no covisibility output: evaluators skip the
+covisibility metrics). This is NOT the released UFM-Refine; `:model=ufm_refine` trains the
+released structure (conv combination, no BatchNorm, a covisibility head kept frozen).
 
-Smoke run on a fresh machine (tiny refine model, embedded synthetic pairs, random base):
-  python train.py --config=configs/ufm560_refine.py:model=tiny_refine,data=synthetic,steps=20 \
+model_init must match the model config in everything that changes outputs (the flow adaptor's
+normalisation above all); a difference stops the run before training, naming the --config
+override (`ufm_jax.model_init.check_structure`).
+
+Smoke run on a fresh machine (tiny recipe model, embedded synthetic pairs, random base):
+  python train.py --config=configs/ufm560_refine.py:model=tiny_refine_recipe,data=synthetic,steps=20 \
       --workdir=DIR
+(`model=tiny_refine` for the released structure's.)
 """
 
 import ml_collections
@@ -33,7 +41,7 @@ from ufm_jax.data import augment, mixture, pipeline
 
 
 def get_config(arg=None):
-  arg = config_lib.parse_arg(arg, model="ufm_refine", data="refine", steps=0)
+  arg = config_lib.parse_arg(arg, model="ufm_refine_recipe", data="refine", steps=0)
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.seed = 42
   c.num_epochs = 30
@@ -72,7 +80,8 @@ def get_config(arg=None):
   c.model_init = config_lib.unset(str)  # the UFM-560 base
 
   c.optim = ml_collections.ConfigDict({
-      # uncertainty_head: official 0 as well (its refinement model has none; ours keeps it frozen).
+      # uncertainty_head: official 0 as well. The recipe model has no such group, so the key is
+      # ignored (as the official does); with model=ufm_refine it keeps that head frozen.
       "lr": {"encoder": 0.0, "info_sharing": 0.0, "output_head": 0.0, "uncertainty_head": 0.0,
              "classification_head": 1e-4, "unet_feature": 1e-4},
       "groups": dict(optim.PARAM_GROUPS),

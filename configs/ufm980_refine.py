@@ -14,12 +14,15 @@ step (32 symmetrized rows), 20 epochs, 2 warmup epochs, cosine to 1%, clipping a
 optical-flow datasets with the official samples per epoch (`mixture.RECIPES['refine980']`),
 shapes (H in {644, 560, 490, 308} x 980) and augmentation.
 
-Model: the released UFM-Refine structure (`ufm_refine`) with a 5 x 5 window; the official recipe
-trains the refinement structure with BatchNorm U-Net, `modulate` combination, encoder taps [6, 23]
-and no covisibility head (docs/recipe.md).
+Model: the official recipe's refinement structure (`ufm_refine_recipe`) with a 5 x 5 window: a
+U-Net with BatchNorm (running statistics in the train state), `modulate` combination, encoder
+taps [6, 23], no uncertainty head (no covisibility output). `:model=ufm_refine` trains the
+released UFM-Refine structure instead (its covisibility head stays frozen, see optim.lr).
+model_init must match the model config in everything that changes outputs (the flow adaptor's
+normalisation above all; `ufm_jax.model_init.check_structure` stops the run otherwise).
 
-Smoke run (tiny refine model, embedded synthetic pairs, random base):
-  python train.py --config=configs/ufm980_refine.py:model=tiny_refine,data=synthetic,steps=20 \
+Smoke run (tiny recipe model, embedded synthetic pairs, random base):
+  python train.py --config=configs/ufm980_refine.py:model=tiny_refine_recipe,data=synthetic,steps=20 \
       --workdir=DIR
 """
 
@@ -30,7 +33,7 @@ from ufm_jax.data import augment, mixture, pipeline
 
 
 def get_config(arg=None):
-  arg = config_lib.parse_arg(arg, model="ufm_refine", data="of", steps=0)
+  arg = config_lib.parse_arg(arg, model="ufm_refine_recipe", data="of", steps=0)
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.seed = 42
   c.num_epochs = 20
@@ -65,8 +68,10 @@ def get_config(arg=None):
   c.model_init = config_lib.unset(str)  # the UFM-560 base
 
   c.optim = ml_collections.ConfigDict({
-      # uncertainty_head: official 1e-5, ignored there (its refinement model has no uncertainty
-      # head and no loss trains one); 0 keeps the released structure's covisibility head as loaded.
+      # uncertainty_head: official 1e-5, ignored there: its refinement model has no uncertainty
+      # head, and neither has ours (a key for a group the model lacks is ignored, optim.py).
+      # With model=ufm_refine, 0 keeps the released structure's covisibility head as loaded (no
+      # loss trains it; 1e-5 would only let weight decay shrink it).
       "lr": {"encoder": 5e-7, "info_sharing": 1e-5, "output_head": 1e-5, "uncertainty_head": 0.0,
              "classification_head": 1e-4, "unet_feature": 1e-4},
       "groups": dict(optim.PARAM_GROUPS),

@@ -27,10 +27,13 @@ def _check_uniform(x, bound, what):
     assert np.abs(x).max() > 0.9 * bound, what
 
 
-@pytest.mark.parametrize("scan", [False, True])
-def test_official_init_draws_as_the_official_modules(scan):
-  model = variants.build_model("tiny_refine", param_init="official", scan_blocks=scan)
-  flax_model = variants.build_model("tiny_refine", scan_blocks=scan)
+@pytest.mark.parametrize("variant,scan", [("tiny_refine", False), ("tiny_refine", True),
+                                          ("tiny_refine_recipe", True)])
+def test_official_init_draws_as_the_official_modules(variant, scan):
+  """tiny_refine_recipe: BatchNorm scale 1 / bias 0 (torch's), the up-convolutions still found
+  by name among the BatchNorm DoubleConvs (`unet_feature/ups_{even}`)."""
+  model = variants.build_model(variant, param_init="official", scan_blocks=scan)
+  flax_model = variants.build_model(variant, scan_blocks=scan)
   p, q = _flat(trainer.random_params(model, 0)), _flat(trainer.random_params(flax_model, 0))
   assert p.keys() == q.keys()
   seen = {"xavier": 0, "torch": 0, "transposed": 0}
