@@ -5,10 +5,10 @@
 
 Both formats take `source`, `target` uint8 [B, H, W, 3] RGB (H, W the export size) and return
 `flow` [B, H, W, 2] float32 pixels and `covisibility` [B, H, W] (plus any extra outputs named with
---outputs, e.g. a refinement model's `flow_before_refinement`). A model without an uncertainty
-head (the refinement training recipe's) exports `flow` alone by default (a warning says so). Images must already be at the
-export size: resize on the host (ufm_jax.predict does it the official way) or export at the
-camera's resolution.
+--outputs, e.g. a refinement model's `flow_before_refinement`); a model without an uncertainty
+head (the refinement training recipe's) exports `flow` alone by default (a warning says so).
+Images must already be at the export size: resize on the host (ufm_jax.predict does it the
+official way) or export at the camera's resolution.
 
   stablehlo  PATH holds `jax.export.Exported.serialize()` bytes for platforms cpu and cuda (a
              symbolic batch with --batch dynamic). It runs with jax alone:

@@ -27,7 +27,6 @@ covisibility >= 0.5 is right) are added; `covis_acc` only for a model that predi
 from __future__ import annotations
 
 import numpy as np
-
 from absl import logging
 
 from ufm_jax import geometry, metrics
