@@ -39,7 +39,7 @@ def main(argv):
   import jax
   import numpy as np
 
-  if config.get("matmul_precision"):
+  if config.matmul_precision:
     jax.config.update("jax_default_matmul_precision", config.matmul_precision)
   from ufm_jax import checkpoint as ckpt_lib
   from ufm_jax import loop_control, model_init, optim, trainer
@@ -59,11 +59,11 @@ def main(argv):
   process_batch = sharding.local_batch_size(config.input.batch_size, mesh)
   host_iter, data_info = trainer.build_input(config, process_batch, config.seed)
   # Global batches, the next `device_prefetch` already on their way to the devices.
-  train_iter = sharding.DevicePrefetch(host_iter, mesh, config.get("device_prefetch", 2))
+  train_iter = sharding.DevicePrefetch(host_iter, mesh, config.device_prefetch)
   pairs_per_epoch = int(data_info.get("pairs_per_epoch") or 0)
   # Whole batches per epoch, as the official loaders (drop_last); epochs and warmup count these.
   steps_per_epoch = pairs_per_epoch // config.input.batch_size or None
-  if config.get("total_steps"):
+  if config.total_steps:
     total_steps = int(config.total_steps)
   elif config.get("num_epochs") and steps_per_epoch:
     total_steps = int(config.num_epochs * steps_per_epoch)
@@ -78,14 +78,14 @@ def main(argv):
                      dataset_names=tuple(data_info.get("datasets") or ()) or None)
   model, tx, schedules, init_fn = ts.model, ts.tx, ts.schedules, ts.init_fn
   abstract_state, param_sh, state_sh = ts.abstract_state, ts.param_sh, ts.state_sh
-  p_train_step, p_predict = ts.train_step, ts.predict
+  train_step, predict = ts.train_step, ts.predict
   rng = jax.random.PRNGKey(config.seed)
   logging.info("parameters per group: %s", optim.count_params(ts.abstract_params, ts.labels))
   sharding.log_shardings(param_sh, ts.abstract_params)
 
   # ---------------------------------------------------------------------------------- checkpoint
   manager = ckpt_lib.make_manager(workdir, config.ckpt_steps, config.keep_ckpt,
-                                  config.get("async_checkpoint", True))
+                                  config.async_checkpoint)
   state, start_step = ckpt_lib.restore_latest(manager, jax.tree.map(
       lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract_state, state_sh),
       train_iter)
@@ -93,7 +93,7 @@ def main(argv):
     start_step = 0
     # {"params"}, and "batch_stats" (BatchNorm running statistics) for a model that has them.
     variables = jax.jit(init_fn, out_shardings=ts.variables_sh)(rng)
-    if config.get("model_init"):
+    if config.model_init:
       host = jax.tree.map(np.asarray, variables)
       loaded, report = model_init.load_init_variables(
           config.model_init, host, getattr(model, "config", None), config.get("model"))
@@ -105,13 +105,13 @@ def main(argv):
     print(f"resumed from step {start_step}", flush=True)
 
   # ---------------------------------------------------------------------------------- evals
-  evaluators = train_evals.build_evaluators(config.get("evals", {}), mesh, model)
+  evaluators = train_evals.build_evaluators(config.evals, mesh, model)
   writer = trainer.Writer(workdir, is_main)
 
   def run_evals(step, force=False):
     for name, ev in evaluators.items():
       if force or (ev.every and step % ev.every == 0):
-        res = ev.run(p_predict, state.variables())
+        res = ev.run(predict, state.variables())
         if not res.scalars:
           continue
         rec = {"step": step, "eval": name, **res.scalars}
@@ -130,10 +130,10 @@ def main(argv):
   t_start, first_step = None, start_step
   step = start_step
   with loop_control.PreemptionGuard(mesh) as guard:
-    keeper = loop_control.SaveAndStop(manager, guard, config.get("max_nonfinite_steps", 100), start_step)
+    keeper = loop_control.SaveAndStop(manager, guard, config.max_nonfinite_steps, start_step)
     while step < total_steps:
       batch = next(train_iter)
-      state, metrics = p_train_step(state, batch)
+      state, metrics = train_step(state, batch)
       step += 1
       if step % log_every == 0 or step == total_steps:
         m = jax.device_get(metrics)

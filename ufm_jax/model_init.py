@@ -127,8 +127,14 @@ def _read_source(kind: str, path: str, want_config: bool):
     from ufm_jax import checkpoint
     state, step = checkpoint.read_state_numpy(path)
     variables = model_io.state_variables(state)
-    if want_config:
-      model = model_io.workdir_model(_workdir_root(path))
+    root = _workdir_root(path)
+    if want_config and (root / "config.json").is_file():
+      model = model_io.workdir_model(root)
+    elif want_config:
+      # Checkpoints copied without their run's config.json: the layouts can still be matched,
+      # the structure cannot be checked (as for DINOv2 weights); say so instead of refusing.
+      logging.warning("model_init: %s has no config.json; the source's model structure (flow "
+                      "normalisation, heads) is not checked against the config", root)
     path = f"{path}@{step}"
   else:
     model, variables = model_io.load(path)

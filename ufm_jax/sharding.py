@@ -172,14 +172,14 @@ def fsdp_gathers(mesh: Mesh, config):
   scanned blocks a layer at a time inside the scan and every other param at the start of the
   step; "step" gathers every param at the start of the step (the whole model on each device for
   the step's duration). Both None on a one-device mesh."""
-  mode = config.get("fsdp_gather") or "layer"
+  mode = config.fsdp_gather
   if mode not in FSDP_GATHERS:
     raise ValueError(f"config.fsdp_gather={mode!r}; expected one of {FSDP_GATHERS}")
   if mode == "step":
     return gathered(mesh), None
-  min_size = int(config.get("sharding_min_size", 0) or 0)
+  min_size = config.sharding_min_size
   return (gathered(mesh, except_stacks=True),
-          layer_gather(mesh, config.get("sharding_rules"), min_size))
+          layer_gather(mesh, config.sharding_rules, min_size))
 
 
 def gathered(mesh: Mesh, except_stacks: bool = False):

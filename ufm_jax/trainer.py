@@ -255,7 +255,7 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   from ufm_jax import optim, sharding
   gather_params, layer_gather = sharding.fsdp_gathers(mesh, config)
   model = build_model(config, sharding.activation_constraint(mesh), layer_gather)
-  apply_kwargs = dict(config.get("apply_kwargs", {}))
+  apply_kwargs = dict(config.apply_kwargs)
   init_fn = functools.partial(init_variables, model, tuple(image_shape))
   abstract_variables = jax.eval_shape(init_fn, jax.random.PRNGKey(0))
   # Parameter groups, learning rates and weight decay see the parameters only.
@@ -266,7 +266,7 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   tx, labels, schedules = optim.make_optimizer(config.optim, abstract_params, total_steps,
                                                trainable_fn=trainable_fn,
                                                steps_per_epoch=steps_per_epoch)
-  min_size = int(config.get("sharding_min_size", 0) or 0)
+  min_size = config.sharding_min_size
   param_sh = sharding.tree_shardings(abstract_params, mesh, config.sharding_rules, min_size)
   abstract_state = jax.eval_shape(
       lambda v: optim.TrainState.create(v["params"], tx, v.get("batch_stats")), abstract_variables)
@@ -278,7 +278,7 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   repl = sharding.replicated(mesh)
   loss_fn = build_loss(config, model, dataset_names)
   step = make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params,
-                         seed=int(config.get("seed", 0)))
+                         seed=config.seed)
   train_step = jax.jit(step, in_shardings=(state_sh, batch_sh), out_shardings=(state_sh, repl),
                        donate_argnums=(0,))
   eval_sh = param_sh if abstract_state.batch_stats is None else variables_sh

@@ -10,6 +10,8 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from ufm_jax import config_lib
+
 
 class TinyFlow(nn.Module):
   """Convs on the two stacked images -> flow (2) + covisibility logit (1). `encoder` names a
@@ -63,16 +65,13 @@ def shifted_pairs(input_cfg, process_batch, seed):
 
 
 def tiny_config(**overrides):
-  c = ml_collections.ConfigDict()
-  c.seed = 0
+  c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.total_steps = 10
   c.ckpt_steps = 5
   c.keep_ckpt = 2
   c.log_training_steps = 1
-  c.async_checkpoint = True
-  c.max_nonfinite_steps = 100
-  c.mesh = "data:-1,fsdp:1"
-  c.sharding_rules = [(".*", "fsdp")]
+  c.sharding_min_size = 0      # the stand-in's tensors are all small: shard them anyway
+  c.apply_kwargs = {}          # its batches are plain pairs, not symmetrized (a, b), (b, a) rows
   c.model_fn = "ufm_jax.testing.train_support:tiny_model"
   c.model = ml_collections.ConfigDict({"width": 8})
   c.model_init = None
