@@ -56,6 +56,15 @@ def tied_qkv_init(scale: float = 1.0, base=nn.initializers.lecun_normal()):
   return init
 
 
+LOW_PRECISION = (jnp.bfloat16, jnp.float16)
+
+
+def _on_cpu(wide: Callable, plain: Callable, *operands):
+  """`wide(*operands)` where the computation is lowered for CPU, `plain(*operands)` elsewhere
+  (chosen per platform at lowering, so a multi-platform export carries both)."""
+  return jax.lax.platform_dependent(*operands, cpu=wide, default=plain)
+
+
 def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None, **kw):
   """lax.dot_general for the model's Dense layers. bf16/f16 operands on CPU accumulate into a
   float32 result that is then rounded: XLA:CPU runs that form with its bf16 (AVX-512 BF16/AMX)
@@ -64,15 +73,131 @@ def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_t
   plain = functools.partial(jax.lax.dot_general, dimension_numbers=dimension_numbers,
                             precision=precision, preferred_element_type=preferred_element_type, **kw)
   dtype = jnp.result_type(lhs, rhs)
-  if preferred_element_type is not None or dtype not in (jnp.bfloat16, jnp.float16):
+  if preferred_element_type is not None or dtype not in LOW_PRECISION:
     return plain(lhs, rhs)
   def wide(l, r):
     return jax.lax.dot_general(l, r, dimension_numbers, precision,
                                preferred_element_type=jnp.float32, **kw).astype(dtype)
-  return jax.lax.platform_dependent(lhs, rhs, cpu=wide, default=plain)
+  return _on_cpu(wide, plain, lhs, rhs)
 
 
 Dense = functools.partial(nn.Dense, dot_general=dot_general)
+
+
+def einsum(spec: str, a, b):
+  """Two-operand jnp.einsum with dot_general's rule: bf16/f16 on CPU as bf16 x bf16 -> f32,
+  rounded back (the weight-only einsums of the up-convolutions)."""
+  dtype = jnp.result_type(a, b)
+  plain = functools.partial(jnp.einsum, spec)
+  if dtype not in LOW_PRECISION:
+    return plain(a, b)
+  wide = lambda a, b: jnp.einsum(spec, a, b, preferred_element_type=jnp.float32).astype(dtype)  # noqa: E731
+  return _on_cpu(wide, plain, a, b)
+
+
+# Output rows of the "cpu" convolution loop per step are sized so that the step's column matrix
+# ([rows x batch x width, kw x channels] bf16) holds about this many values: small enough that
+# it and the step's float32 result stay in cache between being written and the dots reading them.
+# benchmarks/cpu_attention.py --conv sweeps it.
+CPU_CONV_TILE = 2**19
+# Narrow inputs gather all kh x kw taps into one dot (k = kh kw c) instead of kh dots of kw c:
+# a dot with a short contraction is bound by writing its output.
+ALL_TAPS_BELOW = 512
+
+
+def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU_CONV_TILE,
+                 all_taps: Optional[bool] = None):
+  """NHWC x HWIO convolution as dots with float32 accumulation (returns float32).
+
+  XLA:CPU compiles a bf16 convolution as a float32 one between converts, so it never reaches the
+  bf16 x bf16 -> f32 dot kernels (3-4x its float32 rate). Here: 1x1 convolutions are one dot,
+  patchifying ones (stride = kernel, the patch embedding) a reshape and one dot, and the others
+  a loop over blocks of output rows: each step gathers its input rows' kw column taps side by side
+  ([rows, wo, kw c]) and adds kh dots of [rows wo, kw c] x [kw c, o], one per kernel row. A whole-
+  map column matrix (kw times the input, then read kh times) made the convolution memory-bound.
+  """
+  b, _, _, c = x.shape
+  kh, kw, _, o = k.shape
+  sh, sw = strides
+  if any(p != 0 for pp in padding for p in pp):
+    x = jnp.pad(x, ((0, 0), tuple(padding[0]), tuple(padding[1]), (0, 0)))
+  hi, wi = x.shape[1:3]
+  ho, wo = (hi - kh) // sh + 1, (wi - kw) // sw + 1
+  f32 = jnp.float32
+  if kh == kw == 1:
+    x = x[:, :sh * (ho - 1) + 1:sh, :sw * (wo - 1) + 1:sw]
+    return jnp.dot(x.reshape(-1, c), k.reshape(c, o), preferred_element_type=f32).reshape(
+        b, ho, wo, o)
+  if (sh, sw) == (kh, kw):
+    x = x[:, :ho * kh, :wo * kw].reshape(b, ho, kh, wo, kw, c).transpose(0, 1, 3, 2, 4, 5)
+    return jnp.dot(x.reshape(-1, kh * kw * c), k.reshape(kh * kw * c, o),
+                   preferred_element_type=f32).reshape(b, ho, wo, o)
+  if all_taps is None:
+    all_taps = kw * c < ALL_TAPS_BELOW
+  width = kh * kw * c if all_taps else kw * c
+  rows = max(1, min(ho, tile // max(1, b * wo * width)))
+  k_rows = k.reshape(kh, kw * c, o)
+
+  def block(r0, rows):
+    """Output rows r0 .. r0 + rows, float32 [b, rows, wo, o]."""
+    span = sh * (rows - 1) + kh
+    xs = jax.lax.dynamic_slice_in_dim(x, r0 * sh, span, axis=1)
+    if all_taps:
+      cols = jnp.concatenate([xs[:, i:i + sh * (rows - 1) + 1:sh, j:j + sw * (wo - 1) + 1:sw]
+                              for i in range(kh) for j in range(kw)], -1)
+      return jnp.dot(cols.reshape(-1, width), k.reshape(width, o),
+                     preferred_element_type=f32).reshape(b, rows, wo, o)
+    cols = jnp.concatenate([xs[:, :, j:j + sw * (wo - 1) + 1:sw] for j in range(kw)], -1)
+    acc = None
+    for i in range(kh):
+      tap = cols[:, i:i + sh * (rows - 1) + 1:sh].reshape(-1, kw * c)
+      y = jnp.dot(tap, k_rows[i], preferred_element_type=f32)
+      acc = y if acc is None else acc + y
+    return acc.reshape(b, rows, wo, o)
+
+  if rows >= ho:
+    return block(0, ho)
+  steps = -(-ho // rows)
+
+  def step(i, out):
+    # A last block that would overhang starts earlier and recomputes a few rows.
+    r0 = jnp.minimum(i * rows, ho - rows)
+    return jax.lax.dynamic_update_slice_in_dim(out, block(r0, rows), r0, axis=1)
+
+  return jax.lax.fori_loop(0, steps, step, jnp.zeros((b, ho, wo, o), f32))
+
+
+_NHWC = ("NHWC", "HWIO", "NHWC")
+
+
+def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, rhs_dilation=None,
+                         dimension_numbers=None, feature_group_count=1, batch_group_count=1,
+                         precision=None, preferred_element_type=None):
+  """lax.conv_general_dilated for the model's convolutions (flax nn.Conv's hook). bf16/f16 NHWC
+  convolutions without dilation or groups run on CPU as `conv_as_dots` (bf16 x bf16 -> f32 dots,
+  rounded back); float32 and other platforms keep XLA's convolution."""
+  plain = functools.partial(
+      jax.lax.conv_general_dilated, window_strides=window_strides, padding=padding,
+      lhs_dilation=lhs_dilation, rhs_dilation=rhs_dilation, dimension_numbers=dimension_numbers,
+      feature_group_count=feature_group_count, batch_group_count=batch_group_count,
+      precision=precision, preferred_element_type=preferred_element_type)
+  dtype = jnp.result_type(lhs, rhs)
+  if (preferred_element_type is not None or dtype not in LOW_PRECISION or lhs.ndim != 4
+      or feature_group_count != 1 or batch_group_count != 1
+      or any(d != 1 for d in (lhs_dilation or ()) + tuple(rhs_dilation or ()))
+      or jax.lax.conv_dimension_numbers(lhs.shape, rhs.shape, dimension_numbers)
+      != jax.lax.conv_dimension_numbers(lhs.shape, rhs.shape, _NHWC)):
+    return plain(lhs, rhs)
+  if isinstance(padding, str):
+    padding = jax.lax.padtype_to_pads(lhs.shape[1:3], rhs.shape[:2], window_strides, padding)
+  padding = tuple(tuple(int(v) for v in p) for p in padding)
+  if any(v < 0 for p in padding for v in p):
+    return plain(lhs, rhs)
+  wide = lambda x, k: conv_as_dots(x, k, tuple(window_strides), padding).astype(dtype)  # noqa: E731
+  return _on_cpu(wide, plain, lhs, rhs)
+
+
+Conv = functools.partial(nn.Conv, conv_general_dilated=conv_general_dilated)
 
 
 ATTENTION_IMPLS = (None, "auto", "xla", "cudnn", "cpu")
