@@ -123,7 +123,7 @@ def conv_sweep(tiles, runs, normal):
       for all_taps in (False, True):
         fns[f"dots bf16 {t}Ki {'kh kw' if all_taps else 'kh'}"] = (
             lambda x, k, t=t, a=all_taps: layers.conv_as_dots(
-                x, k, (1, 1), pad, tile=t * 1024, all_taps=a).astype(x.dtype), xb, kb)
+                x, k, (1, 1), pad, tile=t * 1024, all_taps=a, dtype=x.dtype), xb, kb)
     compiled = {n: (jax.jit(f).lower(*a).compile(), a) for n, (f, *a) in fns.items()}
     for f, a in compiled.values():
       jax.block_until_ready(f(*a))

@@ -14,8 +14,9 @@
       # (torch.autocast("cpu", bfloat16) when dtype is bfloat16; benchmarks/official_torch.py)
 
 Prints: latency (median and min of --runs timed calls after --warmup untimed ones), pairs/s, the
-model's FLOPs per pair from XLA's cost analysis of the compiled forward (with XLA's attention:
-the cost analysis counts the CPU attention loop's body once), achieved GFLOP/s, and the
+model's FLOPs per pair from XLA's cost analysis of the compiled forward (of a loop-free float32
+twin: the cost analysis counts the body of the CPU attention and bf16 convolution loops once),
+achieved GFLOP/s, and the
 f32 matmul peak: the best of >= 2 x --runs samples of a square --matmul_n dot and of a dot at the
 model's encoder-MLP shape, sampled between the model runs, and the same for the bf16 x bf16 ->
 f32 dot (`preferred_element_type=float32`, the form XLA:CPU runs on its bf16 units). The share of
@@ -117,18 +118,21 @@ def counted_flops(fn, *args) -> float:
   return cost_flops(jax.jit(fn).lower(*args).compile())
 
 
-def with_xla_attention(module):
-  """`module` with XLA's one-shot attention. The CPU attention path is a loop (lax.map), and
-  XLA's cost analysis counts a loop body once, so the model's FLOPs are counted on this twin:
-  the same arithmetic, every head and chunk counted."""
+def loop_free(module):
+  """`module` computing the same arithmetic without loops, for counting its FLOPs: XLA's
+  cost analysis counts a loop body once, and on CPU the attention (layers.cpu_attention) and the
+  bf16 convolutions (layers.conv_as_dots) are loops. The twin uses XLA's one-shot attention and
+  float32 (XLA's convolutions); the FLOPs do not depend on the dtype."""
   import dataclasses  # pylint: disable=g-import-not-at-top
   from ufm_jax.models import layers  # pylint: disable=g-import-not-at-top
   if isinstance(module, layers.Attention):
-    return module.clone(implementation="xla")
+    return module.clone(implementation="xla", dtype=None)
   config = getattr(module, "config", None)
   if config is not None and dataclasses.is_dataclass(config) and hasattr(config, "attention_impl"):
-    return module.clone(config=config.replace(attention_impl="xla"))
-  return module
+    return module.clone(config=config.replace(attention_impl="xla", dtype="float32",
+                                              head_dtype="float32"))
+  fields = {f: jnp.float32 for f in ("dtype", "unet_dtype", "head_dtype") if hasattr(module, f)}
+  return module.clone(**fields) if fields else module
 
 
 def build_model(config_name: str, **overrides):
@@ -298,8 +302,8 @@ def main(argv=None) -> dict:
   t0 = time.perf_counter()
   compiled = fwd.lower(params, src, tgt).compile()
   t_compile = time.perf_counter() - t0
-  xla_model = with_xla_attention(model)
-  flops = counted_flops(lambda p, s, t: xla_model.apply({"params": p}, s, t), params, src, tgt)
+  twin = loop_free(model)
+  flops = counted_flops(lambda p, s, t: twin.apply({"params": p}, s, t), params, src, tgt)
   run_model = lambda: compiled(params, src, tgt)  # noqa: E731
   tokens = 2 * args.batch * (h // model.config.encoder.patch_size) * (w // model.config.encoder.patch_size)
   dim = model.config.encoder.embed_dim
@@ -349,7 +353,7 @@ def main(argv=None) -> dict:
   print(f"  init {t_init:.1f} s   compile {t_compile:.1f} s")
   print(f"  latency over {args.runs} runs: median {latency * 1e3:.1f} ms, min {fastest * 1e3:.1f} ms"
         f"   {res['pairs_per_s']:.3f} pairs/s (min)")
-  print(f"  FLOPs/pair (XLA cost analysis, attention counted as XLA's)  {res['gflop_per_pair']:.2f} GFLOP")
+  print(f"  FLOPs/pair (XLA cost analysis of the loop-free float32 twin)  {res['gflop_per_pair']:.2f} GFLOP")
   print(f"  achieved {res['achieved_gflops']:.1f} GFLOP/s at min(model); peaks over "
         f"{len(peak.samples)} samples each of {' and '.join('x'.join(map(str, s)) for s in shapes)}"
         f" interleaved with the model: f32 matmul best {peak.best:.1f} (median "
@@ -486,7 +490,7 @@ def breakdown(model, params, src, tgt, peak: Peak, runs: int, t_model: float,
       a, kw = jax.tree.unflatten(tree, [next(it) if f else x for x, f in zip(leaves, is_array)])
       return mod.apply({"params": p}, *a, **kw, method=None if method == "__call__" else method)
     compiled = jax.jit(call).lower(sub, arrays).compile()
-    flops = counted_flops(functools.partial(call, mod=with_xla_attention(mod)), sub, arrays)
+    flops = counted_flops(functools.partial(call, mod=loop_free(mod)), sub, arrays)
     times = _times(lambda: compiled(sub, arrays), runs, warmup=1)
     peak.sample(1)
     if peak16 is not None:

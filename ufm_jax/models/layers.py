@@ -65,6 +65,18 @@ def _on_cpu(wide: Callable, plain: Callable, *operands):
   return jax.lax.platform_dependent(*operands, cpu=wide, default=plain)
 
 
+def _bits(x):
+  """bf16/f16 -> the same bits as uint16 (other dtypes unchanged). XLA:CPU widens bf16 operands
+  of dynamic slices, gathers and concatenates to float32, and then hoists that widening out of
+  loops: a loop slicing a bf16 array would carry (and read) a float32 copy of all of it. Integers
+  are moved as they are."""
+  return jax.lax.bitcast_convert_type(x, jnp.uint16) if x.dtype in LOW_PRECISION else x
+
+
+def _unbits(x, dtype):
+  return jax.lax.bitcast_convert_type(x, dtype) if x.dtype != dtype else x
+
+
 def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None, **kw):
   """lax.dot_general for the model's Dense layers. bf16/f16 operands on CPU accumulate into a
   float32 result that is then rounded: XLA:CPU runs that form with its bf16 (AVX-512 BF16/AMX)
@@ -106,8 +118,8 @@ ALL_TAPS_BELOW = 512
 
 
 def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU_CONV_TILE,
-                 all_taps: Optional[bool] = None):
-  """NHWC x HWIO convolution as dots with float32 accumulation (returns float32).
+                 all_taps: Optional[bool] = None, dtype=jnp.float32):
+  """NHWC x HWIO convolution as dots with float32 accumulation, the result rounded to `dtype`.
 
   XLA:CPU compiles a bf16 convolution as a float32 one between converts, so it never reaches the
   bf16 x bf16 -> f32 dot kernels (3-4x its float32 rate). Here: 1x1 convolutions are one dot,
@@ -115,6 +127,7 @@ def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU
   a loop over blocks of output rows: each step gathers its input rows' kw column taps side by side
   ([rows, wo, kw c]) and adds kh dots of [rows wo, kw c] x [kw c, o], one per kernel row. A whole-
   map column matrix (kw times the input, then read kh times) made the convolution memory-bound.
+  The loop slices and stacks the taps as uint16 bits (`_bits`), so they stay one bf16 copy.
   """
   b, _, _, c = x.shape
   kh, kw, _, o = k.shape
@@ -127,33 +140,36 @@ def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU
   if kh == kw == 1:
     x = x[:, :sh * (ho - 1) + 1:sh, :sw * (wo - 1) + 1:sw]
     return jnp.dot(x.reshape(-1, c), k.reshape(c, o), preferred_element_type=f32).reshape(
-        b, ho, wo, o)
+        b, ho, wo, o).astype(dtype)
   if (sh, sw) == (kh, kw):
     x = x[:, :ho * kh, :wo * kw].reshape(b, ho, kh, wo, kw, c).transpose(0, 1, 3, 2, 4, 5)
     return jnp.dot(x.reshape(-1, kh * kw * c), k.reshape(kh * kw * c, o),
-                   preferred_element_type=f32).reshape(b, ho, wo, o)
+                   preferred_element_type=f32).reshape(b, ho, wo, o).astype(dtype)
   if all_taps is None:
     all_taps = kw * c < ALL_TAPS_BELOW
   width = kh * kw * c if all_taps else kw * c
   rows = max(1, min(ho, tile // max(1, b * wo * width)))
   k_rows = k.reshape(kh, kw * c, o)
+  x_dtype, x = x.dtype, _bits(x)
 
   def block(r0, rows):
-    """Output rows r0 .. r0 + rows, float32 [b, rows, wo, o]."""
+    """Output rows r0 .. r0 + rows, [b, rows, wo, o] in `dtype`."""
     span = sh * (rows - 1) + kh
     xs = jax.lax.dynamic_slice_in_dim(x, r0 * sh, span, axis=1)
     if all_taps:
-      cols = jnp.concatenate([xs[:, i:i + sh * (rows - 1) + 1:sh, j:j + sw * (wo - 1) + 1:sw]
-                              for i in range(kh) for j in range(kw)], -1)
-      return jnp.dot(cols.reshape(-1, width), k.reshape(width, o),
-                     preferred_element_type=f32).reshape(b, rows, wo, o)
-    cols = jnp.concatenate([xs[:, :, j:j + sw * (wo - 1) + 1:sw] for j in range(kw)], -1)
-    acc = None
-    for i in range(kh):
-      tap = cols[:, i:i + sh * (rows - 1) + 1:sh].reshape(-1, kw * c)
-      y = jnp.dot(tap, k_rows[i], preferred_element_type=f32)
-      acc = y if acc is None else acc + y
-    return acc.reshape(b, rows, wo, o)
+      cols = jnp.stack([xs[:, i:i + sh * (rows - 1) + 1:sh, j:j + sw * (wo - 1) + 1:sw]
+                        for i in range(kh) for j in range(kw)], -2)
+      cols = _unbits(cols, x_dtype)
+      acc = jnp.dot(cols.reshape(-1, width), k.reshape(width, o), preferred_element_type=f32)
+    else:
+      cols = jnp.stack([xs[:, :, j:j + sw * (wo - 1) + 1:sw] for j in range(kw)], -2)
+      cols = _unbits(cols, x_dtype).reshape(b, span, wo, width)
+      acc = None
+      for i in range(kh):
+        tap = cols[:, i:i + sh * (rows - 1) + 1:sh].reshape(-1, width)
+        y = jnp.dot(tap, k_rows[i], preferred_element_type=f32)
+        acc = y if acc is None else acc + y
+    return acc.reshape(b, rows, wo, o).astype(dtype)
 
   if rows >= ho:
     return block(0, ho)
@@ -164,7 +180,7 @@ def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU
     r0 = jnp.minimum(i * rows, ho - rows)
     return jax.lax.dynamic_update_slice_in_dim(out, block(r0, rows), r0, axis=1)
 
-  return jax.lax.fori_loop(0, steps, step, jnp.zeros((b, ho, wo, o), f32))
+  return jax.lax.fori_loop(0, steps, step, jnp.zeros((b, ho, wo, o), dtype))
 
 
 _NHWC = ("NHWC", "HWIO", "NHWC")
@@ -193,7 +209,7 @@ def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, r
   padding = tuple(tuple(int(v) for v in p) for p in padding)
   if any(v < 0 for p in padding for v in p):
     return plain(lhs, rhs)
-  wide = lambda x, k: conv_as_dots(x, k, tuple(window_strides), padding).astype(dtype)  # noqa: E731
+  wide = lambda x, k: conv_as_dots(x, k, tuple(window_strides), padding, dtype=dtype)  # noqa: E731
   return _on_cpu(wide, plain, lhs, rhs)
 
 
@@ -243,15 +259,19 @@ def cpu_attention(q, k, v, scale: float, tile: int = CPU_ATTENTION_TILE):
   # A symbolic batch (jax.export) sizes the chunks for one pair.
   chunks = max(1, -(-(b if isinstance(b, int) else 1) * n * m // tile))
   cq = -(-n // chunks)
-  scale = jnp.asarray(scale, q.dtype)
+  dtype = q.dtype
+  scale = jnp.asarray(scale, dtype)
+  # bf16 operands are sliced as their uint16 bits (_bits): else XLA:CPU carries float32 copies.
+  q, k, v = _bits(q), _bits(k), _bits(v)
 
   def step(i, out):
     hi = i // chunks
     start = jnp.minimum((i % chunks) * cq, n - cq)
-    qc = jax.lax.dynamic_slice_in_dim(
-        jax.lax.dynamic_index_in_dim(q, hi, axis=2, keepdims=False), start, cq, axis=1) * scale
-    kh = jax.lax.dynamic_index_in_dim(k, hi, axis=2, keepdims=False)
-    vh = jax.lax.dynamic_index_in_dim(v, hi, axis=2, keepdims=False)
+    qc = _unbits(jax.lax.dynamic_slice_in_dim(
+        jax.lax.dynamic_index_in_dim(q, hi, axis=2, keepdims=False), start, cq, axis=1),
+                 dtype) * scale
+    kh = _unbits(jax.lax.dynamic_index_in_dim(k, hi, axis=2, keepdims=False), dtype)
+    vh = _unbits(jax.lax.dynamic_index_in_dim(v, hi, axis=2, keepdims=False), dtype)
     s = jnp.einsum("bqd,bkd->bqk", qc, kh, preferred_element_type=jnp.float32)
     p = jnp.exp(s - jnp.max(s, axis=-1, keepdims=True))
     o = jnp.einsum("bqk,bkd->bqd", p.astype(vh.dtype), vh, preferred_element_type=jnp.float32)
@@ -260,7 +280,7 @@ def cpu_attention(q, k, v, scale: float, tile: int = CPU_ATTENTION_TILE):
     return jax.lax.dynamic_update_slice(out, o[:, :, None],
                                         (zero, start, hi.astype(start.dtype), zero))
 
-  return jax.lax.fori_loop(0, h * chunks, step, jnp.zeros_like(q))
+  return jax.lax.fori_loop(0, h * chunks, step, jnp.zeros(q.shape, dtype))
 
 
 def _xla_attention(q, k, v, scale):
