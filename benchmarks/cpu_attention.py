@@ -101,20 +101,26 @@ def compare(shapes, normal, runs):
 
 # (label, [b, h, w, c_in], c_out) of the 3x3 convolutions that carry the heads' and U-Net's FLOPs.
 CONV_SHAPES = (
+    ("DPT layer_rn 96->256 @120x160", (1, 120, 160, 96), 256),
+    ("DPT residual unit @60x80", (1, 60, 80, 256), 256),
     ("DPT residual unit @120x160", (1, 120, 160, 256), 256),
     ("DPT regression conv1 @240x320", (1, 240, 320, 256), 128),
     ("DPT regression conv2_0 @420x560", (1, 420, 560, 128), 128),
     ("U-Net downs_0 conv_0 (3 ch)", (2, 420, 560, 3), 64),
     ("U-Net downs_0 conv_2", (2, 420, 560, 64), 64),
     ("U-Net ups_7 conv_0", (2, 420, 560, 128), 64),
+    ("U-Net downs_1 conv_0 @210x280", (2, 210, 280, 64), 128),
+    ("U-Net ups_5 conv_0 @210x280", (2, 210, 280, 256), 128),
+    ("U-Net ups_3 conv_0 @105x140", (2, 105, 140, 512), 256),
     ("U-Net downs_3 conv_2 @52x70", (2, 52, 70, 512), 512),
+    ("U-Net bottleneck conv_2 @26x35", (2, 26, 35, 1024), 1024),
 )
 
 
-def conv_sweep(tiles, runs, normal):
+def conv_sweep(tiles, runs, normal, shapes=CONV_SHAPES):
   dn = ("NHWC", "HWIO", "NHWC")
   pad = ((1, 1), (1, 1))
-  for label, shape, o in CONV_SHAPES:
+  for label, shape, o in shapes:
     x, k = normal(*shape), normal(3, 3, shape[-1], o) * 0.05
     xb, kb = x.astype(jnp.bfloat16), k.astype(jnp.bfloat16)
     xla = lambda x, k: jax.lax.conv_general_dilated(x, k, (1, 1), pad, dimension_numbers=dn)  # noqa: E731
@@ -123,7 +129,7 @@ def conv_sweep(tiles, runs, normal):
       for all_taps in (False, True):
         fns[f"dots bf16 {t}Ki {'kh kw' if all_taps else 'kh'}"] = (
             lambda x, k, t=t, a=all_taps: layers.conv_as_dots(
-                x, k, (1, 1), pad, tile=t * 1024, all_taps=a, dtype=x.dtype), xb, kb)
+                x, k, (1, 1), pad, tile=t * 1024 or 2**62, all_taps=a, dtype=x.dtype), xb, kb)
     compiled = {n: (jax.jit(f).lower(*a).compile(), a) for n, (f, *a) in fns.items()}
     for f, a in compiled.values():
       jax.block_until_ready(f(*a))
@@ -152,8 +158,10 @@ def main(argv=None):
                  help="time the current loop against the head-major one it replaced, interleaved")
   p.add_argument("--conv", action="store_true",
                  help="time the bf16 convolution path (layers.conv_as_dots) instead")
-  p.add_argument("--conv_tiles", default="128,256,512,1024",
-                 help="conv_as_dots tiles in Ki values of a step's column matrix")
+  p.add_argument("--conv_tiles", default="256,1024,4096,0",
+                 help="conv_as_dots tiles in Ki values of a step's column matrix (0: no loop)")
+  p.add_argument("--conv_shapes", default=None,
+                 help="indices into CONV_SHAPES to time (default all)")
   args = p.parse_args(argv)
   rng = np.random.default_rng(0)
   normal = lambda *s: jnp.asarray(rng.standard_normal(s), jnp.float32)  # noqa: E731
@@ -161,7 +169,9 @@ def main(argv=None):
         f"default tile {layers.CPU_ATTENTION_TILE / 2**20:g} Mi logits")
   shapes = ((2, 1201, 16, 64), (1, 2400, 12, 64))
   if args.conv:
-    return conv_sweep([int(t) for t in args.conv_tiles.split(",")], args.runs, normal)
+    shapes = (CONV_SHAPES if args.conv_shapes is None
+              else [CONV_SHAPES[int(i)] for i in args.conv_shapes.split(",")])
+    return conv_sweep([int(t) for t in args.conv_tiles.split(",")], args.runs, normal, shapes)
   if args.compare:
     return compare(shapes, normal, args.runs)
   for shape in shapes:

@@ -28,13 +28,13 @@ CASES = [
 
 
 @pytest.mark.parametrize("xs,ks,strides,padding", CASES)
-@pytest.mark.parametrize("tile,all_taps", [(None, None), (1, False), (40, True), (10**9, False)])
+@pytest.mark.parametrize("tile,all_taps", [(None, True), (1, False), (40, True), (10**9, False)])
 def test_conv_as_dots_is_the_convolution(xs, ks, strides, padding, tile, all_taps):
   rng = np.random.default_rng(0)
   x, k = rng.standard_normal(xs).astype(np.float32), rng.standard_normal(ks).astype(np.float32)
   ref = jax.lax.conv_general_dilated(x, k, strides, padding, dimension_numbers=NHWC,
                                      precision="highest")
-  kw = {} if tile is None else dict(tile=tile, all_taps=all_taps)
+  kw = dict(all_taps=all_taps) if tile is None else dict(tile=tile, all_taps=all_taps)
   got = jax.jit(lambda x, k: layers.conv_as_dots(x, k, strides, padding, **kw))(x, k)
   assert got.dtype == jnp.float32
   np.testing.assert_allclose(np.asarray(got), np.asarray(ref), rtol=1e-5, atol=1e-4)
@@ -44,13 +44,15 @@ def _lowered(fn, *args, platform):
   return jax.jit(fn).trace(*args).lower(lowering_platforms=(platform,)).as_text()
 
 
+def _conv(x, k):
+  return layers.conv_general_dilated(x, k, (1, 1), ((1, 1), (1, 1)), dimension_numbers=NHWC)
+
+
 def test_bf16_convolution_is_dots_on_cpu_only():
   rng = np.random.default_rng(1)
-  x = jnp.asarray(rng.standard_normal((1, 12, 14, 8)), jnp.bfloat16)
-  k = jnp.asarray(rng.standard_normal((3, 3, 8, 16)), jnp.bfloat16)
-  conv = lambda x, k: layers.conv_general_dilated(x, k, (1, 1), ((1, 1), (1, 1)),  # noqa: E731
-                                                  dimension_numbers=NHWC)
-  out = jax.jit(conv)(x, k)
+  x = jnp.asarray(rng.standard_normal((1, 6, 7, 160)), jnp.bfloat16)
+  k = jnp.asarray(rng.standard_normal((3, 3, 160, 160)) * 0.05, jnp.bfloat16)
+  out = jax.jit(_conv)(x, k)
   assert out.dtype == jnp.bfloat16
   # Each dot accumulates in float32 and the result is rounded once: the float32 convolution of
   # the same bf16 values, rounded to bf16, up to one bf16 rounding (2^-8 relative).
@@ -59,39 +61,44 @@ def test_bf16_convolution_is_dots_on_cpu_only():
                                      precision="highest")
   np.testing.assert_allclose(np.asarray(out, np.float32), np.asarray(ref),
                              rtol=2**-8, atol=2**-8 * float(jnp.abs(ref).max()))
-  cpu = _lowered(conv, x, k, platform="cpu")
+  cpu = _lowered(_conv, x, k, platform="cpu")
   assert "stablehlo.convolution" not in cpu
-  assert "bf16>, tensor<" in cpu and "-> tensor<" in cpu and "xf32>" in cpu
+  assert "(tensor<42x1440xbf16>, tensor<1440x160xbf16>) -> tensor<42x160xf32>" in cpu
   for platform in ("cuda", "tpu"):
-    other = _lowered(conv, x, k, platform=platform)
+    other = _lowered(_conv, x, k, platform=platform)
     assert "stablehlo.convolution" in other and "stablehlo.dot_general" not in other, platform
-  # float32 is XLA's convolution on every platform
+  # float32 is XLA's convolution on every platform, and so is a narrow bf16 one on CPU
   x32, k32 = x.astype(jnp.float32), k.astype(jnp.float32)
-  assert "stablehlo.convolution" in _lowered(conv, x32, k32, platform="cpu")
+  assert "stablehlo.convolution" in _lowered(_conv, x32, k32, platform="cpu")
+  narrow = (x[..., :64], k[:, :, :64, :64])
+  assert "stablehlo.convolution" in _lowered(_conv, *narrow, platform="cpu")
 
 
-@pytest.fixture(scope="module")
-def base(reference_dir):
-  model, params = convert.load_official(reference_dir / "base")
-  io = dict(np.load(reference_dir / "base" / "io.npz"))
-  return model, params, io
+def _kernels(text):
+  """(c_in, c_out) of every stablehlo.convolution of a lowered module (HWIO kernels)."""
+  import re
+  return [tuple(int(v) for v in m.groups()) for m in re.finditer(
+      r"stablehlo\.convolution.*tensor<\d+x\d+x\d+x\d+x\w+>, tensor<\d+x\d+x(\d+)x(\d+)x", text)]
 
 
-def test_bf16_model_has_no_convolution_on_cpu(base):
-  """dtype and head_dtype bf16: the CPU forward convolves nothing with XLA's (float32)
-  convolution, and every dot but the position-table resize (float32 HIGHEST on purpose) takes
-  bf16 operands; lowered for a GPU the same model keeps its convolutions."""
-  model, params, io = base
-  m16 = model.clone(config=model.config.replace(dtype="bfloat16", head_dtype="bfloat16"))
-  a, b = io["img1_uint8"][:1], io["img2_uint8"][:1]
-  fwd = lambda p, a, b: m16.apply({"params": p}, a, b)  # noqa: E731
-  cpu = _lowered(fwd, params, a, b, platform="cpu")
-  assert "stablehlo.convolution" not in cpu
+def test_ufm_base_bf16_lowering_on_cpu():
+  """UFM-Refine's structure in bf16 (dtype and head_dtype), lowered for CPU (abstract params,
+  nothing runs): the convolutions left to XLA are the narrow ones, and every dot but the
+  position-table resize (float32 HIGHEST on purpose) takes bf16 operands; lowered for a GPU
+  the same model keeps all its convolutions."""
+  from ufm_jax.models import ufm, variants
+  model = variants.build_model("ufm_refine", dtype="bfloat16", head_dtype="bfloat16")
+  params = ufm.param_shapes(model)
+  img = jax.ShapeDtypeStruct((1, 56, 84, 3), jnp.uint8)
+  fwd = lambda p, a, b: model.apply({"params": p}, a, b)  # noqa: E731
+  cpu = _lowered(fwd, params, img, img, platform="cpu")
+  narrow = _kernels(cpu)
+  assert narrow and all(c * o <= layers.CPU_CONV_MIN_WIDTH * (c + o) for c, o in narrow), narrow
   dots = [line.rsplit(":", 1)[-1] for line in cpu.splitlines() if "stablehlo.dot_general" in line]
-  wide = [d for d in dots if d.count("xbf16>") < 2]
-  assert len(dots) > 20 and len(wide) == 2, wide    # the two einsums of interpolate_pos_embed
-  assert " convolution(" not in jax.jit(fwd).lower(params, a, b).compile().as_text()
-  assert "stablehlo.convolution" in _lowered(fwd, params, a, b, platform="cuda")
+  # the two einsums of interpolate_pos_embed, and the local refinement's (float32, as official)
+  wide = [d for d in dots if d.count("xbf16>") < 2 and "x7x7x" not in d]
+  assert len(dots) > 100 and len(wide) <= 6, wide
+  assert len(_kernels(_lowered(fwd, params, img, img, platform="cuda"))) > 2 * len(narrow)
 
 
 def test_refine_bf16_close_to_the_fixture(reference_dir):

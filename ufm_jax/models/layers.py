@@ -107,27 +107,30 @@ def einsum(spec: str, a, b):
   return _on_cpu(wide, plain, a, b)
 
 
-# Output rows of the "cpu" convolution loop per step are sized so that the step's column matrix
-# ([rows x batch x width, kw x channels] bf16) holds about this many values: small enough that
-# it and the step's float32 result stay in cache between being written and the dots reading them.
-# benchmarks/cpu_attention.py --conv sweeps it.
-CPU_CONV_TILE = 2**19
-# Narrow inputs gather all kh x kw taps into one dot (k = kh kw c) instead of kh dots of kw c:
-# a dot with a short contraction is bound by writing its output.
-ALL_TAPS_BELOW = 512
+# Output rows of the bf16 convolution loop per step are sized so that the step's column matrix
+# ([batch x rows x width, kh x kw x channels] bf16) holds about this many values (8 MiB).
+# benchmarks/cpu_attention.py --conv sweeps it (docs/cpu_inference.md).
+CPU_CONV_TILE = 2**22
+# A kh x kw convolution from c to o channels runs as dots only when c o / (c + o) exceeds this:
+# a narrow one (the U-Net's 64-channel full-resolution level, 128 -> 128 at 420x560) spends
+# more on writing and reading its column matrix than the bf16 dots save, and XLA's (float32)
+# convolution is as fast or faster there.
+CPU_CONV_MIN_WIDTH = 64
 
 
 def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU_CONV_TILE,
-                 all_taps: Optional[bool] = None, dtype=jnp.float32):
+                 all_taps: bool = True, dtype=jnp.float32):
   """NHWC x HWIO convolution as dots with float32 accumulation, the result rounded to `dtype`.
 
   XLA:CPU compiles a bf16 convolution as a float32 one between converts, so it never reaches the
-  bf16 x bf16 -> f32 dot kernels (3-4x its float32 rate). Here: 1x1 convolutions are one dot,
-  patchifying ones (stride = kernel, the patch embedding) a reshape and one dot, and the others
-  a loop over blocks of output rows: each step gathers its input rows' kw column taps side by side
-  ([rows, wo, kw c]) and adds kh dots of [rows wo, kw c] x [kw c, o], one per kernel row. A whole-
-  map column matrix (kw times the input, then read kh times) made the convolution memory-bound.
-  The loop slices and stacks the taps as uint16 bits (`_bits`), so they stay one bf16 copy.
+  bf16 x bf16 -> f32 dot kernels (about twice its float32 rate on this CPU). Here: 1x1
+  convolutions are one dot, patchifying ones (stride = kernel, the patch embedding) a reshape and
+  one dot, and the others a loop over blocks of output rows: each step stacks its rows' kh x kw
+  taps side by side ([b rows wo, kh kw c], im2col of the block) and takes one dot with the
+  [kh kw c, o] kernel (`all_taps=False`: the kw column taps, and kh dots of kw c, one per kernel
+  row: slower in the sweep). A whole-map column matrix (kh kw times the input) made the
+  convolution memory-bound. The loop slices and stacks the taps as uint16 bits (`_bits`), so
+  they stay one bf16 copy.
   """
   b, _, _, c = x.shape
   kh, kw, _, o = k.shape
@@ -145,11 +148,8 @@ def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU
     x = x[:, :ho * kh, :wo * kw].reshape(b, ho, kh, wo, kw, c).transpose(0, 1, 3, 2, 4, 5)
     return jnp.dot(x.reshape(-1, kh * kw * c), k.reshape(kh * kw * c, o),
                    preferred_element_type=f32).reshape(b, ho, wo, o).astype(dtype)
-  if all_taps is None:
-    all_taps = kw * c < ALL_TAPS_BELOW
   width = kh * kw * c if all_taps else kw * c
   rows = max(1, min(ho, tile // max(1, b * wo * width)))
-  k_rows = k.reshape(kh, kw * c, o)
   x_dtype, x = x.dtype, _bits(x)
 
   def block(r0, rows):
@@ -159,16 +159,14 @@ def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU
     if all_taps:
       cols = jnp.stack([xs[:, i:i + sh * (rows - 1) + 1:sh, j:j + sw * (wo - 1) + 1:sw]
                         for i in range(kh) for j in range(kw)], -2)
-      cols = _unbits(cols, x_dtype)
-      acc = jnp.dot(cols.reshape(-1, width), k.reshape(width, o), preferred_element_type=f32)
+      acc = jnp.dot(_unbits(cols, x_dtype).reshape(-1, width), k.reshape(width, o),
+                    preferred_element_type=f32)
     else:
       cols = jnp.stack([xs[:, :, j:j + sw * (wo - 1) + 1:sw] for j in range(kw)], -2)
       cols = _unbits(cols, x_dtype).reshape(b, span, wo, width)
-      acc = None
-      for i in range(kh):
-        tap = cols[:, i:i + sh * (rows - 1) + 1:sh].reshape(-1, width)
-        y = jnp.dot(tap, k_rows[i], preferred_element_type=f32)
-        acc = y if acc is None else acc + y
+      k_rows = k.reshape(kh, width, o)
+      acc = sum(jnp.dot(cols[:, i:i + sh * (rows - 1) + 1:sh].reshape(-1, width), k_rows[i],
+                        preferred_element_type=f32) for i in range(kh))
     return acc.reshape(b, rows, wo, o).astype(dtype)
 
   if rows >= ho:
@@ -191,7 +189,8 @@ def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, r
                          precision=None, preferred_element_type=None):
   """lax.conv_general_dilated for the model's convolutions (flax nn.Conv's hook). bf16/f16 NHWC
   convolutions without dilation or groups run on CPU as `conv_as_dots` (bf16 x bf16 -> f32 dots,
-  rounded back); float32 and other platforms keep XLA's convolution."""
+  rounded back), except narrow ones (CPU_CONV_MIN_WIDTH); float32 and other platforms keep XLA's
+  convolution."""
   plain = functools.partial(
       jax.lax.conv_general_dilated, window_strides=window_strides, padding=padding,
       lhs_dilation=lhs_dilation, rhs_dilation=rhs_dilation, dimension_numbers=dimension_numbers,
@@ -207,7 +206,10 @@ def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, r
   if isinstance(padding, str):
     padding = jax.lax.padtype_to_pads(lhs.shape[1:3], rhs.shape[:2], window_strides, padding)
   padding = tuple(tuple(int(v) for v in p) for p in padding)
-  if any(v < 0 for p in padding for v in p):
+  c, o = rhs.shape[2:]
+  if any(v < 0 for p in padding for v in p) or (
+      rhs.shape[:2] != (1, 1) and tuple(window_strides) != rhs.shape[:2]
+      and c * o <= CPU_CONV_MIN_WIDTH * (c + o)):
     return plain(lhs, rhs)
   wide = lambda x, k: conv_as_dots(x, k, tuple(window_strides), padding, dtype=dtype)  # noqa: E731
   return _on_cpu(wide, plain, lhs, rhs)
