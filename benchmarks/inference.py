@@ -184,6 +184,9 @@ def load_official_torch(model, params, args, bf16: bool):
   from ufm_jax.models import refine
 
   clone = args.official or os.environ.get("UFM_OFFICIAL") or None
+  why = official_torch.why_unavailable(clone, args.official_hub)
+  if why:
+    return None, why
   snapshot = args.snapshot  # --set only changes compute options (dtype, attention), not weights
   if snapshot is None:
     import ufm_jax
@@ -264,6 +267,9 @@ def main(argv=None) -> dict:
                   help="local facebookresearch/dinov2 checkout for the official encoder (offline; "
                        "default $UFM_DINOV2_HUB, else torch.hub downloads it)")
   args = ap.parse_args(argv)
+  if args.official is not None and argv is None:
+    import official_torch  # benchmarks/official_torch.py, beside this script
+    official_torch.rerun_with_clone(args.official or os.environ.get("UFM_OFFICIAL"))
   if args.frames is not None and args.compile_only:
     ap.error("--frames runs the model; it does not combine with --compile_only")
 

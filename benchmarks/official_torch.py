@@ -115,6 +115,22 @@ def _importable(names) -> bool:
   return all(importlib.util.find_spec(n) is not None for n in names)
 
 
+def rerun_with_clone(clone: str | None) -> None:
+  """A clone is a checkout, not an installed package: when `uniflowmatch` does not import, the
+  benchmark starts again (same arguments) with the clone and its UniCeption submodule on
+  PYTHONPATH. Once: the second run's environment says it was already extended."""
+  if not clone or os.environ.get("UFM_OFFICIAL_ON_PATH") or not os.path.isdir(clone):
+    return
+  if _importable(("uniflowmatch", "uniception")):
+    return
+  paths = [p for p in (os.path.join(clone, "UniCeption"), clone) if os.path.isdir(p)]
+  if os.environ.get("PYTHONPATH"):
+    paths.append(os.environ["PYTHONPATH"])
+  env = dict(os.environ, PYTHONPATH=os.pathsep.join(paths), UFM_OFFICIAL_ON_PATH="1")
+  sys.stdout.flush()
+  os.execve(sys.executable, [sys.executable, *sys.argv], env)
+
+
 @contextlib.contextmanager
 def _local_dinov2_hub(torch, hub_dir):
   """torch.hub.load of facebookresearch/dinov2 served from a local checkout, without weights."""
@@ -134,27 +150,28 @@ def _local_dinov2_hub(torch, hub_dir):
     torch.hub.load = original
 
 
+def why_unavailable(clone: str | None, hub_dir: str | None) -> str | None:
+  """Why the official code cannot run here (None: it can), checked before anything is written."""
+  if not _importable(("torch",)):
+    return "torch is not importable"
+  if clone and not os.path.isdir(clone):
+    return f"--official {clone}: no such folder"
+  if not _importable(("uniflowmatch", "uniception")):
+    return ("the official `uniflowmatch` / `uniception` packages are not importable "
+            "(--official DIR or UFM_OFFICIAL=DIR: a clone of UniFlowMatch/UFM with its "
+            "UniCeption submodule)")
+  if hub_dir and not os.path.isfile(os.path.join(hub_dir, "hubconf.py")):
+    return f"--official_hub {hub_dir}: no hubconf.py (a facebookresearch/dinov2 checkout)"
+  return None
+
+
 def load(snapshot: str, clone: str | None, hub_dir: str | None, refine: bool, bf16: bool,
          threads: int):
   """(Official, None) or (None, the reason it is not available)."""
-  try:
-    import torch
-  except ImportError as e:
-    return None, f"torch is not importable ({e})"
-  if clone:
-    if not os.path.isdir(clone):
-      return None, f"--official {clone}: no such folder"
-    # The clone is a checkout, not an installed package: its root and its UniCeption submodule
-    # are put on the import path (the benchmark's process only).
-    for path in (os.path.join(clone, "UniCeption"), clone):
-      if os.path.isdir(path) and path not in sys.path:
-        sys.path.insert(0, path)
-  if not _importable(("uniflowmatch", "uniception")):
-    return None, ("the official `uniflowmatch` / `uniception` packages are not importable "
-                  "(--official DIR or UFM_OFFICIAL=DIR: a clone of UniFlowMatch/UFM with its "
-                  "UniCeption submodule)")
-  if hub_dir and not os.path.isfile(os.path.join(hub_dir, "hubconf.py")):
-    return None, f"--official_hub {hub_dir}: no hubconf.py (a facebookresearch/dinov2 checkout)"
+  why = why_unavailable(clone, hub_dir)
+  if why:
+    return None, why
+  import torch
   torch.set_num_threads(threads)
   try:
     import warnings
