@@ -8,14 +8,27 @@
   python benchmarks/inference.py --config ufm_base --size 420x560 --batch 8 --frames [DIR]
       # also end to end: frames read from DIR (default: random PNGs in a temp dir), predicted
       # and written as .flo through ufm_jax.sequence, the path of `infer --frames`
+  python benchmarks/inference.py --snapshot SNAP --size 420x560 --runs 5 \
+      --set dtype=bfloat16,head_dtype=bfloat16 --official ~/UFM --pair a.png b.png
+      # the official PyTorch code on the same snapshot and pair, alternating with ours
+      # (torch.autocast("cpu", bfloat16) when dtype is bfloat16; benchmarks/official_torch.py)
 
 Prints: latency (median and min of --runs timed calls after --warmup untimed ones), pairs/s, the
-model's FLOPs per pair from XLA's cost analysis of the compiled forward (with XLA's attention:
-the cost analysis counts the CPU attention loop's body once), achieved GFLOP/s, and the
+model's FLOPs per pair from XLA's cost analysis of the compiled forward (of a loop-free float32
+twin: the cost analysis counts the body of the CPU attention and bf16 convolution loops once),
+achieved GFLOP/s, and the
 f32 matmul peak: the best of >= 2 x --runs samples of a square --matmul_n dot and of a dot at the
-model's encoder-MLP shape, sampled between the model runs. The share of peak is min(model)
-against best(peak), printed with the load average and thread count, so a loaded machine shows
-as a low peak sample rather than a flattering share. --breakdown times each stage on its own.
+model's encoder-MLP shape, sampled between the model runs, and the same for the bf16 x bf16 ->
+f32 dot (`preferred_element_type=float32`, the form XLA:CPU runs on its bf16 units). The share of
+peak is min(model) against best(peak) of the model's dtype, printed with the load average and
+thread count, so a loaded machine shows as a low peak sample rather than a flattering share.
+--breakdown times each stage on its own, with its share of both peaks (and the official model's
+time in each stage with --official).
+--official times the official PyTorch model (benchmarks/official_torch.py: the user's clone,
+"not available" and why when it does not import) on the same snapshot (--snapshot, or the random
+params written as one to a temp dir) and the same pair (--pair, resized to --size; default
+random pixels), one official run after each of ours, and prints the ratio JAX / official of the
+medians and of the minima, the torch matmul peaks, and how far the two outputs differ.
 --frames adds end-to-end pairs/s (reading, resizing, forward, unmapping, writing) next to the
 model-only figure, the model run at --size as its inference resolution.
 Params are random (`trainer.random_params`) unless --snapshot gives an official snapshot. Figures
@@ -49,23 +62,26 @@ def _times(fn, runs: int, warmup: int = 0) -> list[float]:
 
 
 def make_matmul(m: int, k: int, n: int, dtype=jnp.float32):
-  """A jitted [m, k] x [k, n] jnp.dot (2 m k n flops) on random inputs."""
+  """A jitted [m, k] x [k, n] jnp.dot (2 m k n flops) on random inputs; bf16 operands accumulate
+  and return float32 (XLA:CPU's fast bf16 form; a bf16-out dot runs as a float32 one)."""
   ka, kb = jax.random.split(jax.random.PRNGKey(0))
   a = jax.random.normal(ka, (m, k), dtype)
   b = jax.random.normal(kb, (k, n), dtype)
-  dot = jax.jit(jnp.dot)
+  dot = jax.jit(functools.partial(
+      jnp.dot, preferred_element_type=jnp.float32 if dtype == jnp.bfloat16 else None))
   return lambda: dot(a, b)
 
 
 class Peak:
-  """The practical f32 matmul peak: the best GFLOP/s over every sample of a few matmuls, one of
-  them at the model's own shapes ([tokens, dim] x [dim, 4 dim], the encoder MLP). `sample()` is
-  called between model runs, so a busy minute on a shared machine cannot make the peak look
-  low while the model runs in a quiet one: the share printed is min(model) against best(peak)."""
+  """The practical matmul peak of one dtype (float32, or bf16 x bf16 -> f32): the best GFLOP/s
+  over every sample of a few matmuls, one of them at the model's own shapes ([tokens, dim] x
+  [dim, 4 dim], the encoder MLP). `sample()` is called between model runs, so a busy minute on a
+  shared machine cannot make the peak look low while the model runs in a quiet one: the share
+  printed is min(model) against best(peak)."""
 
-  def __init__(self, shapes):
+  def __init__(self, shapes, dtype=jnp.float32):
     self.shapes = [tuple(s) for s in shapes]
-    self.fns = [make_matmul(*s) for s in self.shapes]
+    self.fns = [make_matmul(*s, dtype=dtype) for s in self.shapes]
     self.samples: list[float] = []
     for f in self.fns:
       _times(f, 0, warmup=2)
@@ -102,18 +118,21 @@ def counted_flops(fn, *args) -> float:
   return cost_flops(jax.jit(fn).lower(*args).compile())
 
 
-def with_xla_attention(module):
-  """`module` with XLA's one-shot attention. The CPU attention path is a loop (lax.map), and
-  XLA's cost analysis counts a loop body once, so the model's FLOPs are counted on this twin:
-  the same arithmetic, every head and chunk counted."""
+def loop_free(module):
+  """`module` computing the same arithmetic without loops, for counting its FLOPs: XLA's
+  cost analysis counts a loop body once, and on CPU the attention (layers.cpu_attention) and the
+  bf16 convolutions (layers.conv_as_dots) are loops. The twin uses XLA's one-shot attention and
+  float32 (XLA's convolutions); the FLOPs do not depend on the dtype."""
   import dataclasses  # pylint: disable=g-import-not-at-top
   from ufm_jax.models import layers  # pylint: disable=g-import-not-at-top
   if isinstance(module, layers.Attention):
-    return module.clone(implementation="xla")
+    return module.clone(implementation="xla", dtype=None)
   config = getattr(module, "config", None)
   if config is not None and dataclasses.is_dataclass(config) and hasattr(config, "attention_impl"):
-    return module.clone(config=config.replace(attention_impl="xla"))
-  return module
+    return module.clone(config=config.replace(attention_impl="xla", dtype="float32",
+                                              head_dtype="float32"))
+  fields = {f: jnp.float32 for f in ("dtype", "unet_dtype", "head_dtype") if hasattr(module, f)}
+  return module.clone(**fields) if fields else module
 
 
 def build_model(config_name: str, **overrides):
@@ -145,6 +164,75 @@ def parse_size(text: str) -> tuple[int, int]:
   return h, w
 
 
+def read_pair_image(path: str, size_hw) -> np.ndarray:
+  """An RGB uint8 image resized to size_hw (torch's bilinear antialias resize, as `predict`)."""
+  from ufm_jax.data import io
+  from ufm_jax.inference import resize_bilinear_aa
+  img = io.read_image(path)
+  if img.shape[:2] != tuple(size_hw):
+    img = np.clip(np.rint(resize_bilinear_aa(img.astype(np.float32), size_hw)), 0, 255)
+  return img.astype(np.uint8)
+
+
+def load_official_torch(model, params, args, bf16: bool):
+  """(official_torch.Official, None) on the snapshot of --snapshot, or on `params` written as
+  one to a temporary folder (kept: it is as large as the model); (None, reason) when the official
+  code is not available."""
+  import tempfile
+
+  import official_torch  # benchmarks/official_torch.py, beside this script
+  from ufm_jax.models import refine
+
+  clone = args.official or os.environ.get("UFM_OFFICIAL") or None
+  why = official_torch.why_unavailable(clone, args.official_hub)
+  if why:
+    return None, why
+  snapshot = args.snapshot  # --set only changes compute options (dtype, attention), not weights
+  if snapshot is None:
+    import ufm_jax
+    snapshot = os.path.join(tempfile.mkdtemp(prefix="ufm_bench_snapshot_"), "snapshot")
+    plain = model.clone(config=model.config.replace(dtype="float32", head_dtype="float32"))
+    ufm_jax.save_official(plain, params, snapshot)
+  threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+  return official_torch.load(snapshot, clone, args.official_hub,
+                             refine=isinstance(model, refine.UFMRefine), bf16=bf16,
+                             threads=threads)
+
+
+def official_peaks(official, shapes) -> dict:
+  import official_torch  # benchmarks/official_torch.py
+  return official_torch.matmul_peaks(official.torch, shapes, runs=1)
+
+
+def report_official(official, why_not, lat_official, lat, torch_peaks, bf16, official_out,
+                    ours) -> dict:
+  """Prints (and returns) the official model's times next to ours and how far outputs differ."""
+  if official is None:
+    print(f"  official PyTorch code: not available ({why_not})")
+    return {"official": "not available", "official_reason": why_not}
+  med, fast = statistics.median(lat_official), min(lat_official)
+  ours_med, ours_fast = statistics.median(lat), min(lat)
+  flow_o, covis_o = official_out
+  flow_j = np.asarray(ours["flow"], np.float32)
+  covis_j = np.asarray(ours["covisibility"], np.float32)
+  d_flow = np.abs(flow_j - flow_o)
+  d_cov = np.abs(covis_j - covis_o)
+  print(f"  official PyTorch ({official.version}, "
+        f"{'torch.autocast(cpu, bfloat16)' if bf16 else 'float32'}) over {len(lat_official)} runs "
+        f"alternating with ours: median {med * 1e3:.1f} ms, min {fast * 1e3:.1f} ms")
+  print(f"  JAX / official: {ours_med / med:.2f}x (medians), {ours_fast / fast:.2f}x (minima)")
+  print("  torch matmul peaks (best GFLOP/s at the same shapes): "
+        + ", ".join(f"{k} {v:.0f}" for k, v in torch_peaks.items()))
+  print(f"  outputs, JAX - official: flow |d| mean {d_flow.mean():.3g} px, max {d_flow.max():.3g} "
+        f"px (flow |mean| {np.abs(flow_o).mean():.3g} px); covisibility |d| mean "
+        f"{d_cov.mean():.3g}, max {d_cov.max():.3g}")
+  return {"official": official.version, "official_latency_ms": med * 1e3,
+          "official_latency_min_ms": fast * 1e3, "ratio_median": ours_med / med,
+          "ratio_min": ours_fast / fast, "torch_peaks_gflops": torch_peaks,
+          "flow_diff_mean_px": float(d_flow.mean()), "flow_diff_max_px": float(d_flow.max()),
+          "covisibility_diff_mean": float(d_cov.mean())}
+
+
 def main(argv=None) -> dict:
   ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   ap.add_argument("--config", default="fixture_small", help="model variant name (ufm_jax.models.variants)")
@@ -170,7 +258,18 @@ def main(argv=None) -> dict:
                        "DIR, or on --frames_pairs + 1 random PNGs in a temp dir when DIR is omitted")
   ap.add_argument("--frames_pairs", type=int, default=16,
                   help="pairs of the generated frames folder (consecutive frames)")
+  ap.add_argument("--pair", nargs=2, default=None, metavar=("SOURCE", "TARGET"),
+                  help="an image pair to run (resized to --size) instead of random pixels")
+  ap.add_argument("--official", nargs="?", const="", default=None, metavar="DIR",
+                  help="also time the official PyTorch code (a clone of UniFlowMatch/UFM with its "
+                       "UniCeption submodule; default $UFM_OFFICIAL, else the installed package)")
+  ap.add_argument("--official_hub", default=os.environ.get("UFM_DINOV2_HUB"), metavar="DIR",
+                  help="local facebookresearch/dinov2 checkout for the official encoder (offline; "
+                       "default $UFM_DINOV2_HUB, else torch.hub downloads it)")
   args = ap.parse_args(argv)
+  if args.official is not None and argv is None:
+    import official_torch  # benchmarks/official_torch.py, beside this script
+    official_torch.rerun_with_clone(args.official or os.environ.get("UFM_OFFICIAL"))
   if args.frames is not None and args.compile_only:
     ap.error("--frames runs the model; it does not combine with --compile_only")
 
@@ -190,9 +289,13 @@ def main(argv=None) -> dict:
     from ufm_jax.inference import inference_resolutions
     args.size = inference_resolutions(model)[0]
   h, w = args.size
-  rng = np.random.default_rng(0)
-  src = jnp.asarray(rng.integers(0, 256, (args.batch, h, w, 3), dtype=np.uint8))
-  tgt = jnp.asarray(rng.integers(0, 256, (args.batch, h, w, 3), dtype=np.uint8))
+  if args.pair:
+    src, tgt = (jnp.asarray(np.repeat(read_pair_image(p, (h, w))[None], args.batch, 0))
+                for p in args.pair)
+  else:
+    rng = np.random.default_rng(0)
+    src = jnp.asarray(rng.integers(0, 256, (args.batch, h, w, 3), dtype=np.uint8))
+    tgt = jnp.asarray(rng.integers(0, 256, (args.batch, h, w, 3), dtype=np.uint8))
 
   t0 = time.perf_counter()
   if params is None:
@@ -205,20 +308,38 @@ def main(argv=None) -> dict:
   t0 = time.perf_counter()
   compiled = fwd.lower(params, src, tgt).compile()
   t_compile = time.perf_counter() - t0
-  xla_model = with_xla_attention(model)
-  flops = counted_flops(lambda p, s, t: xla_model.apply({"params": p}, s, t), params, src, tgt)
+  twin = loop_free(model)
+  flops = counted_flops(lambda p, s, t: twin.apply({"params": p}, s, t), params, src, tgt)
   run_model = lambda: compiled(params, src, tgt)  # noqa: E731
   tokens = 2 * args.batch * (h // model.config.encoder.patch_size) * (w // model.config.encoder.patch_size)
   dim = model.config.encoder.embed_dim
-  peak = Peak([(args.matmul_n,) * 3, (tokens, dim, 4 * dim)])
+  shapes = [(args.matmul_n,) * 3, (tokens, dim, 4 * dim)]
+  peak, peak16 = Peak(shapes), Peak(shapes, jnp.bfloat16)
+  bf16 = model.config.dtype == "bfloat16"
+  official, why_not, torch_peaks = None, None, {}
+  if args.official is not None:
+    official, why_not = load_official_torch(model, params, args, bf16)
+    if official is not None:
+      views = official.inputs(np.asarray(src), np.asarray(tgt))
+      run_official = lambda: official(views)  # noqa: E731
+      run_official()
   _times(run_model, 0, warmup=args.warmup)
-  # Model runs and peak samples alternate, so load from other processes hits both alike.
-  lat = []
+  # Model runs, official runs and peak samples alternate, so load from other processes hits
+  # all of them alike.
+  lat, lat_official = [], []
   for _ in range(args.runs):
     lat += _times(run_model, 1)
+    if official is not None:
+      t0 = time.perf_counter()
+      official_out = run_official()
+      lat_official.append(time.perf_counter() - t0)
+      for k, v in official_peaks(official, shapes).items():
+        torch_peaks[k] = max(torch_peaks.get(k, 0.0), v)
     peak.sample()
+    peak16.sample()
   latency, fastest = statistics.median(lat), min(lat)
   env = machine()
+  main_peak = peak16 if bf16 else peak
 
   res = {
       "config": name, "size_hw": [h, w], "batch": args.batch, "params": n_params,
@@ -227,7 +348,9 @@ def main(argv=None) -> dict:
       "latency_ms": latency * 1e3, "latency_min_ms": fastest * 1e3,
       "pairs_per_s": args.batch / fastest, "gflop_per_pair": flops / args.batch / 1e9,
       "achieved_gflops": flops / fastest / 1e9, "matmul_peak_gflops": peak.best,
-      "matmul_peak_median_gflops": peak.median, "fraction_of_peak": flops / fastest / 1e9 / peak.best,
+      "matmul_peak_median_gflops": peak.median,
+      "bf16_dot_peak_gflops": peak16.best, "bf16_dot_peak_median_gflops": peak16.median,
+      "fraction_of_peak": flops / fastest / 1e9 / main_peak.best,
       **env,
   }
   print(f"config {name} {args.set or ''} size {h}x{w}  batch {args.batch}  params "
@@ -236,13 +359,24 @@ def main(argv=None) -> dict:
   print(f"  init {t_init:.1f} s   compile {t_compile:.1f} s")
   print(f"  latency over {args.runs} runs: median {latency * 1e3:.1f} ms, min {fastest * 1e3:.1f} ms"
         f"   {res['pairs_per_s']:.3f} pairs/s (min)")
-  print(f"  FLOPs/pair (XLA cost analysis, attention counted as XLA's)  {res['gflop_per_pair']:.2f} GFLOP")
-  print(f"  achieved {res['achieved_gflops']:.1f} GFLOP/s at min(model); f32 matmul peak best "
-        f"{peak.best:.1f} (median {peak.median:.1f}) GFLOP/s over {len(peak.samples)} samples of "
-        f"{' and '.join('x'.join(map(str, s)) for s in peak.shapes)} interleaved with the model "
-        f"-> {100 * res['fraction_of_peak']:.0f}% of peak (min(model) vs best(peak))")
+  print(f"  FLOPs/pair (XLA cost analysis of the loop-free float32 twin)  {res['gflop_per_pair']:.2f} GFLOP")
+  print(f"  achieved {res['achieved_gflops']:.1f} GFLOP/s at min(model); peaks over "
+        f"{len(peak.samples)} samples each of {' and '.join('x'.join(map(str, s)) for s in shapes)}"
+        f" interleaved with the model: f32 matmul best {peak.best:.1f} (median "
+        f"{peak.median:.1f}), bf16 x bf16 -> f32 dot best {peak16.best:.1f} (median "
+        f"{peak16.median:.1f}) GFLOP/s -> {100 * res['fraction_of_peak']:.0f}% of the "
+        f"{'bf16 dot' if bf16 else 'f32 matmul'} peak (min(model) vs best(peak))")
+  if bf16 and model.config.head_dtype != "bfloat16":
+    print("  (the DPT heads run in float32: head_dtype=bfloat16 runs them in bf16, as the official "
+          "code does under CPU autocast)")
+  if args.official is not None:
+    res.update(report_official(official, why_not, lat_official, lat, torch_peaks, bf16,
+                               official_out if official is not None else None,
+                               compiled(params, src, tgt)))
   if args.breakdown:
-    res["stages"] = breakdown(model, params, src, tgt, peak, args.runs, t_model=fastest)
+    official_ms = (official.stage_ms(views, args.runs) if official is not None else None)
+    res["stages"] = breakdown(model, params, src, tgt, peak, args.runs, t_model=fastest,
+                              peak16=peak16, official_ms=official_ms)
   if args.frames is not None:
     res.update(end_to_end(model, params, (h, w), args.batch, args.frames, args.frames_pairs))
     print(f"  end to end ({res['frames_pairs']} pairs of {res['frames_dir']}: read, predict, write "
@@ -308,11 +442,14 @@ STAGES = (
 )
 
 
-def breakdown(model, params, src, tgt, peak: Peak, runs: int, t_model: float) -> list[dict]:
+def breakdown(model, params, src, tgt, peak: Peak, runs: int, t_model: float,
+              peak16: Peak | None = None, official_ms: dict | None = None) -> list[dict]:
   """Times each stage of STAGES as its own jitted function on the shapes the forward gives it
   (captured with flax's method interceptor during an abstract forward), with random inputs of
   those shapes and the model's own parameters of that module. Unscanned models only (the
-  stages are the per-block modules)."""
+  stages are the per-block modules). Shares against the f32 matmul peak and, with `peak16`, the
+  bf16 x bf16 -> f32 dot peak; `official_ms` (official_torch.Official.stage_ms: ms per forward
+  in each stage) is printed beside each stage's total."""
   import re
 
   import flax.linen as nn
@@ -359,21 +496,39 @@ def breakdown(model, params, src, tgt, peak: Peak, runs: int, t_model: float) ->
       a, kw = jax.tree.unflatten(tree, [next(it) if f else x for x, f in zip(leaves, is_array)])
       return mod.apply({"params": p}, *a, **kw, method=None if method == "__call__" else method)
     compiled = jax.jit(call).lower(sub, arrays).compile()
-    flops = counted_flops(functools.partial(call, mod=with_xla_attention(mod)), sub, arrays)
+    flops = counted_flops(functools.partial(call, mod=loop_free(mod)), sub, arrays)
     times = _times(lambda: compiled(sub, arrays), runs, warmup=1)
     peak.sample(1)
+    if peak16 is not None:
+      peak16.sample(1)
     t = min(times)
-    rows.append({"stage": label, "calls": st["count"], "ms": t * 1e3, "total_ms": t * 1e3 * st["count"],
-                 "gflop": flops / 1e9, "share_of_peak": flops / t / 1e9 / peak.best})
+    row = {"stage": label, "calls": st["count"], "ms": t * 1e3, "total_ms": t * 1e3 * st["count"],
+           "gflop": flops / 1e9, "share_of_peak": flops / t / 1e9 / peak.best}
+    if peak16 is not None:
+      row["share_of_bf16_peak"] = flops / t / 1e9 / peak16.best
+    if official_ms is not None and label in official_ms:
+      row["official_total_ms"] = official_ms[label]
+    rows.append(row)
   total = sum(r["total_ms"] for r in rows)
   print(f"\n  breakdown (each stage jitted alone on its forward shapes; min of {runs} runs; share "
-        f"against the best peak, {peak.best:.1f} GFLOP/s)")
-  print(f"  {'stage':32s} {'calls':>5s} {'ms/call':>9s} {'ms total':>9s} {'GFLOP/call':>10s} {'peak':>6s}")
+        f"against the best f32 matmul peak, {peak.best:.1f} GFLOP/s"
+        + (f", and the best bf16 x bf16 -> f32 dot peak, {peak16.best:.1f}" if peak16 else "")
+        + ("; official: ms per forward in the same modules, forward hooks, min of runs"
+           if official_ms is not None else "") + ")")
+  print(f"  {'stage':32s} {'calls':>5s} {'ms/call':>9s} {'ms total':>9s} {'GFLOP/call':>10s} "
+        f"{'f32 pk':>6s}" + (f" {'bf16 pk':>7s}" if peak16 else "")
+        + (f" {'official ms':>11s} {'JAX/off':>7s}" if official_ms is not None else ""))
   for r in rows:
-    print(f"  {r['stage']:32s} {r['calls']:5d} {r['ms']:9.1f} {r['total_ms']:9.1f} {r['gflop']:10.2f} "
-          f"{100 * r['share_of_peak']:5.0f}%")
+    line = (f"  {r['stage']:32s} {r['calls']:5d} {r['ms']:9.1f} {r['total_ms']:9.1f} "
+            f"{r['gflop']:10.2f} {100 * r['share_of_peak']:5.0f}%")
+    if peak16 is not None:
+      line += f" {100 * r['share_of_bf16_peak']:6.0f}%"
+    if "official_total_ms" in r:
+      line += f" {r['official_total_ms']:11.1f} {r['total_ms'] / r['official_total_ms']:6.2f}x"
+    print(line)
   print(f"  {'sum of stages':32s} {'':5s} {'':9s} {total:9.1f}   (full forward {t_model * 1e3:.1f} ms; "
-        f"the rest is norms, residuals, resizes and glue)")
+        f"the rest is norms, residuals, resizes and glue)"
+        + (f"; official sum {sum(official_ms.values()):.1f} ms" if official_ms else ""))
   return rows
 
 

@@ -42,3 +42,21 @@ def test_breakdown_times_the_refiner_stages(tmp_path):
   assert stages["refiner classification head"]["calls"] == 2   # per view
   assert stages["refiner local refinement"]["calls"] == 1
   assert all(stages[k]["gflop"] > 0 for k in stages if k.startswith("refiner"))
+
+
+def test_official_side_by_side_says_why_it_is_not_available(tmp_path):
+  # A folder without the official packages: the benchmark starts again with it on PYTHONPATH
+  # (the clone is a checkout, not an installed package), still cannot import `uniflowmatch`,
+  # and reports the official side as not available instead of failing.
+  out = tmp_path / "bench.json"
+  clone = tmp_path / "not_a_clone"
+  clone.mkdir()
+  cmd = [sys.executable, str(REPO / "benchmarks" / "inference.py"), "--config", "fixture_small",
+         "--size", "28x28", "--runs", "1", "--warmup", "0", "--official", str(clone),
+         "--json", str(out)]
+  r = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=REPO)
+  assert r.returncode == 0, r.stderr[-3000:]
+  res = json.loads(out.read_text())
+  assert res["official"] == "not available"
+  assert "not importable" in res["official_reason"]
+  assert "official PyTorch code: not available" in r.stdout

@@ -196,8 +196,8 @@ class PatchEmbed(nn.Module):
   @nn.compact
   def __call__(self, images):
     p = self.patch_size
-    x = nn.Conv(self.dim, (p, p), strides=(p, p), padding="VALID", dtype=self.dtype,
-                name="proj")(images)
+    x = layers.Conv(self.dim, (p, p), strides=(p, p), padding="VALID", dtype=self.dtype,
+                    name="proj")(images)
     b, h, w, c = x.shape
     return x.reshape(b, h * w, c)
 

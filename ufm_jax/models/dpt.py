@@ -14,6 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ufm_jax.models import layers
+
 
 @dataclasses.dataclass(frozen=True)
 class DPTConfig:
@@ -59,8 +61,8 @@ def torch_default_init(key, kernel_shape, transposed: bool = False, dtype=jnp.fl
 
 
 def _conv(features, k, stride=1, pad=0, bias=True, name=None, dtype=None):
-  return nn.Conv(features, (k, k), strides=(stride, stride), padding=((pad, pad), (pad, pad)),
-                 use_bias=bias, dtype=dtype, name=name)
+  return layers.Conv(features, (k, k), strides=(stride, stride), padding=((pad, pad), (pad, pad)),
+                     use_bias=bias, dtype=dtype, name=name)
 
 
 class ConvTranspose(nn.Module):
@@ -77,7 +79,7 @@ class ConvTranspose(nn.Module):
     kernel = self.param("kernel", nn.initializers.lecun_normal(), (self.k, self.k, c, self.features))
     bias = self.param("bias", nn.initializers.zeros, (self.features,))
     dtype = self.dtype or jnp.promote_types(x.dtype, kernel.dtype)
-    y = jnp.einsum("nhwc,abco->nhawbo", x.astype(dtype), kernel.astype(dtype))
+    y = layers.einsum("nhwc,abco->nhawbo", x.astype(dtype), kernel.astype(dtype))
     return y.reshape(b, h * self.k, w * self.k, self.features) + bias.astype(dtype)
 
 

@@ -56,6 +56,27 @@ def tied_qkv_init(scale: float = 1.0, base=nn.initializers.lecun_normal()):
   return init
 
 
+LOW_PRECISION = (jnp.bfloat16, jnp.float16)
+
+
+def _on_cpu(wide: Callable, plain: Callable, *operands):
+  """`wide(*operands)` where the computation is lowered for CPU, `plain(*operands)` elsewhere
+  (chosen per platform at lowering, so a multi-platform export carries both)."""
+  return jax.lax.platform_dependent(*operands, cpu=wide, default=plain)
+
+
+def _bits(x):
+  """bf16/f16 -> the same bits as uint16 (other dtypes unchanged). XLA:CPU widens bf16 operands
+  of dynamic slices, gathers and concatenates to float32, and then hoists that widening out of
+  loops: a loop slicing a bf16 array would carry (and read) a float32 copy of all of it. Integers
+  are moved as they are."""
+  return jax.lax.bitcast_convert_type(x, jnp.uint16) if x.dtype in LOW_PRECISION else x
+
+
+def _unbits(x, dtype):
+  return jax.lax.bitcast_convert_type(x, dtype) if x.dtype != dtype else x
+
+
 def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None, **kw):
   """lax.dot_general for the model's Dense layers. bf16/f16 operands on CPU accumulate into a
   float32 result that is then rounded: XLA:CPU runs that form with its bf16 (AVX-512 BF16/AMX)
@@ -64,15 +85,137 @@ def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_t
   plain = functools.partial(jax.lax.dot_general, dimension_numbers=dimension_numbers,
                             precision=precision, preferred_element_type=preferred_element_type, **kw)
   dtype = jnp.result_type(lhs, rhs)
-  if preferred_element_type is not None or dtype not in (jnp.bfloat16, jnp.float16):
+  if preferred_element_type is not None or dtype not in LOW_PRECISION:
     return plain(lhs, rhs)
   def wide(l, r):
     return jax.lax.dot_general(l, r, dimension_numbers, precision,
                                preferred_element_type=jnp.float32, **kw).astype(dtype)
-  return jax.lax.platform_dependent(lhs, rhs, cpu=wide, default=plain)
+  return _on_cpu(wide, plain, lhs, rhs)
 
 
 Dense = functools.partial(nn.Dense, dot_general=dot_general)
+
+
+def einsum(spec: str, a, b):
+  """Two-operand jnp.einsum with dot_general's rule: bf16/f16 on CPU as bf16 x bf16 -> f32,
+  rounded back (the weight-only einsums of the up-convolutions)."""
+  dtype = jnp.result_type(a, b)
+  plain = functools.partial(jnp.einsum, spec)
+  if dtype not in LOW_PRECISION:
+    return plain(a, b)
+  wide = lambda a, b: jnp.einsum(spec, a, b, preferred_element_type=jnp.float32).astype(dtype)  # noqa: E731
+  return _on_cpu(wide, plain, a, b)
+
+
+# Output rows of the bf16 convolution loop per step are sized so that the step's column matrix
+# ([batch x rows x width, kh x kw x channels] bf16) holds about this many values (8 MiB).
+# benchmarks/cpu_attention.py --conv sweeps it (docs/cpu_inference.md).
+CPU_CONV_TILE = 2**22
+# A kh x kw convolution from c to o channels runs as dots only when c o / (c + o) exceeds this:
+# a narrow one (the U-Net's 64-channel full-resolution level, 128 -> 128 at 420x560) spends
+# more on writing and reading its column matrix than the bf16 dots save, and XLA's (float32)
+# convolution is as fast or faster there.
+CPU_CONV_MIN_WIDTH = 64
+
+
+def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU_CONV_TILE,
+                 all_taps: bool = True, dtype=jnp.float32):
+  """NHWC x HWIO convolution as dots with float32 accumulation, the result rounded to `dtype`.
+
+  XLA:CPU compiles a bf16 convolution as a float32 one between converts, so it never reaches the
+  bf16 x bf16 -> f32 dot kernels (about twice its float32 rate on this CPU). Here: 1x1
+  convolutions are one dot, patchifying ones (stride = kernel, the patch embedding) a reshape and
+  one dot, and the others a loop over blocks of output rows: each step stacks its rows' kh x kw
+  taps side by side ([b rows wo, kh kw c], im2col of the block) and takes one dot with the
+  [kh kw c, o] kernel (`all_taps=False`: the kw column taps, and kh dots of kw c, one per kernel
+  row: slower in the sweep). A whole-map column matrix (kh kw times the input) made the
+  convolution memory-bound. The loop slices and stacks the taps as uint16 bits (`_bits`), so
+  they stay one bf16 copy.
+  """
+  b, _, _, c = x.shape
+  kh, kw, _, o = k.shape
+  sh, sw = strides
+  if any(p != 0 for pp in padding for p in pp):
+    x = jnp.pad(x, ((0, 0), tuple(padding[0]), tuple(padding[1]), (0, 0)))
+  hi, wi = x.shape[1:3]
+  ho, wo = (hi - kh) // sh + 1, (wi - kw) // sw + 1
+  f32 = jnp.float32
+  if kh == kw == 1:
+    x = x[:, :sh * (ho - 1) + 1:sh, :sw * (wo - 1) + 1:sw]
+    return jnp.dot(x.reshape(-1, c), k.reshape(c, o), preferred_element_type=f32).reshape(
+        b, ho, wo, o).astype(dtype)
+  if (sh, sw) == (kh, kw):
+    x = x[:, :ho * kh, :wo * kw].reshape(b, ho, kh, wo, kw, c).transpose(0, 1, 3, 2, 4, 5)
+    return jnp.dot(x.reshape(-1, kh * kw * c), k.reshape(kh * kw * c, o),
+                   preferred_element_type=f32).reshape(b, ho, wo, o).astype(dtype)
+  width = kh * kw * c if all_taps else kw * c
+  rows = max(1, min(ho, tile // max(1, b * wo * width)))
+  x_dtype, x = x.dtype, _bits(x)
+
+  def block(r0, rows):
+    """Output rows r0 .. r0 + rows, [b, rows, wo, o] in `dtype`."""
+    span = sh * (rows - 1) + kh
+    xs = jax.lax.dynamic_slice_in_dim(x, r0 * sh, span, axis=1)
+    if all_taps:
+      cols = jnp.stack([xs[:, i:i + sh * (rows - 1) + 1:sh, j:j + sw * (wo - 1) + 1:sw]
+                        for i in range(kh) for j in range(kw)], -2)
+      acc = jnp.dot(_unbits(cols, x_dtype).reshape(-1, width), k.reshape(width, o),
+                    preferred_element_type=f32)
+    else:
+      cols = jnp.stack([xs[:, :, j:j + sw * (wo - 1) + 1:sw] for j in range(kw)], -2)
+      cols = _unbits(cols, x_dtype).reshape(b, span, wo, width)
+      k_rows = k.reshape(kh, width, o)
+      acc = sum(jnp.dot(cols[:, i:i + sh * (rows - 1) + 1:sh].reshape(-1, width), k_rows[i],
+                        preferred_element_type=f32) for i in range(kh))
+    return acc.reshape(b, rows, wo, o).astype(dtype)
+
+  if rows >= ho:
+    return block(0, ho)
+  steps = -(-ho // rows)
+
+  def step(i, out):
+    # A last block that would overhang starts earlier and recomputes a few rows.
+    r0 = jnp.minimum(i * rows, ho - rows)
+    return jax.lax.dynamic_update_slice_in_dim(out, block(r0, rows), r0, axis=1)
+
+  return jax.lax.fori_loop(0, steps, step, jnp.zeros((b, ho, wo, o), dtype))
+
+
+_NHWC = ("NHWC", "HWIO", "NHWC")
+
+
+def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, rhs_dilation=None,
+                         dimension_numbers=None, feature_group_count=1, batch_group_count=1,
+                         precision=None, preferred_element_type=None):
+  """lax.conv_general_dilated for the model's convolutions (flax nn.Conv's hook). bf16/f16 NHWC
+  convolutions without dilation or groups run on CPU as `conv_as_dots` (bf16 x bf16 -> f32 dots,
+  rounded back), except narrow ones (CPU_CONV_MIN_WIDTH); float32 and other platforms keep XLA's
+  convolution."""
+  plain = functools.partial(
+      jax.lax.conv_general_dilated, window_strides=window_strides, padding=padding,
+      lhs_dilation=lhs_dilation, rhs_dilation=rhs_dilation, dimension_numbers=dimension_numbers,
+      feature_group_count=feature_group_count, batch_group_count=batch_group_count,
+      precision=precision, preferred_element_type=preferred_element_type)
+  dtype = jnp.result_type(lhs, rhs)
+  if (preferred_element_type is not None or dtype not in LOW_PRECISION or lhs.ndim != 4
+      or feature_group_count != 1 or batch_group_count != 1
+      or any(d != 1 for d in (lhs_dilation or ()) + tuple(rhs_dilation or ()))
+      or jax.lax.conv_dimension_numbers(lhs.shape, rhs.shape, dimension_numbers)
+      != jax.lax.conv_dimension_numbers(lhs.shape, rhs.shape, _NHWC)):
+    return plain(lhs, rhs)
+  if isinstance(padding, str):
+    padding = jax.lax.padtype_to_pads(lhs.shape[1:3], rhs.shape[:2], window_strides, padding)
+  padding = tuple(tuple(int(v) for v in p) for p in padding)
+  c, o = rhs.shape[2:]
+  if any(v < 0 for p in padding for v in p) or (
+      rhs.shape[:2] != (1, 1) and tuple(window_strides) != rhs.shape[:2]
+      and c * o <= CPU_CONV_MIN_WIDTH * (c + o)):
+    return plain(lhs, rhs)
+  wide = lambda x, k: conv_as_dots(x, k, tuple(window_strides), padding, dtype=dtype)  # noqa: E731
+  return _on_cpu(wide, plain, lhs, rhs)
+
+
+Conv = functools.partial(nn.Conv, conv_general_dilated=conv_general_dilated)
 
 
 ATTENTION_IMPLS = (None, "auto", "xla", "cudnn", "cpu")
@@ -118,15 +261,19 @@ def cpu_attention(q, k, v, scale: float, tile: int = CPU_ATTENTION_TILE):
   # A symbolic batch (jax.export) sizes the chunks for one pair.
   chunks = max(1, -(-(b if isinstance(b, int) else 1) * n * m // tile))
   cq = -(-n // chunks)
-  scale = jnp.asarray(scale, q.dtype)
+  dtype = q.dtype
+  scale = jnp.asarray(scale, dtype)
+  # bf16 operands are sliced as their uint16 bits (_bits): else XLA:CPU carries float32 copies.
+  q, k, v = _bits(q), _bits(k), _bits(v)
 
   def step(i, out):
     hi = i // chunks
     start = jnp.minimum((i % chunks) * cq, n - cq)
-    qc = jax.lax.dynamic_slice_in_dim(
-        jax.lax.dynamic_index_in_dim(q, hi, axis=2, keepdims=False), start, cq, axis=1) * scale
-    kh = jax.lax.dynamic_index_in_dim(k, hi, axis=2, keepdims=False)
-    vh = jax.lax.dynamic_index_in_dim(v, hi, axis=2, keepdims=False)
+    qc = _unbits(jax.lax.dynamic_slice_in_dim(
+        jax.lax.dynamic_index_in_dim(q, hi, axis=2, keepdims=False), start, cq, axis=1),
+                 dtype) * scale
+    kh = _unbits(jax.lax.dynamic_index_in_dim(k, hi, axis=2, keepdims=False), dtype)
+    vh = _unbits(jax.lax.dynamic_index_in_dim(v, hi, axis=2, keepdims=False), dtype)
     s = jnp.einsum("bqd,bkd->bqk", qc, kh, preferred_element_type=jnp.float32)
     p = jnp.exp(s - jnp.max(s, axis=-1, keepdims=True))
     o = jnp.einsum("bqk,bkd->bqd", p.astype(vh.dtype), vh, preferred_element_type=jnp.float32)
@@ -135,7 +282,7 @@ def cpu_attention(q, k, v, scale: float, tile: int = CPU_ATTENTION_TILE):
     return jax.lax.dynamic_update_slice(out, o[:, :, None],
                                         (zero, start, hi.astype(start.dtype), zero))
 
-  return jax.lax.fori_loop(0, h * chunks, step, jnp.zeros_like(q))
+  return jax.lax.fori_loop(0, h * chunks, step, jnp.zeros(q.shape, dtype))
 
 
 def _xla_attention(q, k, v, scale):

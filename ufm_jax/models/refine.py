@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ufm_jax.models import ufm
+from ufm_jax.models import layers, ufm
 
 _A = -0.75  # torch's bicubic convolution constant
 
@@ -70,8 +70,8 @@ class DoubleConv(nn.Module):
 
   @nn.compact
   def __call__(self, x, train: bool = False):
-    conv = lambda name: nn.Conv(self.features, (3, 3), padding=((1, 1), (1, 1)),  # noqa: E731
-                                dtype=self.dtype, name=name)
+    conv = lambda name: layers.Conv(self.features, (3, 3), padding=((1, 1), (1, 1)),  # noqa: E731
+                                    dtype=self.dtype, name=name)
     x = nn.relu(conv("conv_0")(x))
     if self.batch_norm:
       return nn.relu(conv("conv_3")(BatchNorm(name="conv_2")(x, train)))
@@ -92,7 +92,7 @@ class UpConv2x2(nn.Module):
     kernel = self.param("kernel", nn.initializers.lecun_normal(), (2, 2, x.shape[-1], self.features))
     bias = self.param("bias", nn.initializers.zeros, (self.features,))
     x = x.astype(self.dtype)
-    y = jnp.einsum("nhwc,abco->nhawbo", x, kernel.astype(self.dtype))
+    y = layers.einsum("nhwc,abco->nhawbo", x, kernel.astype(self.dtype))
     n, h, _, w, _, o = y.shape
     return y.reshape(n, 2 * h, 2 * w, o) + bias.astype(self.dtype)
 
@@ -137,7 +137,7 @@ class UNet(nn.Module):
       if x.shape[1:3] != skip.shape[1:3]:
         x = resize_nearest_legacy(x, skip.shape[1:3])
       x = double(f, f"ups_{2 * k + 1}")(jnp.concatenate([skip, x], -1))
-    return nn.Conv(self.out_channels, (1, 1), dtype=self.dtype, name="final_conv")(x)
+    return layers.Conv(self.out_channels, (1, 1), dtype=self.dtype, name="final_conv")(x)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -155,12 +155,13 @@ def pixel_shuffle(x, r):
 class Mlp(nn.Module):
   hidden_dim: int
   out_dim: int
+  dtype: Any = None
 
   @nn.compact
   def __call__(self, x):
-    x = nn.Dense(self.hidden_dim, name="fc1")(x)
+    x = layers.Dense(self.hidden_dim, dtype=self.dtype, name="fc1")(x)
     x = nn.gelu(x, approximate=False)
-    return nn.Dense(self.out_dim, name="fc2")(x)
+    return layers.Dense(self.out_dim, dtype=self.dtype, name="fc2")(x)
 
 
 class MLPFeature(nn.Module):
@@ -168,15 +169,16 @@ class MLPFeature(nn.Module):
   output_dim: int = 16
   patch_size: int = 14
   mlp_ratio: float = 4.0
+  dtype: Any = None  # compute dtype (None: the input's); params stay float32
 
   @nn.compact
   def __call__(self, x, return_mlp=False):  # [N, h, w, C] tokens -> [N, h*p, w*p, output_dim]
     c = x.shape[-1]
-    x = Mlp(int(c * self.mlp_ratio), c, name="mlp")(x)
+    x = Mlp(int(c * self.mlp_ratio), c, self.dtype, name="mlp")(x)
     if return_mlp:                           # the token MLP output alone (a parity checkpoint)
       return x
     p = self.patch_size
-    x = nn.Conv(self.output_dim * p * p, (1, 1), name="linear")(x)
+    x = layers.Conv(self.output_dim * p * p, (1, 1), dtype=self.dtype, name="linear")(x)
     return pixel_shuffle(x, p)
 
 
@@ -352,6 +354,10 @@ class Refiner(nn.Module):
   chunk: Any = None
   unet_dtype: Any = jnp.float32
   use_unet_batchnorm: bool = False
+  # Compute dtype of the classification head and the combining convolutions (None: float32).
+  # The official code runs them with its DPT heads under autocast("cuda", float32), which a CPU
+  # autocast does not undo: the model's head_dtype.
+  head_dtype: Any = None
 
   def setup(self):
     if self.refinement_range % 2 != 1:
@@ -359,12 +365,13 @@ class Refiner(nn.Module):
     if self.use_unet_feature and self.feature_combine_method not in ("conv", "modulate"):
       raise ValueError(f"feature_combine_method {self.feature_combine_method!r}; expected 'conv' "
                        "or 'modulate'")
-    self.classification_head = MLPFeature(self.feature_dim, self.patch_size, self.mlp_ratio)
+    self.classification_head = MLPFeature(self.feature_dim, self.patch_size, self.mlp_ratio,
+                                          self.head_dtype)
     if self.use_unet_feature:
       self.unet_feature = UNet(tuple(self.unet_features), self.feature_dim, dtype=self.unet_dtype,
                                batch_norm=self.use_unet_batchnorm)
-      self.conv1 = nn.Conv(2 * self.feature_dim, (1, 1))
-      self.conv2 = nn.Conv(self.feature_dim, (1, 1))
+      self.conv1 = layers.Conv(2 * self.feature_dim, (1, 1), dtype=self.head_dtype)
+      self.conv2 = layers.Conv(self.feature_dim, (1, 1), dtype=self.head_dtype)
     p = self.refinement_range
     self.classification_bias = self.param("classification_bias", nn.initializers.zeros, (p * p,))
 
@@ -387,7 +394,7 @@ class Refiner(nn.Module):
         f = self.conv2(f * jnp.tanh(u))
       else:
         f = self.conv2(nn.relu(self.conv1(jnp.concatenate([f, u], -1))))
-    return f
+    return f.astype(tokens.dtype)
 
   def features(self, tokens, image_norm):
     return self.combine(tokens, self.unet(image_norm))
@@ -476,7 +483,8 @@ class UFMRefine(ufm.UFM):
         patch_size=cfg.encoder.patch_size, mlp_ratio=cfg.refine_mlp_ratio,
         use_unet_feature=cfg.use_unet_feature, feature_combine_method=cfg.feature_combine_method,
         refinement_range=cfg.refinement_range, temperature=cfg.temperature,
-        chunk=cfg.refine_chunk, unet_dtype=unet_dtype, use_unet_batchnorm=cfg.use_unet_batchnorm)
+        chunk=cfg.refine_chunk, unet_dtype=unet_dtype, use_unet_batchnorm=cfg.use_unet_batchnorm,
+        head_dtype=jnp.bfloat16 if cfg.head_dtype == "bfloat16" and cfg.dtype != "float64" else None)
     # The refiner's params sit at the root (unet_feature, classification_head, conv1, conv2,
     # classification_bias), like the attributes of the PyTorch module.
     nn.share_scope(self, self.refiner)
