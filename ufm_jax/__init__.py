@@ -7,6 +7,7 @@ Top-level API (imported lazily so that `import ufm_jax` stays cheap):
   - `predict(model, params, source, target)`: the official high-level inference on HWC uint8 images.
   - `match(model, params, source, target)`: sparse matches (keypoints0/1, confidence) in pixels.
   - `load_exported(path)`: a callable over an artifact of `python -m ufm_jax export` (no model code).
+  - `read_image(path)`: an image file as HWC uint8 RGB (the project's one image reader).
 """
 
 __version__ = "0.1.0"
@@ -18,6 +19,7 @@ _LAZY = {
     "predict": ("ufm_jax.inference", "predict"),
     "load_exported": ("ufm_jax.export", "load_exported"),
     "match": ("ufm_jax.matching", "match"),
+    "read_image": ("ufm_jax.data.io", "read_image"),
 }
 
 
