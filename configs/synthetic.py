@@ -25,7 +25,9 @@ initializers, the `synth` variant's key-equals-query fusion init and flow normal
 variant's: the figures of docs/synthetic_training.md come from that setup); the `l1` flow loss by
 default (the paper's robust loss is `loss=paper`); one learning rate for every group, 5% warmup
 and cosine to 0 over a fixed number of steps (rendered data has no epochs); 4 unique pairs per
-step, not augmented. The quirk keys of the loss are the official ones.
+step, not augmented; pixels whose match leaves the view supervised as not covisible
+(`input.augment.supervise_out_of_view`: under the official rule the shift pairs would give the
+covisibility head no negatives at all). The quirk keys of the loss are the official ones.
 """
 
 import ml_collections
@@ -33,7 +35,7 @@ import ml_collections
 from ufm_jax import config_lib, optim
 from ufm_jax.data import mixture, pipeline
 
-_NO_AUGMENT = {"enabled": False}
+_NO_AUGMENT = {"enabled": False, "supervise_out_of_view": True}
 
 
 def get_config(arg=None):
@@ -54,7 +56,7 @@ def get_config(arg=None):
       read_threads=2, prefetch_buffer_size=2,
       # Every shift pair is a fresh texture already; the official crops would break its
       # patch-aligned pairs and colour jitter was not needed (measured without any).
-      augment=_NO_AUGMENT if arg.pairs == "shift" else None)
+      augment=_NO_AUGMENT if arg.pairs == "shift" else {"supervise_out_of_view": True})
   if arg.loss not in ("l1", "paper"):
     raise ValueError(f"configs/synthetic.py: loss must be 'l1' or 'paper', got {arg.loss!r}")
   alpha, scale = (1.0, 0.01) if arg.loss == "l1" else (0.5, 0.24)

@@ -1,5 +1,7 @@
 """The embedded synthetic dataset: flow correctness by warping, occlusion, determinism, source."""
 
+import pathlib
+
 import numpy as np
 import pytest
 
@@ -256,3 +258,23 @@ def test_covisibility_agrees_with_ray_cast_visibility():
   # Paper rule: only a thin band along silhouettes/creases (bilinear depth mixing) is lost.
   assert fp < 0.005 and fn < 0.04, (fp, fn)
   assert fn_search < fn / 2, (fn_search, fn)
+
+
+def test_synthetic_config_supervises_out_of_view_pixels_as_not_covisible():
+  """configs/synthetic.py's shift pairs are non-covisible only where the match leaves the view.
+  The official rule drops those pixels from covis_valid (the covisibility head would see no
+  negative); the config keeps them supervised, and the official default is unchanged."""
+  from ufm_jax import config_lib
+  from ufm_jax.data import pipeline
+  for keep in (True, False):
+    c = config_lib.load_config(str(pathlib.Path(__file__).resolve().parents[1] / "configs" /
+                                   "synthetic.py"))
+    c.input.augment = {"enabled": False, "supervise_out_of_view": keep}
+    it, _ = pipeline.make_train_iterator(c.input, process_batch=c.input.batch_size)
+    b = next(it)
+    covis, valid = np.asarray(b["covisibility"], bool), np.asarray(b["covis_valid"], bool)
+    assert 0.02 < 1 - covis.mean() < 0.9    # the shifts move some pixels out of view
+    if keep:
+      assert valid.all()
+    else:
+      np.testing.assert_array_equal(valid, covis)

@@ -8,6 +8,7 @@ import dataclasses
 import functools
 import importlib
 import json
+import math
 import pathlib
 from typing import Any, Callable
 
@@ -304,6 +305,10 @@ class Writer:
 
   def _append(self, name, record):
     if self.active:
+      # A metric with nothing to average (e.g. epe_occluded on pairs without occlusions) is NaN:
+      # written as null, so that every line stays standard JSON for jq and friends.
+      record = {k: None if isinstance(v, float) and not math.isfinite(v) else v
+                for k, v in record.items()}
       with open(self.workdir / name, "a") as f:
         f.write(json.dumps(record) + "\n")
 
@@ -311,7 +316,8 @@ class Writer:
     self._append(name, record)
     if self.tb is not None:
       for k, v in record.items():
-        if isinstance(v, (int, float)) and k != "step":
+        # Undefined (non-finite) values are left out of TensorBoard instead of warning per event.
+        if isinstance(v, (int, float)) and k != "step" and math.isfinite(v):
           self.tb.add_scalar(f"{prefix}/{k}", v, step)
       self.tb.flush()
 

@@ -129,6 +129,12 @@ class AugmentConfig:
     RandomApply(GaussianBlur(5, (0.1, 1.0)), 0.05) (not on Kubric, which only jitters colours).
   low_light_prob, low_light_datasets: darkening + 16-level quantisation + noise, per image
     (aug_low_light=True in the FlyingChairs yaml and Habitat's `cropping` yaml).
+  supervise_out_of_view: deviation. False (official): on the flow pathway a pixel whose match
+    leaves the target view (or crop) is not covisible and is also dropped from covis_valid, so the
+    covisibility head never sees it as a negative (flow_manipulation.py:292-313, 682-704,
+    841-863). True: it stays in covis_valid, supervised as not covisible. The synthetic config
+    sets it: its pairs' only non-covisible pixels are out of view, so the official rule would
+    train the covisibility head on positives alone.
   fast_image_ops: deviation. True: OpenCV instead of PIL for the static crops' bicubic warp
     (kernel a = -0.75 instead of -0.5, positions in 1/32 px) and the hue jitter's HSV round trip
     (rounding), and Kubric's colour jitter on uint8 like the other sets' instead of torch's
@@ -158,6 +164,7 @@ class AugmentConfig:
   blur_kernel: int = 5
   low_light_prob: float = 0.01
   low_light_datasets: tuple[str, ...] = ("flyingchairs",)
+  supervise_out_of_view: bool = False
   fast_image_ops: bool = False
 
   @classmethod
@@ -585,6 +592,8 @@ def flow_pair_with_crop(sample, backward, crop: FlowCrop, rng, cfg: AugmentConfi
     image1 = photometric(image1, rng, cfg, low_light_on, static=False)
   g0, g1 = grid or (None, None)
   rules = ("in_crop", "in_crop") if cfg.enabled else ("center_forward", "center_backward")
+  if cfg.supervise_out_of_view:
+    rules = ("keep", "keep")
   rows = [_row(image0, image1, flow_crop_labels(_labels(sample), crop, 0, rules[0], g0))]
   if backward is not None:
     rows.append(_row(image1, image0, flow_crop_labels(_labels(backward), crop, 1, rules[1], g1)))

@@ -124,7 +124,9 @@ def flow_crop_labels(labels: Mapping[str, Any], crop: FlowCrop, view: int, mask_
   covis_valid (and fov_mask) are AND-ed with "the match stays inside the other crop".
   'center_forward' / 'center_backward' (CenterCropManipulation, :292-313): covisibility is, and
   covis_valid / fov_mask are AND-ed with the covisibility from before that test (forward) or
-  after it (backward). flow_valid (where the flow is defined) is only resized and cropped.
+  after it (backward). 'keep' (not official, `AugmentConfig.supervise_out_of_view`): covisibility
+  is AND-ed with the in-crop test, covis_valid and fov_mask are left as they are. flow_valid
+  (where the flow is defined) is only resized and cropped.
   grid: the labels hold only the stored pixels rows x cols (`FlowCrop.source_grid`).
   """
   rows, cols = crop.source_grid(view)
@@ -155,9 +157,9 @@ def flow_crop_labels(labels: Mapping[str, Any], crop: FlowCrop, view: int, mask_
   before = out["covisibility"]
   out["covisibility"] = before & inside
   extra = {"in_crop": inside, "center_forward": before,
-           "center_backward": out["covisibility"]}[mask_rule]
+           "center_backward": out["covisibility"], "keep": None}[mask_rule]
   for k in ("covis_valid", "fov_mask"):
-    if k in out:
+    if k in out and extra is not None:
       out[k] = out[k] & extra
   return out
 
