@@ -17,8 +17,7 @@ its two dots and the softmax pieces alone.
 two --runs times on each shape so load from other processes hits both alike.
 --conv times, on each 3x3 convolution shape of the DPT heads and the U-Net at 420x560, XLA's
 float32 convolution, XLA's bf16 one (compiled as float32 between converts) and conv_as_dots in
-bf16 at each --conv_tiles size (values of a step's column matrix), with kh dots of the kw column
-taps or one dot of all kh x kw taps, interleaved --runs times.
+bf16 at each --conv_tiles size (values of a step's column matrix), interleaved --runs times.
 Minimum over --runs; prints figures, asserts nothing.
 """
 
@@ -126,10 +125,9 @@ def conv_sweep(tiles, runs, normal, shapes=CONV_SHAPES):
     xla = lambda x, k: jax.lax.conv_general_dilated(x, k, (1, 1), pad, dimension_numbers=dn)  # noqa: E731
     fns = {"XLA f32": (xla, x, k), "XLA bf16": (xla, xb, kb)}
     for t in tiles:
-      for all_taps in (False, True):
-        fns[f"dots bf16 {t}Ki {'kh kw' if all_taps else 'kh'}"] = (
-            lambda x, k, t=t, a=all_taps: layers.conv_as_dots(
-                x, k, (1, 1), pad, tile=t * 1024 or 2**62, all_taps=a, dtype=x.dtype), xb, kb)
+      fns[f"dots bf16 {t}Ki"] = (
+          lambda x, k, t=t: layers.conv_as_dots(x, k, (1, 1), pad, tile=t * 1024 or 2**62,
+                                                dtype=x.dtype), xb, kb)
     compiled = {n: (jax.jit(f).lower(*a).compile(), a) for n, (f, *a) in fns.items()}
     for f, a in compiled.values():
       jax.block_until_ready(f(*a))

@@ -194,7 +194,7 @@ def load_official_torch(model, params, args, bf16: bool):
     plain = model.clone(config=model.config.replace(dtype="float32", head_dtype="float32"))
     ufm_jax.save_official(plain, params, snapshot)
   threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-  return official_torch.load(snapshot, clone, args.official_hub,
+  return official_torch.load(snapshot, args.official_hub,
                              refine=isinstance(model, refine.UFMRefine), bf16=bf16,
                              threads=threads)
 

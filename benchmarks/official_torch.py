@@ -165,12 +165,9 @@ def why_unavailable(clone: str | None, hub_dir: str | None) -> str | None:
   return None
 
 
-def load(snapshot: str, clone: str | None, hub_dir: str | None, refine: bool, bf16: bool,
-         threads: int):
-  """(Official, None) or (None, the reason it is not available)."""
-  why = why_unavailable(clone, hub_dir)
-  if why:
-    return None, why
+def load(snapshot: str, hub_dir: str | None, refine: bool, bf16: bool, threads: int):
+  """(Official, None), or (None, why the load failed). The caller checks `why_unavailable`
+  first (before writing a snapshot for it)."""
   import torch
   torch.set_num_threads(threads)
   try:

@@ -119,7 +119,7 @@ CPU_CONV_MIN_WIDTH = 64
 
 
 def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU_CONV_TILE,
-                 all_taps: bool = True, dtype=jnp.float32):
+                 dtype=jnp.float32):
   """NHWC x HWIO convolution as dots with float32 accumulation, the result rounded to `dtype`.
 
   XLA:CPU compiles a bf16 convolution as a float32 one between converts, so it never reaches the
@@ -127,8 +127,8 @@ def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU
   convolutions are one dot, patchifying ones (stride = kernel, the patch embedding) a reshape and
   one dot, and the others a loop over blocks of output rows: each step stacks its rows' kh x kw
   taps side by side ([b rows wo, kh kw c], im2col of the block) and takes one dot with the
-  [kh kw c, o] kernel (`all_taps=False`: the kw column taps, and kh dots of kw c, one per kernel
-  row: slower in the sweep). A whole-map column matrix (kh kw times the input) made the
+  [kh kw c, o] kernel (kh dots of the kw column taps, one per kernel row, were slower in the
+  sweep of benchmarks/cpu_attention.py --conv). A whole-map column matrix (kh kw times the input) made the
   convolution memory-bound. The loop slices and stacks the taps as uint16 bits (`_bits`), so
   they stay one bf16 copy.
   """
@@ -148,7 +148,7 @@ def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU
     x = x[:, :ho * kh, :wo * kw].reshape(b, ho, kh, wo, kw, c).transpose(0, 1, 3, 2, 4, 5)
     return jnp.dot(x.reshape(-1, kh * kw * c), k.reshape(kh * kw * c, o),
                    preferred_element_type=f32).reshape(b, ho, wo, o).astype(dtype)
-  width = kh * kw * c if all_taps else kw * c
+  width = kh * kw * c
   rows = max(1, min(ho, tile // max(1, b * wo * width)))
   x_dtype, x = x.dtype, _bits(x)
 
@@ -156,17 +156,10 @@ def conv_as_dots(x, k, strides=(1, 1), padding=((0, 0), (0, 0)), tile: int = CPU
     """Output rows r0 .. r0 + rows, [b, rows, wo, o] in `dtype`."""
     span = sh * (rows - 1) + kh
     xs = jax.lax.dynamic_slice_in_dim(x, r0 * sh, span, axis=1)
-    if all_taps:
-      cols = jnp.stack([xs[:, i:i + sh * (rows - 1) + 1:sh, j:j + sw * (wo - 1) + 1:sw]
-                        for i in range(kh) for j in range(kw)], -2)
-      acc = jnp.dot(_unbits(cols, x_dtype).reshape(-1, width), k.reshape(width, o),
-                    preferred_element_type=f32)
-    else:
-      cols = jnp.stack([xs[:, :, j:j + sw * (wo - 1) + 1:sw] for j in range(kw)], -2)
-      cols = _unbits(cols, x_dtype).reshape(b, span, wo, width)
-      k_rows = k.reshape(kh, width, o)
-      acc = sum(jnp.dot(cols[:, i:i + sh * (rows - 1) + 1:sh].reshape(-1, width), k_rows[i],
-                        preferred_element_type=f32) for i in range(kh))
+    cols = jnp.stack([xs[:, i:i + sh * (rows - 1) + 1:sh, j:j + sw * (wo - 1) + 1:sw]
+                      for i in range(kh) for j in range(kw)], -2)
+    acc = jnp.dot(_unbits(cols, x_dtype).reshape(-1, width), k.reshape(width, o),
+                  preferred_element_type=f32)
     return acc.reshape(b, rows, wo, o).astype(dtype)
 
   if rows >= ho:
