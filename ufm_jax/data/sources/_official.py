@@ -30,6 +30,7 @@ import numpy as np
 
 from ufm_jax.data import io
 from ufm_jax.data.sources import exr, posed
+from ufm_jax.geometry import camera
 
 log = logging.getLogger(__name__)
 
@@ -225,7 +226,7 @@ def precomputed_sample(dataset: str, image0, image1, flow, non_occluded, occlusi
   for k, im in (("image0", image0), ("image1", image1)):
     if np.asarray(im).shape[:2] != hw:
       raise ValueError(f"{where}: {k} is {np.asarray(im).shape}, flow is {hw}")
-  flow_valid = np.isfinite(flow).all(-1)
+  flow_valid = camera.finite_pixels(flow)
   return dict(image0=np.ascontiguousarray(image0), image1=np.ascontiguousarray(image1),
               flow=flow, covisibility=masks[0], flow_valid=flow_valid, covis_valid=masks[1],
               fov_mask=masks[2], meta=dict(dataset=dataset, where=where, **meta))
