@@ -224,7 +224,9 @@ def test_antialiased_resize_and_nearest_index_match_torch():
   torch = pytest.importorskip("torch")
   F = torch.nn.functional
   rng = np.random.default_rng(7)
-  for (h, w), (oh, ow) in [((60, 100), (47, 78)), ((64, 64), (84, 84)), ((56, 133), (56, 133))]:
+  # downsampling (PIL), upsampling (OpenCV), identity, mixed (PIL)
+  for (h, w), (oh, ow) in [((60, 100), (47, 78)), ((64, 64), (84, 84)), ((60, 100), (71, 121)),
+                           ((56, 133), (56, 133)), ((60, 100), (66, 97))]:
     img = rng.integers(0, 256, (h, w, 3)).astype(np.uint8)
     t = torch.from_numpy(img).permute(2, 0, 1)[None].float()
     ref = F.interpolate(t, size=(oh, ow), mode="bilinear", align_corners=False,

@@ -187,3 +187,73 @@ def test_prefix_sum_equals_wrapping_cumsum():
   for shape in [(1, 1, 3), (3, 2, 1), (5, 17, 3), (4, 64, 4), (2, 300, 6), (7, 129)]:
     f = rng.integers(0, 256, shape, dtype=np.uint8)
     np.testing.assert_array_equal(decode.prefix_sum_u8(f), np.cumsum(f, axis=1, dtype=np.uint8))
+
+
+# ------------------------------------------------------------------------- HDF5 rows (h5_row)
+
+H5_LAYOUTS = {
+    # name: (array, create_dataset options)
+    "row_chunks_gzip9": (np.arange(3 * 7 * 5 * 2, dtype=np.float32).reshape(3, 7, 5, 2) / 7,
+                         dict(chunks=(1, 7, 5, 2), compression="gzip", compression_opts=9)),
+    "edge_chunks_two_rows": (np.arange(5 * 9 * 11, dtype=np.int16).reshape(5, 9, 11),
+                             dict(chunks=(2, 4, 3), compression="gzip")),
+    "bool_auto_chunks": (np.arange(3 * 64 * 70).reshape(3, 64, 70) % 3 == 0,
+                         dict(chunks=True, compression="gzip", compression_opts=4)),
+    "big_endian": (np.linspace(-1, 1, 4 * 6 * 3).astype(">f4").reshape(4, 6, 3),
+                   dict(chunks=(1, 3, 3), compression="gzip")),
+    "one_dimensional": (np.arange(10, dtype=np.uint8), dict(chunks=(4,), compression="gzip")),
+    "uint8_image_split_rows": (np.random.default_rng(0).integers(0, 255, (2, 33, 17, 3), np.uint8),
+                        dict(chunks=(1, 16, 17, 3), compression="gzip")),
+    # h5py's path: another filter, no compression, contiguous
+    "shuffle": (np.arange(24, dtype=np.float32).reshape(2, 3, 4),
+                dict(chunks=(1, 3, 4), compression="gzip", shuffle=True)),
+    "lzf": (np.arange(24, dtype=np.float32).reshape(2, 3, 4), dict(chunks=(1, 3, 4),
+                                                                    compression="lzf")),
+    "contiguous": (np.arange(24, dtype=np.float32).reshape(2, 3, 4), {}),
+}
+
+
+@pytest.mark.parametrize("layout", sorted(H5_LAYOUTS))
+def test_h5_row_equals_h5py(tmp_path, layout):
+  h5py = pytest.importorskip("h5py")
+  array, options = H5_LAYOUTS[layout]
+  path = tmp_path / "a.h5"
+  with h5py.File(path, "w") as f:
+    f.create_dataset("x", data=array, **options)
+  with h5py.File(path, "r") as f:
+    for i in range(len(array)):
+      got, want = decode.h5_row(f["x"], i), f["x"][i]
+      assert type(got) is type(want) and np.asarray(got).dtype == np.asarray(want).dtype
+      np.testing.assert_array_equal(got, want)
+      np.testing.assert_array_equal(got, array[i])
+
+
+def test_h5_row_unwritten_chunks_read_the_fill_value(tmp_path):
+  h5py = pytest.importorskip("h5py")
+  path = tmp_path / "a.h5"
+  with h5py.File(path, "w") as f:
+    d = f.create_dataset("x", shape=(3, 8, 8), dtype=np.float32, chunks=(1, 4, 8),
+                         compression="gzip", fillvalue=-1.5)
+    d[1, :4] = 2.0     # one of row 1's two chunks written
+  with h5py.File(path, "r") as f:
+    np.testing.assert_array_equal(decode.h5_row(f["x"], 0), np.full((8, 8), -1.5, np.float32))
+    np.testing.assert_array_equal(decode.h5_row(f["x"], 1), f["x"][1])
+
+
+def test_h5_row_corrupt_chunk_names_the_file_and_dataset(tmp_path):
+  h5py = pytest.importorskip("h5py")
+  path = tmp_path / "a.h5"
+  array = np.random.default_rng(1).random((2, 32, 32)).astype(np.float32)
+  with h5py.File(path, "w") as f:
+    f.create_dataset("flow", data=array, chunks=(1, 32, 32), compression="gzip")
+  with h5py.File(path, "r") as f:
+    ch = []
+    f["flow"].id.chunk_iter(ch.append)
+  buf = bytearray(path.read_bytes())
+  start = ch[1].byte_offset + ch[1].size // 2
+  buf[start:start + 64] = bytes(64)      # zero a stretch inside row 1's deflate stream
+  path.write_bytes(bytes(buf))
+  with h5py.File(path, "r") as f:
+    np.testing.assert_array_equal(decode.h5_row(f["flow"], 0), array[0])
+    with pytest.raises(ValueError, match=r"a\.h5: /flow: .*chunk at \(1, 0, 0\)"):
+      decode.h5_row(f["flow"], 1, f"{path}: ")

@@ -17,6 +17,7 @@ for every PNG), `python benchmarks/source_load.py --repeats 10` vs the same with
 
 from __future__ import annotations
 
+import itertools
 import os
 import struct
 import zlib
@@ -143,3 +144,40 @@ def imread_unchanged(path, rgb: bool = False) -> np.ndarray | None:
   if img is None or not rgb or img.ndim != 3 or img.shape[2] not in (3, 4):
     return img
   return cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
+
+
+def h5_row(dataset, pos: int, where: str = "") -> np.ndarray:
+  """dataset[pos] of an h5py Dataset, inflating its chunks through `inflate` when the only filter
+  is deflate (what the official preprocessing writes: gzip 9 for FlyingThings3D / Monkaa, gzip 4
+  for the TartanAir shards). HDF5's own deflate filter uses the linked zlib; this is ~1.3x faster
+  per row. Any other layout (contiguous, shuffle, fletcher32, unallocated chunks) goes through
+  h5py. `where` names the file in errors."""
+  d = dataset
+  chunks = d.chunks
+  if (chunks is None or d.compression != "gzip" or d.dtype.kind not in "biuf" or d.ndim < 1
+      or not 0 <= pos < d.shape[0] or d.id.get_create_plist().get_nfilters() != 1):
+    return d[pos]
+  tail, ctail = d.shape[1:], chunks[1:]
+  nbytes = int(np.prod(chunks)) * d.dtype.itemsize
+  start = pos // chunks[0] * chunks[0]
+  grid = [range(0, n, c) for n, c in zip(tail, ctail)]
+  out = np.empty(tail, d.dtype)
+  for offsets in itertools.product(*grid):
+    try:
+      mask, raw = d.id.read_direct_chunk((start,) + offsets)
+    except (KeyError, OSError, RuntimeError, ValueError):   # e.g. a chunk never written
+      return d[pos]
+    if mask == 0:
+      try:
+        raw = inflate(raw, bufsize=nbytes)
+      except INFLATE_ERRORS as e:
+        raise ValueError(f"{where}{d.name}: corrupt gzip chunk at {(start,) + offsets} ({e})") \
+            from None
+    if len(raw) != nbytes:
+      raise ValueError(f"{where}{d.name}: chunk at {(start,) + offsets} holds {len(raw)} bytes, "
+                       f"expected {nbytes}")
+    block = np.frombuffer(raw, d.dtype).reshape(chunks)[pos - start]
+    # Edge chunks are stored full size: their padding lies past the dataset's edge.
+    dst = tuple(slice(o, min(o + c, n)) for o, c, n in zip(offsets, ctail, tail))
+    out[dst] = block[tuple(slice(0, s.stop - s.start) for s in dst)]
+  return out if tail else out[()]

