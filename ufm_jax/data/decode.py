@@ -1,4 +1,4 @@
-"""Fast decoding of what training reads most: zlib streams and the PNGs OpenCV writes.
+"""Fast decoding of what training reads most: zlib streams, the PNGs OpenCV writes, HDF5 rows.
 
 Inflating dominates PNG and deflated .flo5 decoding, and the zlib that OpenCV and CPython link here
 inflates at ~80-100 MB/s. ISA-L (the `isal` package) inflates the same streams ~3x faster, so:
@@ -8,7 +8,9 @@ inflates at ~80-100 MB/s. ISA-L (the `isal` package) inflates the same streams ~
     `inflate` and a vectorised un-filter, and hands every other file (JPEG, PPM, palette, Paeth
     or Average rows, interlaced, transparency chunks, anything malformed) to cv2.imread. The
     result equals cv2.imread(path, cv2.IMREAD_UNCHANGED) bit for bit (tests/test_decode.py).
-Measured gain, CPU ms per sample at 560x420 (single thread, min of 10; this path vs cv2.imread
+  - `h5_row` reads a row of a gzip-chunked HDF5 dataset (the official processed shards) a chunk
+    at a time through `inflate`.
+Measured gain of the PNG path, CPU ms per sample at 560x420 (single thread, min of 10; this path vs cv2.imread
 for every PNG), `python benchmarks/source_load.py --repeats 10` vs the same with `--opencv_png`
 (2026-12-04): tartanair_v2 18.0 vs 25.8, kubric4d 18.0 vs 22.1, flyingthings 13.0 vs 15.5, monkaa
 13.1 vs 15.4, sintel_clean 8.0 vs 11.3, spring 17.4 vs 22.8, hd1k 9.0 vs 15.0, kitti2015 12.5 vs
@@ -149,8 +151,8 @@ def imread_unchanged(path, rgb: bool = False) -> np.ndarray | None:
 def h5_row(dataset, pos: int, where: str = "") -> np.ndarray:
   """dataset[pos] of an h5py Dataset, inflating its chunks through `inflate` when the only filter
   is deflate (what the official preprocessing writes: gzip 9 for FlyingThings3D / Monkaa, gzip 4
-  for the TartanAir shards). HDF5's own deflate filter uses the linked zlib; this is ~1.3x faster
-  per row. Any other layout (contiguous, shuffle, fletcher32, unallocated chunks) goes through
+  for the TartanAir shards): HDF5's own deflate filter inflates with the linked zlib, slower than
+  ISA-L (docs/host_input.md). Any other layout (contiguous, shuffle, fletcher32, unallocated chunks) goes through
   h5py. `where` names the file in errors."""
   d = dataset
   chunks = d.chunks

@@ -100,8 +100,9 @@ def flow_crop_images(image0, image1, crop: FlowCrop, exact: bool = False):
   """Both images resized to `crop.resized_hw` and cropped at their (top, left).
 
   exact=False (the training rows): `resize_bilinear_aa`, faster; its weights round differently
-  from torch's, so a few pixels are one grey level off. exact=True (the benchmarks): torch's weights to the last bit
-  (`ufm_jax.inference.resize_bilinear_aa`) on the whole image, then the crop."""
+  from torch's, so a few pixels are one grey level off. exact=True (the benchmarks): torch's
+  weights to the last bit (`ufm_jax.inference.resize_bilinear_aa`) on the whole image, then the
+  crop."""
   out = []
   for image, (top, left) in ((image0, crop.crop0), (image1, crop.crop1)):
     if exact:
