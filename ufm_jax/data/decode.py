@@ -10,8 +10,8 @@ inflates at ~80-100 MB/s. ISA-L (the `isal` package) inflates the same streams ~
     result equals cv2.imread(path, cv2.IMREAD_UNCHANGED) bit for bit (tests/test_decode.py).
   - `h5_row` reads a row of a gzip-chunked HDF5 dataset (the official processed shards) a chunk
     at a time through `inflate`.
-Measured gain of the PNG path, CPU ms per sample at 560x420 (single thread, min of 10; this path vs cv2.imread
-for every PNG), `python benchmarks/source_load.py --repeats 10` vs the same with `--opencv_png`
+Measured gain of the PNG path, CPU ms per sample at 560x420 (single thread, min of 10; this path
+vs cv2.imread for every PNG), `python benchmarks/source_load.py --repeats 10` vs the same with `--opencv_png`
 (2026-12-04): tartanair_v2 18.0 vs 25.8, kubric4d 18.0 vs 22.1, flyingthings 13.0 vs 15.5, monkaa
 13.1 vs 15.4, sintel_clean 8.0 vs 11.3, spring 17.4 vs 22.8, hd1k 9.0 vs 15.0, kitti2015 12.5 vs
 15.2 (JPEG-image readers such as blendedmvs: no change).
