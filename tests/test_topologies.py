@@ -55,12 +55,29 @@ def test_fit_search_finds_the_largest_batch(start):
   assert set(probes) == set(log)
 
 
+@pytest.mark.parametrize("start", [24, 8, 1])
+def test_fit_search_predicts_from_one_probe_and_the_train_state(start):
+  """A compile's argument bytes (the train state) bound the intercept from below: one probe
+  predicts the next, so a v5p-like search (2.9 GiB fixed of which 1.3 GiB state, 5 GiB per row)
+  needs a few compiles from any start."""
+  cap = topologies.CHIPS["v5p"].hbm_bytes
+  base, per_row, state = 2.9 * GIB, 5.0 * GIB, 1.3 * GIB
+  expected = max(b for b in range(1, 100) if base + per_row * b <= cap)
+  log = []
+  affine = _affine_probe(base, per_row, cap, log)
+  probe = lambda b: {**affine(b), "argument_bytes_per_device": int(state)}
+  best, fails, probes = topologies.fit_search(probe, start, 1, cap, max_probes=8)
+  assert (best, fails) == (expected, expected + 1)
+  assert len(log) == len(set(log)) <= 4, log
+
+
 def test_fit_search_none_fits_and_probes_run_out():
   cap = 10 * GIB
   best, fails, _ = topologies.fit_search(_affine_probe(11 * GIB, GIB, cap, []), 8, 2, cap, 8)
   assert (best, fails) == (0, 2)
+  # Every probe fits: doubling, then the prediction, at most 16x the batch that fit.
   best, fails, probes = topologies.fit_search(_affine_probe(0, 1, cap, []), 2, 2, cap, 3)
-  assert (best, fails, sorted(probes)) == (8, None, [2, 4, 8])
+  assert (best, fails, sorted(probes)) == (64, None, [2, 4, 64])
 
 
 def _tiny_config(scan):

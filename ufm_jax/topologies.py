@@ -146,11 +146,15 @@ def devices(name: str, num_slices: int = 1):
 def fit_search(probe, start: int, quantum: int, capacity: int, max_probes: int):
   """The largest per-chip batch (a multiple of `quantum`) whose step fits in `capacity` bytes of
   HBM, by compiling: `probe(b)` compiles at per-chip batch b and returns {"fits": bool,
-  "hbm_bytes_per_chip": int (when it compiled)}. Double from `start` while it fits (halve while
-  it does not) until the answer is bracketed, then close the bracket, trying first the batch the
-  two largest compiled probes predict (HBM is affine in the batch). Returns (largest batch found
-  to fit, 0 if none; smallest found not to, None if every probe fit; {batch: probe result}): the
-  answer is exact when the two differ by `quantum`, else `max_probes` ran out first."""
+  "hbm_bytes_per_chip": int (when it compiled), "argument_bytes_per_device": int (optional)}.
+  HBM is close to affine in the batch, so each next probe is the batch the compiled probes predict:
+  the two largest, or a single one whose argument bytes (the train state) stand in for the
+  intercept (too low an intercept overstates the cost of a row, so that prediction errs towards
+  the compiled batch); without a prediction the batch doubles while it fits and halves while it
+  does not.
+  Returns (largest batch found to fit, 0 if none; smallest found not to, None if every probe fit;
+  {batch: probe result}): the answer is exact when the two differ by `quantum`, else
+  `max_probes` ran out first."""
   results = {}
 
   def fits(b):
@@ -158,25 +162,40 @@ def fit_search(probe, start: int, quantum: int, capacity: int, max_probes: int):
       results[b] = probe(b)
     return results[b]["fits"]
 
+  def predicted():
+    known = sorted(k for k, v in results.items() if v.get("hbm_bytes_per_chip"))[-2:]
+    if len(known) == 2:
+      (b1, b2), (m1, m2) = known, [results[k]["hbm_bytes_per_chip"] for k in known]
+    elif len(known) == 1 and results[known[0]].get("argument_bytes_per_device"):
+      b1, b2 = 0, known[0]
+      m1, m2 = results[b2]["argument_bytes_per_device"], results[b2]["hbm_bytes_per_chip"]
+    else:
+      return None
+    if m2 <= m1:
+      return None
+    return int(b2 + (capacity - m2) * (b2 - b1) / (m2 - m1)) // quantum * quantum
+
   lo, hi, b = 0, None, start   # largest batch known to fit, smallest known not to
   while lo == 0 or hi is None:
     if len(results) >= max_probes:
       return lo, hi, results
+    guess = None
     if fits(b):
-      lo, b = b, 2 * b
+      lo = b
+      b, guess = 2 * b, predicted()
+      if guess is not None:   # up, past the batch that fit; a compile at most 16x as large
+        b = min(max(guess, lo + quantum), 16 * lo)
     else:
       hi = b
       if lo == 0:
         if b <= quantum:
           return 0, hi, results
-        b = max(quantum, b // 2 // quantum * quantum)
+        b, guess = max(quantum, b // 2 // quantum * quantum), predicted()
+        if guess is not None:   # down, below the batch that failed
+          b = max(min(guess, hi - quantum), quantum)
   while hi - lo > quantum and len(results) < max_probes:
-    guess = (lo + hi) // 2
-    known = sorted(k for k, v in results.items() if v.get("hbm_bytes_per_chip"))[-2:]
-    if len(known) == 2:
-      (b1, b2), (m1, m2) = known, [results[k]["hbm_bytes_per_chip"] for k in known]
-      if m2 > m1:
-        guess = int(b2 + (capacity - m2) * (b2 - b1) / (m2 - m1))
+    guess = predicted()
+    guess = (lo + hi) // 2 if guess is None else guess
     guess = min(max(guess // quantum * quantum, lo + quantum), hi - quantum)
     if fits(guess):
       lo = guess
