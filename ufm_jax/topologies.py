@@ -179,7 +179,6 @@ def fit_search(probe, start: int, quantum: int, capacity: int, max_probes: int):
   while lo == 0 or hi is None:
     if len(results) >= max_probes:
       return lo, hi, results
-    guess = None
     if fits(b):
       lo = b
       b, guess = 2 * b, predicted()
