@@ -42,7 +42,7 @@ def main(argv):
   if config.matmul_precision:
     jax.config.update("jax_default_matmul_precision", config.matmul_precision)
   from ufm_jax import checkpoint as ckpt_lib
-  from ufm_jax import loop_control, model_init, optim, trainer
+  from ufm_jax import accumulation, loop_control, model_init, optim, trainer
   from ufm_jax.data import io
   from ufm_jax.evaluators import train_evals
 
@@ -57,6 +57,12 @@ def main(argv):
 
   # ---------------------------------------------------------------------------------- data
   process_batch = sharding.local_batch_size(config.input.batch_size, mesh)
+  if config.grad_accum > 1:   # refused here, before the pipeline starts, rather than at trace time
+    accumulation.check_divisible(config.input.batch_size, config.grad_accum,
+                                 sharding.batch_divisor(mesh),
+                                 2 if config.apply_kwargs.get("symmetrized") else 1)
+    logging.info("gradient accumulation: %d microbatches of %d rows per step", config.grad_accum,
+                 config.input.batch_size // config.grad_accum)
   host_iter, data_info = trainer.build_input(config, process_batch, config.seed)
   # Global batches, the next `device_prefetch` already on their way to the devices.
   train_iter = sharding.DevicePrefetch(host_iter, mesh, config.device_prefetch)

@@ -89,6 +89,8 @@ def load(args):
     config.model.scan_blocks = args.scan == "true"
   if args.fsdp_gather:
     config.fsdp_gather = args.fsdp_gather
+  if args.grad_accum:
+    config.grad_accum = args.grad_accum
   batch = args.batch or int(config.input.batch_size)
   if args.size:
     hw = parse_size(args.size)
@@ -148,7 +150,8 @@ def describe(config, ts, mesh, devices, batch, hw) -> dict:
         f"{devices[0].device_kind} devices, dtype {config.model.get('dtype', 'float32')}, "
         f"remat {config.model.get('remat', False)}, "
         f"scan_blocks {config.model.get('scan_blocks', False)}, "
-        f"fsdp_gather {config.get('fsdp_gather', 'layer')}")
+        f"fsdp_gather {config.get('fsdp_gather', 'layer')}, "
+        f"grad_accum {config.get('grad_accum', 1)}")
   print(f"  params {_gib(p_bytes)} total, {_gib(p_dev)} per device; optimizer state "
         f"{_gib(opt_dev)} per device (train state {_gib(state_dev)})")
   return {"param_bytes": p_bytes, "param_bytes_per_device": p_dev,
@@ -205,8 +208,9 @@ def recipe_shapes(config):
 
 def _quantum(config) -> int:
   """Rows per chip come in multiples of this: a symmetrized pair's (a, b), (b, a) rows stay on
-  one chip."""
-  return 2 if config.get("apply_kwargs", {}).get("symmetrized") else 1
+  one chip, and each of grad_accum microbatches takes whole pairs from every chip."""
+  pair = 2 if config.get("apply_kwargs", {}).get("symmetrized") else 1
+  return pair * int(config.get("grad_accum", 1))
 
 
 def _per_chip_batch(config, args, n: int) -> int:
@@ -225,8 +229,9 @@ def _per_chip_batch(config, args, n: int) -> int:
             f"{quantum} per chip instead")
       per_chip = quantum
   if per_chip % quantum:
-    raise SystemExit(f"{per_chip} rows per chip: symmetrized batches need a multiple of "
-                     f"{quantum} (a pair's two rows on one chip)")
+    raise SystemExit(f"{per_chip} rows per chip: need a multiple of {quantum} (a symmetrized "
+                     f"pair's two rows on one chip, times grad_accum "
+                     f"{config.get('grad_accum', 1)} microbatches)")
   return per_chip
 
 
@@ -458,6 +463,9 @@ def main():
   ap.add_argument("--estimate_only", action="store_true", help="abstract trace, no compile")
   ap.add_argument("--fsdp_gather", choices=("layer", "step"), default=None,
                   help="config.fsdp_gather: scanned blocks gathered per layer, or all at the start")
+  ap.add_argument("--grad_accum", type=int, default=None,
+                  help="config.grad_accum: microbatches per step (per-chip batches count the "
+                  "step's rows; with --fit they come in multiples of 2 x grad_accum)")
   tpu = ap.add_argument_group("TPU planning (needs libtpu: pip install 'ufm_jax[tpu]')")
   tpu.add_argument("--topology", default=None,
                    help="compile for this TPU slice (ufm_jax.topologies: v5e-8, v5p-128, ...)")

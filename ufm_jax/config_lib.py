@@ -57,6 +57,9 @@ def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
   # "layer": the scanned blocks are gathered a layer at a time inside the scan; "step": every
   # param is gathered at the start of the step (ufm_jax.sharding.fsdp_gathers).
   c.fsdp_gather = "layer"
+  # Microbatches per optimizer step (gradient accumulation, ufm_jax.accumulation): the recipe's
+  # batch on a slice whose chips hold only a 1/grad_accum share of it. 1: the whole batch at once.
+  c.grad_accum = 1
   c.ckpt_steps = 1000
   c.keep_ckpt = 3
   c.async_checkpoint = True

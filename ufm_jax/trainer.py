@@ -110,7 +110,8 @@ def build_loss(config, model=None, dataset_names=None):
   return loss_fn
 
 
-def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None, seed: int = 0):
+def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None, seed: int = 0,
+                    grad_accum: int = 1, mesh=None, param_sh=None):
   """train_step(state, batch) -> (state, metrics): one optimizer update.
 
   Gradients are taken w.r.t. the trainable params only (frozen ones enter through stop_gradient,
@@ -122,11 +123,24 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
   batch's statistics (over the global batch: every device's rows) and the step stores the
   running statistics it returns, unless the update is skipped as non-finite. Other models are
   called exactly as before (no `train` argument).
+
+  grad_accum=k > 1 runs the global batch as k microbatches in a loop (`accumulation.microbatches`)
+  and applies one update with the mean of their gradients: the loss is the mean of k microbatch
+  losses (each its own means and pixel cap), as the official trainer's accumulate_grad_batches
+  (train_pl.py:543) or k more DDP replicas take it. BatchNorm normalises with each microbatch's
+  statistics; the running statistics take one momentum step towards the mean of the
+  microbatches' (for the running mean exactly the whole batch's step at k=1; the variance leaves
+  out the spread between microbatches). Activation memory is that of one microbatch. `mesh`,
+  `param_sh`: the batch's mesh and the params' shardings, which keep each microbatch on every
+  device and the summed gradients sharded like the params.
   """
   import jax
   import jax.numpy as jnp
   import optax
-  from ufm_jax import optim
+  from ufm_jax import accumulation, optim
+
+  if grad_accum < 1:
+    raise ValueError(f"grad_accum={grad_accum}: the microbatches per step must be 1 or more")
 
   def loss_and_aux(trainable, frozen, batch_stats, batch, rng):
     params = optim.merge_params(trainable, jax.lax.stop_gradient(frozen))
@@ -143,11 +157,32 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
     loss, aux = loss_fn(out, batch, rng)
     return loss, (aux, new_stats)
 
+  grad_fn = jax.value_and_grad(loss_and_aux, has_aux=True)
+  grad_sh = None if param_sh is None else optim.split_trainable(param_sh, labels)[0]
+
+  def accumulated(trainable, frozen, batch_stats, batch, rng):
+    micro = accumulation.microbatches(batch, grad_accum, mesh,
+                                      pair_rows=2 if apply_kwargs.get("symmetrized") else 1)
+
+    def body(g_sum, xs):
+      j, mb = xs
+      (loss, (aux, stats)), g = grad_fn(trainable, frozen, batch_stats, mb,
+                                        jax.random.fold_in(rng, j))
+      g_sum = jax.tree.map(lambda a, b: a + b.astype(a.dtype), g_sum, g)
+      return accumulation.constrain(g_sum, grad_sh), (loss, aux, stats)
+
+    zeros = accumulation.constrain(jax.tree.map(jnp.zeros_like, trainable), grad_sh)
+    g_sum, (losses, aux, stats) = jax.lax.scan(body, zeros, (jnp.arange(grad_accum), micro))
+    mean = lambda x: jnp.mean(x, axis=0).astype(x.dtype)   # noqa: E731
+    g = jax.tree.map(lambda x: x / grad_accum, g_sum)
+    stats = None if stats is None else jax.tree.map(mean, stats)
+    return (jnp.mean(losses), (jax.tree.map(jnp.mean, aux), stats)), g
+
   def train_step(state, batch):
     trainable, frozen = optim.split_trainable(state.params, labels)
     rng = jax.random.fold_in(jax.random.PRNGKey(seed), state.step)
-    (loss, (aux, new_stats)), g = jax.value_and_grad(loss_and_aux, has_aux=True)(
-        trainable, frozen, state.batch_stats, batch, rng)
+    step_fn = grad_fn if grad_accum == 1 else accumulated
+    (loss, (aux, new_stats)), g = step_fn(trainable, frozen, state.batch_stats, batch, rng)
     grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
     new_state, ok = optim.apply_gradients(state, grads, loss, tx)
     if new_stats is not None:   # a skipped (non-finite) step leaves the running statistics too
@@ -279,7 +314,8 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   repl = sharding.replicated(mesh)
   loss_fn = build_loss(config, model, dataset_names)
   step = make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params,
-                         seed=config.seed)
+                         seed=config.seed, grad_accum=config.get("grad_accum", 1), mesh=mesh,
+                         param_sh=param_sh)
   train_step = jax.jit(step, in_shardings=(state_sh, batch_sh), out_shardings=(state_sh, repl),
                        donate_argnums=(0,))
   eval_sh = param_sh if abstract_state.batch_stats is None else variables_sh
