@@ -144,3 +144,31 @@ def test_split_moves_no_rows_between_devices(tmp_path):
   assert results[2]["temp_bytes_per_device"] < 0.75 * results[1]["temp_bytes_per_device"], results
   params = results[1]["param_bytes"]
   assert results[2]["collective_bytes_total"] <= 2 * 4 * params, results[2]
+
+
+@pytest.mark.slow
+def test_train_py_accumulates_on_a_mesh_as_on_one_device(tmp_path):
+  """train.py end to end with --config.grad_accum=2: the (data=4, fsdp=2) run of 8 fake devices
+  trains the params of the one-device run (microbatch j is the same rows whatever the mesh), and
+  a batch that does not split is refused before the pipeline starts."""
+  from ufm_jax import checkpoint, model_init, testing
+
+  def train(workdir, mesh, *extra):
+    cmd = [sys.executable, str(REPO / "train.py"),
+           f"--config={REPO}/ufm_jax/testing/train_support.py", f"--workdir={workdir}",
+           f"--config.mesh={mesh}", "--config.total_steps=2", "--config.ckpt_steps=2",
+           "--config.input.batch_size=16", "--config.grad_accum=2", *extra]
+    return subprocess.run(cmd, env=testing.fake_devices_env(8), capture_output=True, text=True,
+                          timeout=600, cwd=REPO)
+
+  states = {}
+  for name, mesh in (("mesh", "data:4,fsdp:2"), ("single", "data:1,fsdp:1")):
+    r = train(tmp_path / name, mesh)
+    assert r.returncode == 0, r.stderr[-3000:]
+    states[name] = model_init.flatten(checkpoint.read_state_numpy(tmp_path / name, 2)[0]["params"])
+  assert states["mesh"].keys() == states["single"].keys()
+  for k, v in states["mesh"].items():
+    np.testing.assert_allclose(v, states["single"][k], rtol=1e-5, atol=1e-6, err_msg=k)
+  r = train(tmp_path / "odd", "data:4,fsdp:2", "--config.grad_accum=4")
+  assert r.returncode != 0
+  assert "grad_accum=4: the batch of 16 rows (2 per device over 8 batch shards)" in r.stderr
