@@ -60,7 +60,7 @@ def main(argv):
   if config.grad_accum > 1:   # refused here, before the pipeline starts, rather than at trace time
     accumulation.check_divisible(config.input.batch_size, config.grad_accum,
                                  sharding.batch_divisor(mesh),
-                                 2 if config.apply_kwargs.get("symmetrized") else 1)
+                                 accumulation.pair_rows(config.apply_kwargs))
     logging.info("gradient accumulation: %d microbatches of %d rows per step", config.grad_accum,
                  config.input.batch_size // config.grad_accum)
   host_iter, data_info = trainer.build_input(config, process_batch, config.seed)

@@ -209,8 +209,8 @@ def recipe_shapes(config):
 def _quantum(config) -> int:
   """Rows per chip come in multiples of this: a symmetrized pair's (a, b), (b, a) rows stay on
   one chip, and each of grad_accum microbatches takes whole pairs from every chip."""
-  pair = 2 if config.get("apply_kwargs", {}).get("symmetrized") else 1
-  return pair * int(config.get("grad_accum", 1))
+  from ufm_jax import accumulation
+  return accumulation.pair_rows(config.get("apply_kwargs")) * int(config.get("grad_accum", 1))
 
 
 def _per_chip_batch(config, args, n: int) -> int:

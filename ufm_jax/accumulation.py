@@ -13,6 +13,12 @@ from __future__ import annotations
 import jax
 
 
+def pair_rows(apply_kwargs) -> int:
+  """Rows that must stay together on one device and in one microbatch: a symmetrized pair's
+  (a, b), (b, a) rows (2), or a plain row (1)."""
+  return 2 if (apply_kwargs or {}).get("symmetrized") else 1
+
+
 def check_divisible(batch_size: int, grad_accum: int, batch_shards: int, pair_rows: int = 2):
   """Raises a ValueError naming the sizes unless every device's rows split into `grad_accum`
   microbatches of whole pairs."""

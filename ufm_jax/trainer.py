@@ -162,7 +162,7 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
 
   def accumulated(trainable, frozen, batch_stats, batch, rng):
     micro = accumulation.microbatches(batch, grad_accum, mesh,
-                                      pair_rows=2 if apply_kwargs.get("symmetrized") else 1)
+                                      accumulation.pair_rows(apply_kwargs))
 
     def body(g_sum, xs):
       j, mb = xs
@@ -314,7 +314,7 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   repl = sharding.replicated(mesh)
   loss_fn = build_loss(config, model, dataset_names)
   step = make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params,
-                         seed=config.seed, grad_accum=config.get("grad_accum", 1), mesh=mesh,
+                         seed=config.seed, grad_accum=config.grad_accum, mesh=mesh,
                          param_sh=param_sh)
   train_step = jax.jit(step, in_shardings=(state_sh, batch_sh), out_shardings=(state_sh, repl),
                        donate_argnums=(0,))
