@@ -2,6 +2,7 @@
 
   python evaluate.py                                    # --bench synthetic on the embedded data
   python evaluate.py --bench sintel --checkpoint DIR --data_root /data
+  python evaluate.py --bench all --checkpoint infinity1096/UFM-Base --snapshot --data_root /data
   python evaluate.py --bench all --snapshot UFM-Base/ --data_root /data --out results/
   python evaluate.py --bench eth3d,dtu,tawb --snapshot UFM-Base/ --data_root /data/ufm_benchmarks
   python evaluate.py --bench kitti --checkpoint DIR --data_root /data/kitti2015 \
@@ -17,7 +18,10 @@ data/*/ layouts (sintel/, kitti2015/, eth3d/, dtu/, tawb/, scannet1500/), full r
 results.json records the protocol of each bench.
 
 --checkpoint: a converted checkpoint (`python -m ufm_jax convert`), a training workdir, or an
-official snapshot folder; --snapshot forces the latter. Without either, the synthetic training
+official snapshot folder; with --snapshot (as every command takes it) an official snapshot, a
+folder or a Hugging Face model ID (--revision: branch, tag or commit); `--snapshot X` alone is
+`--checkpoint X --snapshot`. results.json records the ID (or the folder's absolute path), the
+revision asked for and the Hub commit it resolved to. Without either, the synthetic training
 workdir (workdirs/synthetic) is used when present, else a randomly initialised small model (the
 numbers are then meaningless, but the whole path runs). --data_root holds one folder per dataset
 (see data/*/README.md) or, for a single bench, the dataset folder itself. --resolution (native
@@ -52,8 +56,13 @@ def parse_args(argv=None):
                                formatter_class=argparse.RawDescriptionHelpFormatter)
   ap.add_argument("--bench", default="synthetic",
                   help=f"one of {', '.join(evaluators.BENCHES)}, a comma list, or 'all'")
-  ap.add_argument("--checkpoint", default=None, help="converted checkpoint, training workdir or snapshot")
-  ap.add_argument("--snapshot", default=None, help="official Hugging Face snapshot folder")
+  ap.add_argument("--checkpoint", default=None, help="converted checkpoint, training workdir or "
+                  "snapshot folder; with --snapshot also a Hugging Face model ID")
+  ap.add_argument("--snapshot", nargs="?", const=True, default=None,
+                  help="the checkpoint is an official snapshot (folder or Hugging Face model "
+                  "ID); `--snapshot X` alone: the snapshot X")
+  ap.add_argument("--revision", default=None,
+                  help="with a Hugging Face model ID: the Hub branch, tag or commit")
   ap.add_argument("--data_root", default=os.environ.get("UFM_DATA"), help="datasets folder ($UFM_DATA)")
   ap.add_argument("--protocol", default="official", choices=evaluators.PROTOCOLS,
                   help="official: the UFM benchmark branch (paper numbers); native: ours")
@@ -67,6 +76,12 @@ def parse_args(argv=None):
   ap.add_argument("--no_progress", action="store_true", help="no progress bars (logs, CI)")
   compile_cache.add_argument(ap)
   args = ap.parse_args(argv)
+  if args.snapshot is True and not args.checkpoint:
+    ap.error("--snapshot without a value needs --checkpoint (a snapshot folder or model ID)")
+  if isinstance(args.snapshot, str) and args.checkpoint:
+    ap.error("give the snapshot once: --checkpoint X --snapshot, or --snapshot X")
+  if args.revision is not None and not args.snapshot:
+    ap.error("--revision applies to a Hugging Face model ID: add --snapshot")
   if args.resolution is not None and args.resolution != "native":
     try:
       args.resolution = int(args.resolution)
@@ -77,8 +92,10 @@ def parse_args(argv=None):
 
 def model_dir(args) -> str | None:
   """The folder the model comes from under the --checkpoint / --snapshot rules (None: random)."""
-  if args.snapshot or args.checkpoint:
-    return args.snapshot or args.checkpoint
+  if isinstance(args.snapshot, str):
+    return args.snapshot
+  if args.checkpoint:
+    return args.checkpoint
   return DEFAULT_WORKDIR if os.path.isdir(DEFAULT_WORKDIR) else None
 
 
@@ -97,15 +114,16 @@ def synthetic_task(path) -> dict:
 
 
 def load_model(args):
-  """(model, params, description) following the --checkpoint / --snapshot rules above."""
+  """(model, variables, source) following the --checkpoint / --snapshot rules above; source:
+  what results.json records of where the model came from ({"checkpoint", "revision",
+  "commit"})."""
   from ufm_jax import model_io
   if args.snapshot:
-    return (*model_io.load_model(args.snapshot, snapshot=True), os.path.abspath(args.snapshot))
-  if args.checkpoint:
-    return (*model_io.load_model(args.checkpoint), os.path.abspath(args.checkpoint))
-  if os.path.isdir(DEFAULT_WORKDIR):
-    return (*model_io.load_model(DEFAULT_WORKDIR), os.path.abspath(DEFAULT_WORKDIR))
-  return (*random_model(), f"random-init:{RANDOM_MODEL}")
+    name = args.snapshot if isinstance(args.snapshot, str) else args.checkpoint
+    return model_io.load_recorded(name, snapshot=True, revision=args.revision)
+  if args.checkpoint or os.path.isdir(DEFAULT_WORKDIR):
+    return model_io.load_recorded(args.checkpoint or DEFAULT_WORKDIR)
+  return (*random_model(), {"checkpoint": f"random-init:{RANDOM_MODEL}"})
 
 
 def random_model(name: str = None):
@@ -116,7 +134,7 @@ def random_model(name: str = None):
   print(f"warning: no checkpoint given and no {DEFAULT_WORKDIR}/: evaluating a randomly "
         f"initialised {name!r} model (numbers are meaningless)", file=sys.stderr)
   model = variants.build_model(name)
-  return model, trainer.random_params(model)
+  return model, {"params": trainer.random_params(model)}
 
 
 def main(argv=None) -> int:
@@ -155,7 +173,7 @@ def main(argv=None) -> int:
     return 2
 
   try:
-    model, params, ckpt = load_model(args)
+    model, variables, source = load_model(args)
   except (FileNotFoundError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
@@ -163,7 +181,7 @@ def main(argv=None) -> int:
   results, counts, runtime, runtime_mean = {}, {}, {}, {}
   t0 = time.time()
   for name, srcs in sources.items():
-    runner = base.Runner(model, params, args.resolution)
+    runner = base.Runner(model, variables, args.resolution)
     res, n = evaluators.run_bench(name, runner, args.data_root, args.max_pairs, writer,
                                   progress=not args.no_progress, sources=srcs, seed=args.seed,
                                   protocol=args.protocol)
@@ -175,7 +193,7 @@ def main(argv=None) -> int:
       "bench": args.bench if args.bench == "all" else ",".join(names),
       "benches_run": list(sources), "skipped": skipped,
       "protocol": args.protocol, "bench_protocols": {n: benches[n].protocol for n in sources},
-      "checkpoint": ckpt, "resolution": args.resolution if args.resolution is not None else "model",
+      **source, "resolution": args.resolution if args.resolution is not None else "model",
       "n_pairs": counts, "max_pairs": args.max_pairs,
       "runtime_ms_per_pair": runtime, "runtime_ms_per_pair_mean": runtime_mean,
       "wall_time_s": round(time.time() - t0, 1),

@@ -136,7 +136,8 @@ def parity(fixture_dir):
   import numpy as np
   import ufm_jax
   d = pathlib.Path(fixture_dir)
-  model, params = ufm_jax.load_official(d)
+  model, variables = ufm_jax.load_official(d)
+  params = variables["params"]   # a base-model fixture: no BatchNorm statistics
   io = dict(np.load(d / "io.npz"))
   rows = []
   for label, dtype, precision in (("float32, default precision", "float32", None),

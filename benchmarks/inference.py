@@ -276,7 +276,8 @@ def main(argv=None) -> dict:
   if args.snapshot:
     import ufm_jax
     from ufm_jax.models import scan
-    model, params = ufm_jax.load_official(args.snapshot)
+    model, variables = ufm_jax.load_official(args.snapshot)
+    params = variables["params"]   # the released models keep no BatchNorm statistics
     if args.set:
       model = model.clone(config=model.config.replace(**args.set))
       params = scan.to_layout(params, model.config)

@@ -81,11 +81,11 @@ def main(argv=None):
                     donate_argnums=(0,))
   predict = jax.jit(trainer.make_predict(model, dict(config.get("apply_kwargs", {}))))
 
-  def heldout_epe(params):
-    scalars = evaluator.run(predict, params).scalars
+  def heldout_epe(variables):
+    scalars = evaluator.run(predict, variables).scalars
     return scalars["epe"], scalars["epe_zero"]
 
-  epe0, zero = heldout_epe(state.params)
+  epe0, zero = heldout_epe(state.variables())
   print(f"step 0: held-out EPE {epe0:.3f} px (zero-flow {zero:.3f})", flush=True)
   rng = np.random.default_rng(config.seed)
   batch = int(config.input.batch_size)
@@ -102,7 +102,7 @@ def main(argv=None):
     if step % args.every == 0 or step == steps:
       m = jax.device_get(metrics)
       t = time.time()
-      epe, _ = heldout_epe(state.params)
+      epe, _ = heldout_epe(state.variables())
       t_eval += time.time() - t
       per_step = (time.time() - t0 - t_eval) / max(step - 1, 1)
       print(f"step {step}: held-out EPE {epe:.3f} px ({epe0 / epe:.2f}x of step 0; zero-flow "

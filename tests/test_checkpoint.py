@@ -12,13 +12,14 @@ from safetensors.numpy import save_file
 
 from ufm_jax import checkpoint, model_init, optim
 from ufm_jax.models import dinov2
+from ufm_jax.official import dinov2_weights
 from ufm_jax import testing
 
 
 def test_hf_dinov2_to_original_names(tmp_path):
   sd = testing.hf_dinov2()
   save_file(sd, str(tmp_path / "model.safetensors"))
-  orig = dinov2.read_weights(tmp_path)  # the folder, as downloaded from the Hub
+  orig = dinov2_weights.read_weights(tmp_path)  # the folder, as downloaded from the Hub
   expected = {"cls_token", "mask_token", "pos_embed", "patch_embed.proj.weight",
               "patch_embed.proj.bias", "norm.weight", "norm.bias"}
   for i in range(2):
@@ -43,10 +44,10 @@ def test_dinov2_errors_name_the_problem(tmp_path):
   del sd["encoder.layer.0.attention.attention.key.weight"]
   save_file(sd, str(tmp_path / "x.safetensors"))
   with pytest.raises(ValueError, match="incomplete q/k/v"):
-    dinov2.read_weights(tmp_path / "x.safetensors")
+    dinov2_weights.read_weights(tmp_path / "x.safetensors")
   (tmp_path / "empty").mkdir()
   with pytest.raises(FileNotFoundError, match="no \\*.safetensors"):
-    dinov2.read_weights(tmp_path / "empty")
+    dinov2_weights.read_weights(tmp_path / "empty")
 
 
 def test_original_pth_needs_torch_or_reads_it(tmp_path):
@@ -54,7 +55,7 @@ def test_original_pth_needs_torch_or_reads_it(tmp_path):
   sd = {"blocks.0.attn.qkv.weight": np.ones((6, 2), np.float32), "cls_token": np.zeros((1, 1, 2),
                                                                                      np.float32)}
   torch.save({k: torch.from_numpy(v) for k, v in sd.items()}, tmp_path / "d.pth")
-  got = dinov2.read_weights(tmp_path / "d.pth")
+  got = dinov2_weights.read_weights(tmp_path / "d.pth")
   np.testing.assert_array_equal(got["blocks.0.attn.qkv.weight"], 1.0)
 
 

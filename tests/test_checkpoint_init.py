@@ -52,6 +52,7 @@ def test_dinov2_hf_into_ufm_encoder(tmp_path, tiny):
 
 def test_snapshot_init_loads_everything(reference_dir):
   model, official = __import__("ufm_jax").load_official(reference_dir / "base")
+  official = official["params"]
   x = jnp.zeros((1, 28, 28, 3), jnp.uint8)
   template = jax.eval_shape(lambda r: model.init(r, x, x)["params"], jax.random.PRNGKey(0))
   template = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), template)

@@ -122,8 +122,8 @@ def test_load_train_workdir(tmp_path):
   (tmp_path / "config.json").write_text(json.dumps({"model_name": "tiny", "model": {}}))
   assert model_io.what_is(tmp_path) == model_io.WORKDIR
   loaded_model, loaded = model_io.load_model(tmp_path)
-  assert loaded_model.config == model.config
-  for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params)):
+  assert loaded_model.config == model.config and set(loaded) == {"params"}
+  for a, b in zip(jax.tree.leaves(loaded["params"]), jax.tree.leaves(params)):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b) + 2, rtol=0, atol=1e-6)  # latest step
 
 

@@ -12,7 +12,8 @@ import pytest
 from safetensors.numpy import load_file
 
 from ufm_jax import model_io, testing
-from ufm_jax.models import dinov2, dpt, ufm
+from ufm_jax.models import dpt, ufm
+from ufm_jax.official import dinov2_weights
 from ufm_jax.official import config as official_config
 from ufm_jax.official import keymap, snapshot
 
@@ -39,7 +40,8 @@ def _fixture_files(fixture_dir):
 
 
 def test_structure_from_config_and_shapes(loaded, fixture_dir):
-  model, params = loaded
+  model, variables = loaded
+  params = variables["params"]
   cfg = model.config
   # config.json cannot say the depth after keep_first_n_layers: it comes from the weights.
   assert cfg.encoder.depth == 2 and cfg.encoder.embed_dim == 384 and cfg.encoder.pos_grid == 37
@@ -165,15 +167,15 @@ def test_loader_on_unseen_structure(tmp_path, name):
   if cfg.info_sharing.input_embed_dim == cfg.info_sharing.dim:
     assert not any(k.startswith("info_sharing.proj_embed") for k in state)
   d = _snapshot(tmp_path, official_config.official_config_dict(cfg), state)
-  model2, params2 = snapshot.load_official(d)
-  assert model2.config == cfg
-  jax.tree.map(np.testing.assert_array_equal, params2, params)
+  model2, variables2 = snapshot.load_official(d)
+  assert model2.config == cfg and set(variables2) == {"params"}
+  jax.tree.map(np.testing.assert_array_equal, variables2["params"], params)
   rng = np.random.default_rng(0)
   h, w = cfg.inference_resolution
   a = rng.integers(0, 256, (2, h, w, 3), dtype=np.uint8)
   b = rng.integers(0, 256, (2, h, w, 3), dtype=np.uint8)
   assert model2 == model  # the module is fully determined by its config
-  out = jax.jit(model2.apply)({"params": params2}, a, b)
+  out = jax.jit(model2.apply)(variables2, a, b)
   assert out["flow"].shape == (2, h, w, 2) and out["covisibility"].shape == (2, h, w)
   for k in ("flow", "covisibility", "covisibility_logits"):
     assert np.isfinite(np.asarray(out[k])).all()
@@ -191,9 +193,9 @@ def test_convert_cli_round_trip(tmp_path, fixture_dir, loaded):
   assert res.returncode == 0, res.stderr[-3000:]
   assert (out / model_io.CONFIG_FILE).is_file()
   assert [p.name for p in tmp_path.iterdir()] == ["ckpt"]  # no temp folder left behind
-  model, params = model_io.load(out)
+  model, variables = model_io.load_converted(out)
   assert model.config == loaded[0].config
-  jax.tree.map(np.testing.assert_array_equal, params, loaded[1])
+  jax.tree.map(np.testing.assert_array_equal, variables, loaded[1])
   import ufm_jax
   model_b, _ = ufm_jax.load(out)  # the public entry point; same config + params => same outputs
   assert model_b == loaded[0]
@@ -204,10 +206,10 @@ def test_convert_cli_round_trip(tmp_path, fixture_dir, loaded):
 
 def test_load_errors(tmp_path):
   with pytest.raises(FileNotFoundError, match="model_config.json"):
-    model_io.load(tmp_path)
+    model_io.load_converted(tmp_path)
   (tmp_path / model_io.CONFIG_FILE).write_text(json.dumps({"class": "Nope", "config": {}}))
   with pytest.raises(ValueError, match="unknown model class 'Nope'"):
-    model_io.load(tmp_path)
+    model_io.load_converted(tmp_path)
 
 
 def test_truncated_safetensors_says_so(fixture_dir, tmp_path):
@@ -222,4 +224,4 @@ def test_truncated_safetensors_says_so(fixture_dir, tmp_path):
   # DINOv2 weights for model_init are read by the same reader.
   with pytest.raises(ValueError, match=rf"model.safetensors: cannot read safetensors .*looks "
                                        rf"truncated: its header describes {len(data):,} bytes"):
-    dinov2.read_weights(snap / "model.safetensors")
+    dinov2_weights.read_weights(snap / "model.safetensors")

@@ -108,7 +108,8 @@ def test_refine_bf16_close_to_the_fixture(reference_dir):
   The refined flow has no max bound: its 7 x 7 window softmax can move a pixel's pick by a
   tap (several px) where two taps score within bf16 rounding of each other (already so with
   dtype bf16 and float32 heads)."""
-  model, params = snapshot.load_official(reference_dir / "refine")
+  model, variables = snapshot.load_official(reference_dir / "refine")
+  params = variables["params"]
   io = dict(np.load(reference_dir / "refine" / "io.npz"))
   m16 = model.clone(config=model.config.replace(dtype="bfloat16", head_dtype="bfloat16"))
   out = jax.jit(lambda p: m16.apply({"params": p}, io["img1_uint8"], io["img2_uint8"]))(params)

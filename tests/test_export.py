@@ -55,11 +55,11 @@ def _fresh_call(artifact, source, target, tmp_path):
   return dict(np.load(out))
 
 
-def _apply(model, params, src, tgt):
+def _apply(model, variables, src, tgt):
   """Jitted model.apply with the params closed over, as the export bakes them in: XLA folds
   constant weights differently from weights passed as arguments (2.8e-5 px apart on the base
   fixture's flow, the size of the official-parity error), so that is the like-for-like reference."""
-  out = jax.jit(lambda a, b: model.apply({"params": params}, a, b))(src, tgt)
+  out = jax.jit(lambda a, b: model.apply(variables, a, b))(src, tgt)
   return {k: np.asarray(v) for k, v in out.items()}
 
 
@@ -70,11 +70,11 @@ def _max_err(a, b):
 @pytest.fixture(scope="module", params=["base", "refine"])
 def fixture_model(request, reference_dir):
   d = reference_dir / request.param
-  model, params = snapshot.load_official(d)
+  model, variables = snapshot.load_official(d)
   io = np.load(d / "io.npz")
   src, tgt = io["img1_uint8"], io["img2_uint8"]
-  ref = _apply(model, params, src, tgt)
-  return dict(kind=request.param, dir=d, model=model, params=params, src=src, tgt=tgt,
+  ref = _apply(model, variables, src, tgt)
+  return dict(kind=request.param, dir=d, model=model, variables=variables, src=src, tgt=tgt,
               ref={k: np.asarray(v) for k, v in ref.items()})
 
 
@@ -90,7 +90,7 @@ def test_stablehlo_roundtrip_in_fresh_process(fixture_model, tmp_path):
                    "--outputs", ",".join(outputs)]) == 0
   got = _fresh_call(art, fm["src"], fm["tgt"], tmp_path)
   ref_one = ({k: v[:1] for k, v in fm["ref"].items()} if refine else   # padded to batch 2
-             _apply(fm["model"], fm["params"], fm["src"][:1], fm["tgt"][:1]))
+             _apply(fm["model"], fm["variables"], fm["src"][:1], fm["tgt"][:1]))
   for k in outputs:
     for how in ("raw", "full"):
       err = _max_err(got[f"{how}_{k}"], fm["ref"][k])
@@ -114,16 +114,16 @@ def test_stablehlo_roundtrip_in_fresh_process(fixture_model, tmp_path):
 
 def test_bfloat16_export_runs_the_bf16_model(reference_dir, tmp_path):
   d = reference_dir / "base"
-  model, params = snapshot.load_official(d)
+  model, variables = snapshot.load_official(d)
   io = np.load(d / "io.npz")
   src, tgt = io["img1_uint8"][:1], io["img2_uint8"][:1]
   art = tmp_path / "bf16.stablehlo"
-  export.export(model, params, src.shape[1:3], art, dtype="bfloat16")
+  export.export(model, variables, src.shape[1:3], art, dtype="bfloat16")
   got = export.load_exported(art)(src, tgt)
   bf16 = model.clone(config=model.config.replace(dtype="bfloat16"))
-  want = _apply(bf16, params, src, tgt)
+  want = _apply(bf16, variables, src, tgt)
   assert _max_err(got["flow"], want["flow"]) <= 1e-5
-  f32 = _apply(model, params, src, tgt)
+  f32 = _apply(model, variables, src, tgt)
   assert _max_err(got["flow"], f32["flow"]) > 0  # it did compute in bf16
   assert json.loads(export.sidecar_path(art).read_text())["dtype"] == "bfloat16"
 
@@ -141,9 +141,9 @@ def test_export_errors_name_the_problem(reference_dir, tmp_path, capsys):
     cli.main(["export", "--checkpoint", d, "--size", "98x154", "--out", "x", "--batch", "0"])
   assert not (tmp_path / "a").exists()
 
-  model, params = snapshot.load_official(d)
+  model, variables = snapshot.load_official(d)
   art = tmp_path / "m.stablehlo"
-  export.export(model, params, (98, 154), art, batch=1)
+  export.export(model, variables, (98, 154), art, batch=1)
   run = export.load_exported(art)
   with pytest.raises(ValueError, match="exported for 98x154 images; source is 112x154"):
     run(np.zeros((1, 112, 154, 3), np.uint8), np.zeros((1, 112, 154, 3), np.uint8))
@@ -181,22 +181,22 @@ def _onnx_parity(fm, tmp_path, batch):
 
 
 def test_onnx_matches_apply_base(reference_dir, tmp_path):
-  model, params = snapshot.load_official(reference_dir / "base")
+  model, variables = snapshot.load_official(reference_dir / "base")
   io = np.load(reference_dir / "base" / "io.npz")
   src, tgt = io["img1_uint8"], io["img2_uint8"]
   fm = dict(kind="base", dir=reference_dir / "base", src=src, tgt=tgt,
-            ref=_apply(model, params, src, tgt))
+            ref=_apply(model, variables, src, tgt))
   _onnx_parity(fm, tmp_path, 2)
 
 
 @pytest.mark.slow
 def test_onnx_matches_apply_refine(reference_dir, tmp_path):
   """The refinement's windowed gather and the U-Net's max-pool convert too (fixed batch 2)."""
-  model, params = snapshot.load_official(reference_dir / "refine")
+  model, variables = snapshot.load_official(reference_dir / "refine")
   io = np.load(reference_dir / "refine" / "io.npz")
   src, tgt = io["img1_uint8"], io["img2_uint8"]
   fm = dict(kind="refine", dir=reference_dir / "refine", src=src, tgt=tgt,
-            ref=_apply(model, params, src, tgt))
+            ref=_apply(model, variables, src, tgt))
   _onnx_parity(fm, tmp_path, 2)
 
 

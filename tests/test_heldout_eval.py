@@ -54,5 +54,5 @@ def test_eval_predictions_ignore_the_symmetrized_training_kwarg():
   rng = np.random.default_rng(0)
   batch = {k: rng.integers(0, 256, (4, 28, 28, 3), dtype=np.uint8) for k in ("image0", "image1")}
   want = model.apply({"params": params}, batch["image0"], batch["image1"])["flow"]
-  got = jax.jit(trainer.make_predict(model, {"symmetrized": True}))(params, batch)["flow"]
+  got = jax.jit(trainer.make_predict(model, {"symmetrized": True}))({"params": params}, batch)["flow"]
   np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)

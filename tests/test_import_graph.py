@@ -1,5 +1,6 @@
-"""The import graph of `ufm_jax` has no cycles, function-level imports included, and library
-code never imports the command line (#34): parsed with `ast`, nothing is imported."""
+"""The import graph of `ufm_jax` has no cycles, function-level imports included, library code
+never imports the command line (#34), and the model package knows neither the data nor the
+official format (#41): parsed with `ast`, nothing is imported."""
 
 import ast
 import pathlib
@@ -96,8 +97,8 @@ def test_the_checker_finds_a_cycle_and_resolves_imports():
   assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
   assert _cycle({"a": {"b"}, "b": set()}) is None
   graph = _graph()
-  assert "ufm_jax.official.keymap" in graph["ufm_jax.models.dinov2"]  # a function-level import
-  assert "ufm_jax.official" in graph["ufm_jax.models.dinov2"]  # the package the import runs
+  assert "ufm_jax.official.dinov2_weights" in graph["ufm_jax.model_init"]  # a function-level import
+  assert "ufm_jax.official" in graph["ufm_jax.model_init"]  # the package the import runs
   assert "ufm_jax.cli" in graph["ufm_jax.__main__"]
 
 
@@ -110,3 +111,12 @@ def test_no_import_cycles():
 def test_library_code_never_imports_the_cli(module):
   importers = sorted(m for m, targets in _graph().items() if module in targets)
   assert set(importers) <= CLI_IMPORTERS, importers
+
+
+def test_the_model_package_imports_only_itself():
+  """ufm_jax.models is the network alone: reading files (ufm_jax.data) and the official names
+  (ufm_jax.official) sit above it, in the loaders."""
+  graph = _graph()
+  bad = {m: sorted(t for t in targets if not t.startswith("ufm_jax.models") and t != "ufm_jax")
+         for m, targets in graph.items() if m.startswith("ufm_jax.models")}
+  assert not {m: t for m, t in bad.items() if t}, bad

@@ -129,8 +129,8 @@ def _load_official(reference_dir):
 
 @pytest.mark.slow
 def test_predict_vs_reference(io, reference_dir):
-  model, params = _load_official(reference_dir)
-  outs = inference.predict(model, params, [io[f"{p}_src_uint8"] for p in PAIRS],
+  model, variables = _load_official(reference_dir)
+  outs = inference.predict(model, variables, [io[f"{p}_src_uint8"] for p in PAIRS],
                            [io[f"{p}_tgt_uint8"] for p in PAIRS])
   for p, out in zip(PAIRS, outs):
     np.testing.assert_allclose(out["flow"], _hwc(io[f"{p}_flow"]), rtol=0, atol=1e-3, err_msg=p)
@@ -144,8 +144,8 @@ def test_predict_refine_vs_reference(reference_dir):
   forward tolerance (5e-3, see test_refine_parity.py): the resize and unmap add < 1e-4."""
   from ufm_jax.official import snapshot
   io = dict(np.load(reference_dir / "refine" / "io.npz"))
-  model, params = snapshot.load_official(reference_dir / "refine")
-  outs = inference.predict(model, params, [io[f"{p}_src_uint8"] for p in PAIRS],
+  model, variables = snapshot.load_official(reference_dir / "refine")
+  outs = inference.predict(model, variables, [io[f"{p}_src_uint8"] for p in PAIRS],
                            [io[f"{p}_tgt_uint8"] for p in PAIRS])
   for p, out in zip(PAIRS, outs):
     np.testing.assert_allclose(out["flow"], _hwc(io[f"{p}_flow"]), rtol=0, atol=5e-3, err_msg=p)

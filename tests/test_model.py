@@ -14,7 +14,8 @@ from ufm_jax.official import snapshot
 
 @pytest.fixture(scope="module")
 def fixture(reference_dir):
-  model, params = snapshot.load_official(reference_dir / "base")
+  model, variables = snapshot.load_official(reference_dir / "base")
+  params = variables["params"]
   io = dict(np.load(reference_dir / "base" / "io.npz"))
   return model, params, io
 

@@ -95,7 +95,8 @@ def test_dinov2_sizes(size, d, depth, swiglu):
 
 
 def test_fixture_small_is_the_fixture_structure(reference_dir):
-  model, params = snapshot.load_official(reference_dir / "base")
+  model, variables = snapshot.load_official(reference_dir / "base")
+  params = variables["params"]
   assert model.config == variants.fixture_small()
   assert _count(model) == sum(v.size for v in jax.tree.leaves(params))
 

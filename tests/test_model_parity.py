@@ -20,7 +20,8 @@ def base(reference_dir, request):
   """The official snapshot, run per layer and as the scan model (stacked params); both must
   match the official stages, the scan one through its per-block scan outputs."""
   d = reference_dir / "base"
-  model, params = snapshot.load_official(d)
+  model, variables = snapshot.load_official(d)
+  params = variables["params"]
   if request.param:
     from ufm_jax.models import scan
     model = model.clone(config=model.config.replace(scan_blocks=True))
@@ -157,9 +158,9 @@ def test_float64_matches_official_float64_run(reference_dir, scan_blocks):
     from ufm_jax.models import scan
     from ufm_jax.official import snapshot
     d = {str(reference_dir / "base")!r}
-    model, params = snapshot.load_official(d)
+    model, variables = snapshot.load_official(d)
     model = model.clone(config=model.config.replace(dtype="float64", scan_blocks={scan_blocks}))
-    params = scan.to_layout(params, model.config)
+    params = scan.to_layout(variables["params"], model.config)
     params = jax.tree.map(lambda p: np.asarray(p, np.float64), params)
     io = np.load(d + "/io_f64.npz")
     out = jax.jit(model.apply)({{"params": params}}, io["img1_uint8"], io["img2_uint8"])

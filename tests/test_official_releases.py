@@ -18,7 +18,6 @@ import pytest
 
 import ufm_jax
 from ufm_jax import model_io
-from ufm_jax.models import ufm
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 V2 = pathlib.Path(os.environ.get("UFM_FIXTURES", REPO.parent / "shared" / "fixtures")) / \
@@ -50,10 +49,10 @@ def _close(name, got, want, atol):
 @pytest.fixture(scope="module", params=CASES or [None])
 def case(request):
   d = _case_dir(request.param)
-  model, params = ufm_jax.load_official(d)
+  model, variables = ufm_jax.load_official(d)
   io = dict(np.load(d / "io.npz"))
-  out = jax.jit(model.apply)(ufm.variables(params), io["img1_uint8"], io["img2_uint8"])
-  return d, model, params, io, {k: np.asarray(v) for k, v in out.items()}
+  out = jax.jit(model.apply)(variables, io["img1_uint8"], io["img2_uint8"])
+  return d, model, variables, io, {k: np.asarray(v) for k, v in out.items()}
 
 
 def test_forward_matches_the_official_outputs(case):
@@ -75,10 +74,10 @@ def test_forward_matches_the_official_outputs(case):
 @pytest.mark.parametrize("pair", ["hl0", "hl1", "hl2"])
 def test_predict_matches_the_official_high_level_api(case, pair):
   """predict_correspondences_batched; hl*_flow at the fixture README's ~1e-2 px."""
-  _, model, params, io, _ = case
+  _, model, variables, io, _ = case
   if f"{pair}_src_uint8" not in io:
     pytest.skip(f"this case has no {pair}")
-  got = ufm_jax.predict(model, params, io[f"{pair}_src_uint8"], io[f"{pair}_tgt_uint8"])
+  got = ufm_jax.predict(model, variables, io[f"{pair}_src_uint8"], io[f"{pair}_tgt_uint8"])
   _close(f"{pair}_flow", got["flow"], _nhwc(io[f"{pair}_flow"])[0], 1e-2)
   _close(f"{pair}_covisibility", got["covisibility"], io[f"{pair}_covisibility"][0], 5e-5)
 
@@ -95,9 +94,9 @@ def test_round_trip_through_our_checkpoint_is_exact(case, tmp_path):
   """snapshot -> our checkpoint (convert) -> official snapshot (to-official): config.json byte
   for byte; model.safetensors with the same header (names, dtypes, offsets, alias metadata) and
   the same data bytes."""
-  d, model, params, _, _ = case
-  model_io.save(tmp_path / "ckpt", model, params)
-  back_model, back_params = model_io.load(tmp_path / "ckpt")
+  d, model, variables, _, _ = case
+  model_io.save(tmp_path / "ckpt", model, variables)
+  back_model, back_params = ufm_jax.load(tmp_path / "ckpt")
   assert back_model.config == model.config
   ufm_jax.save_official(back_model, back_params, tmp_path / "out", source=str(d))
   assert (tmp_path / "out" / "config.json").read_bytes() == (d / "config.json").read_bytes()
@@ -142,8 +141,8 @@ def test_integer_input_feature_dim_is_written_back_as_an_integer(refine_bn, tmp_
     cj["classification_head_kwargs"]["input_feature_dim"] = sum(
         int(t) for t in cj["classification_head_kwargs"]["input_feature_dim"].split("+"))
   snap = _with_config(refine_bn, tmp_path / "snap", edit)
-  model, params = ufm_jax.load_official(snap)
-  ufm_jax.save_official(model, params, tmp_path / "out")
+  model, variables = ufm_jax.load_official(snap)
+  ufm_jax.save_official(model, variables, tmp_path / "out")
   assert (tmp_path / "out" / "config.json").read_text() == (snap / "config.json").read_text()
   assert isinstance(json.loads((tmp_path / "out" / "config.json").read_text())[
       "classification_head_kwargs"]["input_feature_dim"], int)
@@ -152,9 +151,9 @@ def test_integer_input_feature_dim_is_written_back_as_an_integer(refine_bn, tmp_
 def test_a_changed_model_is_exported_with_the_new_kwargs(refine_bn, tmp_path):
   """The source config.json is written back only while it describes the model: a changed
   structure option is exported from the model config, the new official kwargs with it."""
-  model, params = ufm_jax.load_official(refine_bn)
+  model, variables = ufm_jax.load_official(refine_bn)
   cfg = model.config.replace(inference_resolution=(84, 112))
-  ufm_jax.save_official(model.clone(config=cfg), params, tmp_path / "out")
+  ufm_jax.save_official(model.clone(config=cfg), variables, tmp_path / "out")
   cj = json.loads((tmp_path / "out" / "config.json").read_text())
   assert cj["inference_resolution"] == [112, 84] and cj["use_unet_batchnorm"] is True
   back, _ = ufm_jax.load_official(tmp_path / "out")
@@ -180,14 +179,14 @@ def test_random_view_rows_warn_and_use_row_one(tmp_path):
                       lambda cj: cj["info_sharing_kwargs"].pop(
                           "use_rand_idx_pe_for_non_reference_views"))
   with pytest.warns(UserWarning, match=r"snap/config.json: .*left out \(default true\).*row 1"):
-    model, params = ufm_jax.load_official(snap)
+    model, variables = ufm_jax.load_official(snap)
   assert model.config.info_sharing.use_rand_idx_pe_for_non_reference_views
   with warnings.catch_warnings():
     warnings.simplefilter("error")
-    fixed, fixed_params = ufm_jax.load_official(src)   # the same weights, option off: no warning
+    fixed, fixed_variables = ufm_jax.load_official(src)   # the same weights, option off: no warning
   io = dict(np.load(src / "io.npz"))
-  a = jax.jit(model.apply)(ufm.variables(params), io["img1_uint8"], io["img2_uint8"])["flow"]
-  b = jax.jit(fixed.apply)(ufm.variables(fixed_params), io["img1_uint8"], io["img2_uint8"])["flow"]
+  a = jax.jit(model.apply)(variables, io["img1_uint8"], io["img2_uint8"])["flow"]
+  b = jax.jit(fixed.apply)(fixed_variables, io["img1_uint8"], io["img2_uint8"])["flow"]
   np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
@@ -211,8 +210,9 @@ def _hub_cache(root: pathlib.Path, repo_id: str, snapshot: pathlib.Path, commit:
 
 
 def test_hub_ids_resolve_offline_from_the_standard_cache(tmp_path, reference_dir):
-  """load_official("owner/name") (and revision=), `infer --checkpoint ID --snapshot` and
-  model_init=snapshot:ID read a cache built here in huggingface_hub's layout with
+  """load_official("owner/name") (and revision=), `infer --checkpoint ID --snapshot`,
+  `evaluate.py --checkpoint ID --snapshot --revision C` (results.json records the ID, the revision
+  and the commit) and model_init=snapshot:ID read a cache built here in huggingface_hub's layout with
   HF_HUB_OFFLINE=1; an ID that is not cached fails naming the ID and the cache. In a fresh
   process: huggingface_hub reads its environment once, at import."""
   commit = "0123456789abcdef0123456789abcdef01234567"
@@ -230,7 +230,7 @@ m2, p2 = ufm_jax.load_official({str(reference_dir / "base")!r})
 assert m.config == m2.config
 jax.tree.map(np.testing.assert_array_equal, p, p2)
 ufm_jax.load_official("infinity1096/UFM-Fixture", revision={commit!r})
-_, rep = model_init.load_init_params("snapshot:infinity1096/UFM-Fixture", p2)
+_, rep = model_init.load_init_params("snapshot:infinity1096/UFM-Fixture", p2["params"])
 assert not rep.left_at_init and not rep.unused
 assert cli.main({infer!r} + ["--checkpoint", "infinity1096/UFM-Fixture", "--out",
                               {str(tmp_path / "out")!r}]) == 0
@@ -239,6 +239,10 @@ with contextlib.redirect_stderr(err):
   rc = cli.main({infer!r} + ["--checkpoint", "infinity1096/UFM-Missing", "--out",
                               {str(tmp_path / "o2")!r}])
 print("missing", rc, err.getvalue())
+import evaluate
+assert evaluate.main(["--checkpoint", "infinity1096/UFM-Fixture", "--snapshot", "--revision",
+                      {commit!r}, "--max_pairs", "2", "--no_progress",
+                      "--out", {str(tmp_path / "ev")!r}]) == 0
 """
   r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600,
                      cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO), JAX_PLATFORMS="cpu",
@@ -249,8 +253,44 @@ print("missing", rc, err.getvalue())
   missing = r.stdout[r.stdout.index("missing"):]
   assert missing.startswith("missing 2 ") and "infinity1096/UFM-Missing" in missing
   assert str(tmp_path / "hub") in missing and "HF_HUB_OFFLINE" in missing
+  results = json.loads((tmp_path / "ev" / "results.json").read_text())
+  assert (results["checkpoint"], results["revision"], results["commit"]) == (
+      "infinity1096/UFM-Fixture", commit, commit)
 
 
 def test_an_id_without_snapshot_says_so():
   with pytest.raises(FileNotFoundError, match="model ID needs --snapshot"):
     model_io.load_model("infinity1096/UFM-Base")
+
+
+def test_one_loader_convention(tmp_path, reference_dir):
+  """Every loader returns (model, variables {"params"}); ufm_jax.load takes a snapshot folder,
+  a converted checkpoint (also one written with the bare parameter tree, before the convention)
+  and refuses a Hub ID without snapshot=True; model.apply refuses the old call with what to write
+  instead."""
+  import orbax.checkpoint as ocp
+  model, variables = ufm_jax.load(reference_dir / "base")
+  assert set(variables) == {"params"}
+  _, official = ufm_jax.load_official(reference_dir / "base")
+  jax.tree.map(np.testing.assert_array_equal, variables, official)
+  model_io.save(tmp_path / "ckpt", model, variables)
+  _, converted = ufm_jax.load(tmp_path / "ckpt")
+  jax.tree.map(np.testing.assert_array_equal, converted, variables)
+  old = tmp_path / "old"   # the earlier format: params/ held the bare tree
+  old.mkdir()
+  (old / model_io.CONFIG_FILE).write_bytes((tmp_path / "ckpt" / model_io.CONFIG_FILE).read_bytes())
+  ocp.PyTreeCheckpointer().save(old / model_io.PARAMS_DIR,
+                                jax.tree.map(np.asarray, variables["params"]))
+  _, from_old = ufm_jax.load(old)
+  jax.tree.map(np.testing.assert_array_equal, from_old, variables)
+  with pytest.raises(FileNotFoundError, match="snapshot=True in ufm_jax.load"):
+    ufm_jax.load("infinity1096/UFM-Nowhere")
+  io = dict(np.load(reference_dir / "base" / "io.npz"))
+  a, b = io["img1_uint8"][:1], io["img2_uint8"][:1]
+  with pytest.raises(TypeError, match=r"call model.apply\(variables, \.\.\.\)"):
+    model.apply({"params": variables}, a, b)
+  with pytest.raises(TypeError, match="bare parameter tree"):
+    model.apply(variables["params"], a, b)
+  out = ufm_jax.predict(model, variables["params"], io["hl1_src_uint8"], io["hl1_tgt_uint8"])
+  want = ufm_jax.predict(model, variables, io["hl1_src_uint8"], io["hl1_tgt_uint8"])
+  np.testing.assert_array_equal(out["flow"], want["flow"])   # a bare tree is still taken

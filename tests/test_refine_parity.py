@@ -102,7 +102,8 @@ def test_local_refinement_matches_fixture(fx, chunk):
 def full(fx, request):
   from ufm_jax.official.snapshot import load_official
   from ufm_jax.models import scan
-  model, params = load_official(fx["dir"])
+  model, variables = load_official(fx["dir"])
+  params = variables["params"]
   if request.param:   # the same snapshot as a scan model (stacked encoder / fusion blocks)
     model = model.clone(config=model.config.replace(scan_blocks=True))
     params = scan.stack_blocks(params, model.config)
@@ -167,12 +168,12 @@ def test_convert_save_load_and_infer_cli(fx, full, tmp_path):
   reproduces the official high-level output of pair hl1 (target smaller than the source)."""
   import cv2
   from ufm_jax import cli
-  from ufm_jax.model_io import load, save
+  from ufm_jax.model_io import load_converted, save
   model, params, _ = full
   save(tmp_path / "ckpt", model, params)
-  model2, params2 = load(tmp_path / "ckpt")
+  model2, variables2 = load_converted(tmp_path / "ckpt")
   assert type(model2) is type(model) and model2.config == model.config
-  for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(params2)):
+  for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(variables2["params"])):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
   io = fx["io"]
   cv2.imwrite(str(tmp_path / "src.png"), io["hl1_src_uint8"][..., ::-1])
@@ -221,7 +222,8 @@ def test_float64_matches_official_float64_run(fx):
     jax.config.update("jax_enable_x64", True)
     from ufm_jax.official.snapshot import load_official
     d = {str(fx["dir"])!r}
-    model, params = load_official(d)
+    model, variables = load_official(d)
+    params = variables["params"]
     model = model.clone(config=model.config.replace(dtype="float64"))
     params = jax.tree.map(lambda p: np.asarray(p, np.float64), params)
     io = np.load(d + "/io_f64.npz")

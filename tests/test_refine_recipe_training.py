@@ -69,7 +69,7 @@ def test_batch_stats_are_state_outside_the_optimizer():
   assert type(plain) is optim.TrainState and plain.batch_stats is None
   fields = [p[0].name for p, _ in jax.tree_util.tree_flatten_with_path(plain)[0]]
   assert list(dict.fromkeys(fields)) == ["step", "params", "opt_state", "skipped"]
-  assert plain.variables() is plain.params
+  assert plain.variables() == {"params": plain.params}
 
 
 def test_batch_stats_are_replicated_whatever_the_rules():
@@ -270,7 +270,7 @@ def test_base_snapshot_into_a_recipe_model_leaves_the_unet_statistics_fresh(refe
       lambda p, x: x + 1 if p[-1].key == "running_var" else x, template["batch_stats"])
   out, rep = model_init.load_init_variables(f"snapshot:{reference_dir / 'base'}", template, cfg)
   _, official = ufm_jax.load_official(reference_dir / "base")
-  flat, ref = _flat(out["params"]), _flat(official)
+  flat, ref = _flat(out["params"]), _flat(official["params"])
   for k in ref:
     if not k.startswith("uncertainty_head"):
       np.testing.assert_array_equal(flat[k], ref[k], err_msg=k)

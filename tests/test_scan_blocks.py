@@ -18,7 +18,8 @@ from ufm_jax.official import keymap, snapshot
 
 @pytest.fixture(scope="module")
 def official(reference_dir):
-  model, params = snapshot.load_official(reference_dir / "base")
+  model, variables = snapshot.load_official(reference_dir / "base")
+  params = variables["params"]
   io = dict(np.load(reference_dir / "base" / "io.npz"))
   return model, jax.tree.map(np.asarray, params), io
 
@@ -151,11 +152,12 @@ def test_workdir_of_a_scan_run_loads_as_a_usable_model(tmp_path):
   manager.wait_until_finished()
   (tmp_path / "config.json").write_text(json.dumps(
       {"model_name": "fixture_small", "model": {"scan_blocks": True, "attention_impl": None}}))
-  loaded_model, loaded = model_io.load_model(tmp_path)
+  loaded_model, variables = model_io.load_model(tmp_path)
+  loaded = variables["params"]
   assert loaded_model.config.scan_blocks
   x = np.random.default_rng(0).integers(0, 255, (1, 56, 70, 3), np.uint8)
   y = np.roll(x, 3, axis=2)
-  out = jax.jit(loaded_model.apply)({"params": loaded}, x, y)
+  out = jax.jit(loaded_model.apply)(variables, x, y)
   per_layer = loaded_model.clone(config=loaded_model.config.replace(scan_blocks=False))
   ref = jax.jit(per_layer.apply)({"params": scan.unstack_blocks(loaded, loaded_model.config)}, x, y)
   for k in ref:

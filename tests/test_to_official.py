@@ -40,8 +40,8 @@ def _assert_same_tensors(got_path, want):
 def test_fixture_snapshot_round_trip(reference_dir, tmp_path, kind):
   """official snapshot -> load_official -> save_official gives back the same files."""
   src = reference_dir / kind
-  model, params = snapshot.load_official(src)
-  notes = ufm_jax.save_official(model, params, tmp_path / "out", source=str(src))
+  model, variables = snapshot.load_official(src)
+  notes = ufm_jax.save_official(model, variables, tmp_path / "out", source=str(src))
   out = tmp_path / "out"
   assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temp folder left
   _assert_same_tensors(out / "model.safetensors", load_file(str(src / "model.safetensors")))
@@ -102,8 +102,8 @@ def test_round_trip_other_structures(tmp_path, name):
   config = official_config.official_config_dict(cfg)
   snap = testing.write_snapshot(tmp_path / "snap", config, state)
 
-  loaded_model, loaded_params = snapshot.load_official(snap)
-  ufm_jax.save_official(loaded_model, loaded_params, tmp_path / "out")
+  loaded_model, loaded_variables = snapshot.load_official(snap)
+  ufm_jax.save_official(loaded_model, loaded_variables, tmp_path / "out")
   out = tmp_path / "out"
   _assert_same_tensors(out / "model.safetensors", kept)
   assert _header_metadata(out / "model.safetensors") == aliases
@@ -115,7 +115,8 @@ def test_round_trip_other_structures(tmp_path, name):
   if name == "ufm980":
     assert config["inference_resolution"] == [980, 742]   # official order (W, H)
   # and the export reads back to the model and params it came from
-  back_model, back_params = snapshot.load_official(out)
+  back_model, back_variables = snapshot.load_official(out)
+  back_params = back_variables["params"]
   assert back_model.config == cfg
   jax.tree.map(np.testing.assert_array_equal, back_params, params)
 
@@ -185,7 +186,8 @@ def test_trained_workdir_exports_and_loads_back(tmp_path, capsys):
   predict = jax.jit(lambda m, p: m.apply({"params": p}, held_out["image0"], held_out["image1"]),
                     static_argnums=0)
   for folder, step in (("latest", 3), ("s2", 2)):
-    back_model, back_params = ufm_jax.load_official(tmp_path / folder)
+    back_model, back_variables = ufm_jax.load_official(tmp_path / folder)
+    back_params = back_variables["params"]
     assert back_model.config == model.config
     jax.tree.map(np.testing.assert_array_equal, back_params, trained[step])
     want = predict(model, trained[step])

@@ -1,11 +1,16 @@
 """UFM-JAX: Unified Flow & Matching in JAX/Flax.
 
-Top-level API (imported lazily so that `import ufm_jax` stays cheap):
-  - `load_official(snapshot_dir)`: (model, params) from a Hugging Face snapshot of the PyTorch release.
-  - `load(checkpoint_dir)`: (model, params) from a checkpoint written by `python -m ufm_jax convert`.
-  - `save_official(model, params, out_dir)`: the inverse of `load_official` (a new HF snapshot).
-  - `predict(model, params, source, target)`: the official high-level inference on HWC uint8 images.
-  - `match(model, params, source, target)`: sparse matches (keypoints0/1, confidence) in pixels.
+Top-level API (imported lazily so that `import ufm_jax` stays cheap). Every loader returns the
+model and its Flax variables {"params"[, "batch_stats"]}: `model.apply(variables, source, target)`.
+  - `load_official(snapshot)`: (model, variables) from a Hugging Face snapshot of the PyTorch
+    release (a folder or a Hub ID).
+  - `load(path)`: (model, variables) from whatever a command's --checkpoint takes: a converted
+    checkpoint (`python -m ufm_jax convert`), a train.py workdir, a snapshot folder (a Hub ID with
+    snapshot=True).
+  - `save_official(model, variables, out_dir)`: the inverse of `load_official` (a new HF snapshot).
+  - `predict(model, variables, source, target)`: the official high-level inference on HWC uint8
+    images.
+  - `match(model, variables, source, target)`: sparse matches (keypoints0/1, confidence) in pixels.
   - `load_exported(path)`: a callable over an artifact of `python -m ufm_jax export` (no model code).
   - `read_image(path)`: an image file as HWC uint8 RGB (the project's one image reader).
 """
@@ -14,7 +19,7 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "load_official": ("ufm_jax.official.snapshot", "load_official"),
-    "load": ("ufm_jax.model_io", "load"),
+    "load": ("ufm_jax.model_io", "load_model"),
     "save_official": ("ufm_jax.official.snapshot", "save_official"),
     "predict": ("ufm_jax.inference", "predict"),
     "load_exported": ("ufm_jax.export", "load_exported"),

@@ -48,23 +48,19 @@ def _to_official_main(args) -> int:
   p = pathlib.Path(args.checkpoint)
   if pathlib.Path(args.out_dir).exists():  # before loading: the export never overwrites
     raise FileExistsError(f"{args.out_dir} already exists; refusing to overwrite it")
+  model, variables = load_model(p, step=args.step)
   step = None
   if model_io.what_is(p) == model_io.WORKDIR:
-    model, params = model_io.load_workdir(p, args.step)
     step = args.step if args.step is not None else checkpoint.checkpoint_steps(p)[-1]
-  elif args.step is not None:
-    raise ValueError(f"--step {args.step}: {p} is not a train.py workdir (config.json + "
-                     "checkpoints/)")
-  else:
-    model, params = load_model(p)
-  notes = ufm_jax.save_official(model, params, args.out_dir, source=str(p.absolute()), step=step)
+  notes = ufm_jax.save_official(model, variables, args.out_dir, source=str(p.absolute()),
+                                step=step)
   print(f"wrote {args.out_dir} ({type(model).__name__}" + (f", step {step})" if step is not None else ")"))
   for n in notes:
     print(f"  {n}")
   return 0
 
 
-def run_infer(model, params, source_path, target_path, out_dir, bidirectional=False):
+def run_infer(model, variables, source_path, target_path, out_dir, bidirectional=False):
   """Reads the two images, predicts, writes every output of `ufm_jax.outputs`; returns their
   paths."""
   from ufm_jax import inference, outputs
@@ -74,9 +70,9 @@ def run_infer(model, params, source_path, target_path, out_dir, bidirectional=Fa
   out_dir = pathlib.Path(out_dir)
   out_dir.mkdir(parents=True, exist_ok=True)
   if bidirectional:
-    fwd, bwd = inference.predict(model, params, [source, target], [target, source])
+    fwd, bwd = inference.predict(model, variables, [source, target], [target, source])
   else:
-    fwd, bwd = inference.predict(model, params, source, target), None
+    fwd, bwd = inference.predict(model, variables, source, target), None
   written = outputs.write(outputs.paths(out_dir, "forward"), source, target, fwd)
   if bwd is not None:
     written += outputs.write(outputs.paths(out_dir, "backward"), target, source, bwd)
@@ -101,8 +97,8 @@ def _infer_many(args) -> int:
     pairs = sequence.list_pairs(args.pairs)
   else:
     pairs = sequence.video_frames(args.source, args.stride)
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
-  counts = sequence.run(model, params, pairs, args.out, batch=args.batch, save=save,
+  model, variables = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
+  counts = sequence.run(model, variables, pairs, args.out, batch=args.batch, save=save,
                         overwrite=args.overwrite)
   print(f"{args.out}: {counts['done']} pairs written, {counts['skipped']} already there, "
         f"{counts['failed']} failed (see manifest.jsonl); "
@@ -120,8 +116,8 @@ def _infer_main(args) -> int:
   for p in (args.source, args.target):
     if not os.path.isfile(p):
       raise FileNotFoundError(f"image not found: {p}")
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
-  written = run_infer(model, params, args.source, args.target, args.out, args.bidirectional)
+  model, variables = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
+  written = run_infer(model, variables, args.source, args.target, args.out, args.bidirectional)
   for p in written:
     print(p)
   return 0
@@ -194,10 +190,10 @@ def _add_export_parser(sub) -> None:
 
 def _export_main(args) -> int:
   from ufm_jax import export
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
+  model, variables = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   outputs = (None if args.outputs is None else
              [k.strip() for k in args.outputs.split(",") if k.strip()])
-  written = export.export(model, params, args.size, args.out, fmt=args.format, batch=args.batch,
+  written = export.export(model, variables, args.size, args.out, fmt=args.format, batch=args.batch,
                           dtype=args.dtype, outputs=outputs,
                           checkpoint=(pathlib.Path(args.checkpoint).absolute()
                                       if os.path.exists(args.checkpoint) else args.checkpoint))
@@ -226,8 +222,8 @@ def _match_main(args) -> int:
   from ufm_jax import matching
   from ufm_jax.data import io
   source, target = io.read_image(args.source), io.read_image(args.target)
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
-  m = matching.match(model, params, source, target, num=args.num,
+  model, variables = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
+  m = matching.match(model, variables, source, target, num=args.num,
                      min_covisibility=args.min_covisibility, bidirectional=args.bidirectional,
                      max_fb_error_px=args.max_fb_error, seed=args.seed)
   out = matching.save_matches(args.out, m, source.shape, target.shape)
@@ -267,8 +263,8 @@ def _demo_main(args) -> int:
     return 2
   if args.max_side < 14:
     raise ValueError(f"--max-side {args.max_side}: must be at least the 14 px patch size")
-  model, params = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
-  demo.serve(model, params, host=args.host, port=args.port, share=args.share,
+  model, variables = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
+  demo.serve(model, variables, host=args.host, port=args.port, share=args.share,
              max_side=args.max_side, max_file_size=args.max_file_size)
   return 0
 

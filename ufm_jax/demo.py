@@ -1,5 +1,5 @@
 """Local demo page: `python -m ufm_jax demo --checkpoint DIR [--snapshot] [--port 7860]`
-(`serve(model, params, ...)` from Python).
+(`serve(model, variables, ...)` from Python).
 
 A Gradio app (the optional `[demo]` extra): upload two images (or pick the generated example
 pair) and see the flow in the Middlebury colour wheel, the covisibility, the target warped into
@@ -106,8 +106,8 @@ def colour_key(side: int = 96) -> np.ndarray:
 class Analyser:
   """Prediction (cached by image content) -> the demo's views; no gradio in here."""
 
-  def __init__(self, model, params, out_dir, max_side: int = DEFAULT_MAX_SIDE, cache_size: int = 8):
-    self.model, self.params = model, params
+  def __init__(self, model, variables, out_dir, max_side: int = DEFAULT_MAX_SIDE, cache_size: int = 8):
+    self.model, self.variables = model, variables
     self.out_dir = pathlib.Path(out_dir)
     self.max_side = max_side
     self.min_side = min_side(model)
@@ -125,7 +125,7 @@ class Analyser:
         self._cache.move_to_end(key)
         return key, self._cache[key], 0.0
       t0 = time.perf_counter()
-      pred = inference.predict(self.model, self.params, source, target)
+      pred = inference.predict(self.model, self.variables, source, target)
       ms = 1e3 * (time.perf_counter() - t0)
       self._cache[key] = pred
       while len(self._cache) > self.cache_size:
@@ -220,7 +220,7 @@ def is_loopback(host: str) -> bool:
     return False
 
 
-def serve(model, params, *, host: str = "127.0.0.1", port: int = 7860, share: bool = False,
+def serve(model, variables, *, host: str = "127.0.0.1", port: int = 7860, share: bool = False,
           max_side: int = DEFAULT_MAX_SIDE, max_file_size: str = DEFAULT_MAX_FILE_SIZE) -> None:
   """Warms the model up on the example pair, then serves the page until Ctrl-C (needs gradio).
   `python -m ufm_jax demo` parses its arguments and calls this."""
@@ -229,7 +229,7 @@ def serve(model, params, *, host: str = "127.0.0.1", port: int = 7860, share: bo
     examples_dir, out_dir = pathlib.Path(tmp, "examples"), pathlib.Path(tmp, "out")
     examples_dir.mkdir()
     out_dir.mkdir()
-    analyser = Analyser(model, params, out_dir, max_side=max_side)
+    analyser = Analyser(model, variables, out_dir, max_side=max_side)
     pair = example_pair(examples_dir)
     if max(EXAMPLE_SIZE) <= max_side:
       from ufm_jax.data import io

@@ -51,7 +51,7 @@ def sidecar_path(path: str | os.PathLike) -> pathlib.Path:
 # Export
 
 
-def _prepare(model, params, size, dtype, outputs, attention_impl=None):
+def _prepare(model, variables, size, dtype, outputs, attention_impl=None):
   """(forward fn(source, target) -> {name: array}, the model as exported, output names).
 
   attention_impl None picks per platform inside the artifact (the CPU loop, XLA on CUDA); ONNX
@@ -60,6 +60,7 @@ def _prepare(model, params, size, dtype, outputs, attention_impl=None):
   import jax.numpy as jnp
 
   from ufm_jax.models import ufm
+  variables = ufm.variables(variables)
   if dtype not in DTYPES:
     raise ExportError(f"--dtype {dtype!r}; expected one of {', '.join(DTYPES)}")
   cfg = model.config
@@ -72,7 +73,7 @@ def _prepare(model, params, size, dtype, outputs, attention_impl=None):
     raise ExportError(f"--size {h}x{w}: H and W must be positive multiples of the patch size "
                       f"{patch} (e.g. {max(patch, h // patch * patch)}x{max(patch, w // patch * patch)})")
   spec = jax.ShapeDtypeStruct((1, h, w, 3), jnp.uint8)
-  available = jax.eval_shape(lambda s, t: model.apply(ufm.variables(params), s, t), spec, spec)
+  available = jax.eval_shape(lambda s, t: model.apply(variables, s, t), spec, spec)
   outputs = resolve_outputs(outputs, available, model)
   missing = [k for k in outputs if k not in available]
   if missing or not outputs:
@@ -80,7 +81,7 @@ def _prepare(model, params, size, dtype, outputs, attention_impl=None):
                       f"it returns {', '.join(sorted(available))}")
 
   def forward(source, target):
-    out = model.apply(ufm.variables(params), source, target)
+    out = model.apply(variables, source, target)
     return {k: out[k] for k in outputs}
 
   return forward, model, outputs
@@ -109,14 +110,14 @@ def _batch_dim(batch):
   return int(batch)
 
 
-def export_stablehlo(model, params, size, *, batch=1, dtype="float32",
+def export_stablehlo(model, variables, size, *, batch=1, dtype="float32",
                      outputs: Sequence[str] | None = None, platforms=PLATFORMS):
   """The forward as a `jax.export.Exported` (parameters are constants inside it)."""
   import jax
   import jax.numpy as jnp
   from jax import export as jax_export
 
-  forward, model, outputs = _prepare(model, params, size, dtype, outputs)
+  forward, model, outputs = _prepare(model, variables, size, dtype, outputs)
   spec = jax.ShapeDtypeStruct((_batch_dim(batch),) + tuple(size) + (3,), jnp.uint8)
   return jax_export.export(jax.jit(forward), platforms=tuple(platforms))(spec, spec), model
 
@@ -201,7 +202,7 @@ def write_onnx(fn, specs, input_names, output_names, path) -> None:
       os.replace(f, path.parent / f.name)
 
 
-def export_onnx(model, params, size, path, *, batch=1, dtype="float32",
+def export_onnx(model, variables, size, path, *, batch=1, dtype="float32",
                 outputs: Sequence[str] | None = None):
   """Writes the forward as one ONNX graph (inputs source/target, outputs named as `outputs`)."""
   import jax
@@ -213,7 +214,7 @@ def export_onnx(model, params, size, path, *, batch=1, dtype="float32",
     raise ExportError("--format onnx needs a fixed --batch N (a symbolic batch does not survive "
                       "jax2onnx's conversion of the two-view split); use --format stablehlo for "
                       "a dynamic batch")
-  forward, model, outputs = _prepare(model, params, size, dtype, outputs, attention_impl="xla")
+  forward, model, outputs = _prepare(model, variables, size, dtype, outputs, attention_impl="xla")
   spec = jax.ShapeDtypeStruct((_batch_dim(batch),) + tuple(size) + (3,), jnp.uint8)
   specs = [spec, spec]
   write_onnx(lambda s, t: tuple(forward(s, t)[k] for k in outputs), specs, INPUT_NAMES, outputs,
@@ -246,32 +247,33 @@ def _sidecar(fmt, model, size, batch, dtype, outputs, shapes, checkpoint, platfo
   }
 
 
-def export(model, params, size, out, *, fmt="stablehlo", batch=1, dtype="float32",
+def export(model, variables, size, out, *, fmt="stablehlo", batch=1, dtype="float32",
            outputs: Sequence[str] | None = None, checkpoint=None,
            platforms=PLATFORMS) -> list[pathlib.Path]:
-  """Exports (model, params) at `size` (H, W) to `out` + its JSON sidecar; returns the paths."""
+  """Exports (model, variables) at `size` (H, W) to `out` + its JSON sidecar; returns the paths."""
   import jax
   import jax.numpy as jnp
 
   from ufm_jax.data import io
   from ufm_jax.models import ufm
+  variables = ufm.variables(variables)
   if fmt not in FORMATS:
     raise ExportError(f"--format {fmt!r}; expected one of {', '.join(FORMATS)}")
   out = pathlib.Path(out)
   out.parent.mkdir(parents=True, exist_ok=True)
   size = (int(size[0]), int(size[1]))
   if fmt == "stablehlo":
-    exp, model = export_stablehlo(model, params, size, batch=batch, dtype=dtype, outputs=outputs,
+    exp, model = export_stablehlo(model, variables, size, batch=batch, dtype=dtype, outputs=outputs,
                                   platforms=platforms)
     with io.atomic_file(out) as tmp:
       pathlib.Path(tmp).write_bytes(bytes(exp.serialize()))
     written = [out]
   else:
-    model = export_onnx(model, params, size, out, batch=batch, dtype=dtype, outputs=outputs)
+    model = export_onnx(model, variables, size, out, batch=batch, dtype=dtype, outputs=outputs)
     written = [out] + ([out.with_name(out.name + ".data")] if out.with_name(out.name + ".data")
                        .exists() else [])
   spec = jax.ShapeDtypeStruct((1,) + size + (3,), jnp.uint8)
-  avals = jax.eval_shape(lambda s, t: model.apply(ufm.variables(params), s, t), spec, spec)
+  avals = jax.eval_shape(lambda s, t: model.apply(variables, s, t), spec, spec)
   outputs = resolve_outputs(outputs, avals, model)
   shapes = {}
   for k in outputs:

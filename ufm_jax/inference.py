@@ -1,4 +1,4 @@
-"""High-level inference: `predict(model, params, source, target)`.
+"""High-level inference: `predict(model, variables, source, target)`.
 
 Reproduces the official `predict_correspondences_batched` (uniflowmatch/models/base.py with
 utils/flow_resizing.py) step by step:
@@ -215,10 +215,9 @@ def _forward_fn(model):
   if entry is None or entry[0] is not model:
     from ufm_jax import compile_cache
     compile_cache.enable()  # a new process on the same shapes loads the executable from disk
-    from ufm_jax.models import ufm
 
-    def fwd(params, source, target):
-      out = model.apply(ufm.variables(params), source, target)
+    def fwd(variables, source, target):
+      out = model.apply(variables, source, target)
       if "covisibility" not in out:
         _warn_no_covisibility(model)
       return {k: out[k] for k in ("flow", "covisibility") if k in out}
@@ -272,12 +271,13 @@ def unmap_prediction(flow, covisibility, book) -> dict[str, np.ndarray]:
   return out
 
 
-def predict(model, params, source, target, *, batch_size: int = 8, resolutions=None,
+def predict(model, variables, source, target, *, batch_size: int = 8, resolutions=None,
             timings: list | None = None):
   """Official high-level inference (`predict_correspondences_batched`).
 
   Args:
-    model, params: a UFM model and its params (`ufm_jax.load_official` / `ufm_jax.load`).
+    model, variables: a UFM model and its variables {"params"[, "batch_stats"]}, as
+      `ufm_jax.load_official` / `ufm_jax.load` return them (a bare parameter tree is taken too).
     source, target: one pair of HWC uint8 RGB images (sizes may differ), or two equal-length
       lists of such images, or two [B, H, W, 3] arrays.
     batch_size: pairs per forward call (pairs are grouped by inference resolution).
@@ -294,7 +294,7 @@ def predict(model, params, source, target, *, batch_size: int = 8, resolutions=N
     if target.ndim != 4 or len(target) != len(source):
       raise ValueError(f"batched predict: source {source.shape} and target {target.shape} must "
                        "both be [B, H, W, 3] with the same B")
-    outs = predict(model, params, list(source), list(target), batch_size=batch_size,
+    outs = predict(model, variables, list(source), list(target), batch_size=batch_size,
                    resolutions=resolutions, timings=timings)
     return {k: np.stack([o[k] for o in outs]) for k in outs[0]}
   single = not isinstance(source, (list, tuple))
@@ -306,6 +306,8 @@ def predict(model, params, source, target, *, batch_size: int = 8, resolutions=N
   targets = [_check_image(t, f"target[{i}]") for i, t in enumerate(targets)]
   resolutions = [tuple(r) for r in resolutions] if resolutions else inference_resolutions(model)
   fwd, compiled_shapes = _forward_fn(model)
+  from ufm_jax.models import ufm
+  variables = ufm.variables(variables)   # one pytree structure: one compile per shape
 
   import jax
 
@@ -320,7 +322,7 @@ def predict(model, params, source, target, *, batch_size: int = 8, resolutions=N
       src = denormalize(np.stack([prepared[i][0] for i in chunk]))
       tgt = denormalize(np.stack([prepared[i][1] for i in chunk]))
       t0 = time.perf_counter()
-      out = jax.block_until_ready(fwd(params, src, tgt))
+      out = jax.block_until_ready(fwd(variables, src, tgt))
       if timings is not None and src.shape in compiled_shapes:
         timings.append((time.perf_counter() - t0, len(chunk)))
       compiled_shapes.add(src.shape)

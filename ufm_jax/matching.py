@@ -1,6 +1,6 @@
 """Sparse matches from UFM's dense flow + covisibility, for pose / SfM tools (OpenCV, COLMAP).
 
-  m = ufm_jax.match(model, params, source, target, num=5000, min_covisibility=0.5)
+  m = ufm_jax.match(model, variables, source, target, num=5000, min_covisibility=0.5)
   m["keypoints0"], m["keypoints1"]   # [N, 2] float pixels (x right, y down, pixel centres at
                                      # integers) of the ORIGINAL source / target images
   m["confidence"]                    # [N] predicted covisibility of each match
@@ -54,15 +54,16 @@ def matches_from_dense(flow, covisibility, *, num=5000, min_covisibility=0.5, ta
           "confidence": covis.reshape(-1)[idx].astype(np.float32)}
 
 
-def match(model, params, source, target, num=5000, min_covisibility=0.5, bidirectional=False,
+def match(model, variables, source, target, num=5000, min_covisibility=0.5, bidirectional=False,
           max_fb_error_px=1.0, seed=0) -> dict[str, np.ndarray]:
-  """Matches between two HWC uint8 RGB images (any sizes) in their original pixel coordinates."""
+  """Matches between two HWC uint8 RGB images (any sizes) in their original pixel coordinates;
+  `variables` as the loaders return them."""
   from ufm_jax import inference
   source, target = np.asarray(source), np.asarray(target)
   if bidirectional:
-    fwd, bwd = inference.predict(model, params, [source, target], [target, source])
+    fwd, bwd = inference.predict(model, variables, [source, target], [target, source])
   else:
-    fwd, bwd = inference.predict(model, params, source, target), None
+    fwd, bwd = inference.predict(model, variables, source, target), None
   return matches_from_dense(fwd["flow"], fwd.get("covisibility"), num=num,
                             min_covisibility=min_covisibility, target_hw=target.shape[:2],
                             backward_flow=None if bwd is None else bwd["flow"],

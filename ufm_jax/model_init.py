@@ -115,10 +115,9 @@ def _read_source(kind: str, path: str, want_config: bool):
   """(variables {"params"[, "batch_stats"]} as flat "a/b" dicts, the source's model config (None
   for DINOv2 weights, a model without one, or when not `want_config`), the report's name of the
   source)."""
-  from ufm_jax.models import ufm
   if kind == "dinov2":
-    from ufm_jax.models import dinov2
-    return {"params": dinov2.load(path)}, None, f"{kind}:{path}"
+    from ufm_jax.official import dinov2_weights
+    return {"params": dinov2_weights.load(path)}, None, f"{kind}:{path}"
   model = None
   if kind == "snapshot":
     from ufm_jax.official import snapshot
@@ -137,8 +136,7 @@ def _read_source(kind: str, path: str, want_config: bool):
                       "normalisation, heads) is not checked against the config", root)
     path = f"{path}@{step}"
   else:
-    model, variables = model_io.load(path)
-  variables = ufm.variables(variables)
+    model, variables = model_io.load_converted(path)
   out = {c: {k: np.asarray(v) for k, v in flatten(tree).items()}
          for c, tree in variables.items() if c in ("params", "batch_stats")}
   return out, getattr(model, "config", None), f"{kind}:{path}"

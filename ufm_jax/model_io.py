@@ -1,11 +1,12 @@
-"""Models on disk: what a path holds, loading (model, params) from any of them, and our own
+"""Models on disk: what a path holds, loading (model, variables) from any of them, and our own
 checkpoint format.
 
-    model, params = model_io.load_model(path)   # official snapshot, converted checkpoint or
-                                                 # train.py workdir (latest step)
-    model_io.save(out_dir, model, params)        # -> params/ (orbax) + model_config.json
-    model, params = model_io.load(out_dir)       # `ufm_jax.load`
+    model, variables = model_io.load_model(path)   # `ufm_jax.load`: an official snapshot (folder,
+                                                    # or Hub ID with snapshot=True), a converted
+                                                    # checkpoint or a train.py workdir
+    model_io.save(out_dir, model, variables)        # -> params/ (orbax) + model_config.json
 
+Every loader returns the Flax variables {"params"[, "batch_stats"]}: `model.apply(variables, ...)`.
 The command line, the demo, evaluate.py and `ufm_jax.sequence` load through `load_model`;
 `model_init` (ufm_jax.model_init) asks `what_is` too. The official format itself is
 `ufm_jax.official`.
@@ -50,31 +51,57 @@ def what_is(path: str | os.PathLike) -> str | None:
   return None
 
 
-def load_model(path: str | os.PathLike, snapshot: bool = False, revision: str | None = None):
-  """(model, params) from an official snapshot, a train.py workdir (its latest step) or a
-  converted checkpoint; `snapshot=True` insists on a snapshot, which may then also be a Hugging
-  Face model ID (infinity1096/UFM-Base, at `revision`; `ufm_jax.official.snapshot_folder`)."""
+def load_model(path: str | os.PathLike, snapshot: bool = False, revision: str | None = None,
+               step: int | None = None):
+  """(model, variables) from an official snapshot, a train.py workdir (its latest step, or
+  `step`) or a converted checkpoint: what every command's --checkpoint takes. `snapshot=True`
+  insists on a snapshot, which may then also be a Hugging Face model ID (infinity1096/UFM-Base,
+  at `revision`; `ufm_jax.official.snapshot_folder`). variables: {"params"[, "batch_stats"]}."""
+  model, variables, _ = load_recorded(path, snapshot, revision, step)
+  return model, variables
+
+
+def load_recorded(path: str | os.PathLike, snapshot: bool = False, revision: str | None = None,
+                  step: int | None = None):
+  """`load_model`, plus what a results file records of the source: {"checkpoint": the Hub ID as
+  given, or the folder's absolute path; for a Hub ID "revision" (as asked, None: the default
+  branch) and "commit" (the Hub commit it resolved to); for a workdir "step"}."""
+  from ufm_jax.official import snapshot as official_snapshot
   p = pathlib.Path(path)
   if snapshot and not p.exists():
-    from ufm_jax.official import snapshot as official_snapshot
-    return official_snapshot.load_official(str(path), revision)
+    _no_step(step, path)
+    folder = official_snapshot.snapshot_folder(str(path), revision)
+    model, variables = official_snapshot.load_official(folder)
+    return model, variables, {"checkpoint": str(path), "revision": revision,
+                              "commit": official_snapshot.hub_commit(folder)}
   if not p.is_dir():
-    hint = (" (a Hugging Face model ID needs --snapshot)"
-            if official_hub_id(str(path)) else "")
+    hint = (" (a Hugging Face model ID needs --snapshot on the command line, snapshot=True in "
+            "ufm_jax.load, or ufm_jax.load_official)" if official_hub_id(str(path)) else "")
     raise FileNotFoundError(f"checkpoint directory not found: {p}{hint}")
+  if revision is not None:
+    raise ValueError(f"revision={revision!r} applies to Hugging Face model IDs; {p} is a local "
+                     "folder")
   kind = what_is(p)
   if snapshot and kind != SNAPSHOT:
     raise FileNotFoundError(f"{p} is not a Hugging Face snapshot: expected config.json and "
                             "model.safetensors in it")
-  if kind == SNAPSHOT:
-    from ufm_jax.official import snapshot as official_snapshot
-    return official_snapshot.load_official(p)
+  record = {"checkpoint": str(p.absolute())}
   if kind == WORKDIR:
-    return load_workdir(p)
+    model, variables, record["step"] = _load_workdir(p, step)
+    return model, variables, record
+  _no_step(step, p)
+  if kind == SNAPSHOT:
+    return (*official_snapshot.load_official(p), record)
   if kind == DINOV2:
     raise ValueError(f"{p} holds DINOv2 weights, an encoder only: start a training run from them "
                      f"with model_init=dinov2:{p}")
-  return load(p)
+  return (*load_converted(p), record)
+
+
+def _no_step(step, path) -> None:
+  if step is not None:
+    raise ValueError(f"step {step}: {path} is not a train.py workdir (config.json + "
+                     "checkpoints/)")
 
 
 def official_hub_id(name: str) -> bool:
@@ -84,15 +111,17 @@ def official_hub_id(name: str) -> bool:
 
 
 def load_workdir(path: str | os.PathLike, step: int | None = None):
-  """(model, params) of the latest (or given) checkpoint step of a train.py workdir; the model is
-  rebuilt from the workdir's config.json by `trainer.build_model`, as training built it. params:
-  the parameter tree, or {"params", "batch_stats"} for a model with BatchNorm (`state_variables`).
-  """
+  """(model, variables) of the latest (or given) checkpoint step of a train.py workdir; the model
+  is rebuilt from the workdir's config.json by `trainer.build_model`, as training built it."""
+  return _load_workdir(path, step)[:2]
+
+
+def _load_workdir(path, step):
   from ufm_jax import checkpoint
 
   model = workdir_model(path)
-  state, _ = checkpoint.read_state_numpy(path, step)
-  return model, state_variables(state)
+  state, step = checkpoint.read_state_numpy(path, step)
+  return model, state_variables(state), step
 
 
 def workdir_model(path: str | os.PathLike):
@@ -113,11 +142,10 @@ def workdir_model(path: str | os.PathLike):
 
 
 def state_variables(state: dict):
-  """A saved TrainState (as `checkpoint.read_state_numpy` reads it) -> the model's variables in
-  the loaders' convention: the parameter tree, or {"params", "batch_stats"} when the run kept
-  BatchNorm running statistics."""
+  """A saved TrainState (as `checkpoint.read_state_numpy` reads it) -> the model's variables:
+  {"params"}, and "batch_stats" when the run kept BatchNorm running statistics."""
   if state.get("batch_stats") is None:
-    return state["params"]
+    return {"params": state["params"]}
   return {"params": state["params"], "batch_stats": state["batch_stats"]}
 
 
@@ -134,30 +162,34 @@ def _saved_classes() -> dict:
   }
 
 
-def save(out_dir, model, params, class_name: str | None = None):
-  """Write params (orbax) + model_config.json into a new folder, atomically (temp + rename)."""
+def save(out_dir, model, variables, class_name: str | None = None):
+  """Write the variables (orbax) + model_config.json into a new folder, atomically (temp +
+  rename)."""
   import jax
   import numpy as np
   import orbax.checkpoint as ocp
 
   from ufm_jax.data import io
+  from ufm_jax.models import ufm
   from ufm_jax.official import config as official_config
 
   with io.atomic_dir(out_dir) as tmp:
-    ocp.PyTreeCheckpointer().save(tmp / PARAMS_DIR, jax.tree.map(np.asarray, params))
+    ocp.PyTreeCheckpointer().save(tmp / PARAMS_DIR,
+                                  jax.tree.map(np.asarray, ufm.variables(variables)))
     meta = {"class": class_name or official_config.class_name(model),
             "config": dataclasses.asdict(model.config)}
     (tmp / CONFIG_FILE).write_text(json.dumps(meta, indent=2))
 
 
-def load(ckpt_dir):
-  """(model, params) from a folder written by `save` / `python -m ufm_jax convert` (params: the
-  parameter tree, or the variables with "batch_stats" for a BatchNorm U-Net)."""
+def load_converted(ckpt_dir):
+  """(model, variables) from a folder written by `save` / `python -m ufm_jax convert` (also one
+  written before the variables convention, which held the bare parameter tree)."""
   import jax
   import jax.numpy as jnp
   import numpy as np
   import orbax.checkpoint as ocp
 
+  from ufm_jax.models import ufm
   from ufm_jax.official import keymap
   from ufm_jax.official import snapshot as official_snapshot
 
@@ -174,16 +206,15 @@ def load(ckpt_dir):
   from_dict, build = classes[meta["class"]]
   model = build(from_dict(meta["config"]))
   # Saved as numpy arrays: orbax restores them as numpy without a target tree.
-  params = keymap.unfreeze(ocp.PyTreeCheckpointer().restore(d / PARAMS_DIR))
-  got = {k: tuple(np.shape(v)) for k, v in keymap.flat_variables(params).items()}
+  variables = ufm.variables(keymap.unfreeze(ocp.PyTreeCheckpointer().restore(d / PARAMS_DIR)))
+  got = {k: tuple(np.shape(v)) for k, v in keymap.flat_variables(variables).items()}
   want = official_snapshot.expected_variable_shapes(model)
   if got != want:
     bad = sorted(set(got) ^ set(want)) + sorted(k for k in set(got) & set(want)
                                                  if got[k] != want[k])
     raise ValueError(f"{d / PARAMS_DIR}: parameters do not match the model of {cfg_path}: "
                      + ", ".join("/".join(k) for k in bad[:20]))
-  params = jax.tree.map(jnp.asarray, params)
-  return model, params
+  return model, jax.tree.map(jnp.asarray, variables)
 
 
 def convert_snapshot(snapshot_dir, out_dir, revision: str | None = None) -> str:
@@ -193,7 +224,7 @@ def convert_snapshot(snapshot_dir, out_dir, revision: str | None = None) -> str:
   import numpy as np
 
   from ufm_jax.official import snapshot as official_snapshot
-  model, params = official_snapshot.load_official(snapshot_dir, revision)
-  save(out_dir, model, params)
-  n = sum(int(np.prod(v.shape)) for v in jax.tree.leaves(params))
+  model, variables = official_snapshot.load_official(snapshot_dir, revision)
+  save(out_dir, model, variables)
+  n = sum(int(np.prod(v.shape)) for v in jax.tree.leaves(variables["params"]))
   return f"wrote {out_dir} ({type(model).__name__}, {n:,} parameters)"

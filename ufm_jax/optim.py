@@ -223,10 +223,10 @@ class TrainState:
     return TrainStateWithStats(**kw, batch_stats=batch_stats)
 
   def variables(self):
-    """The model's variables in the loaders' convention (`ufm_jax.models.ufm.variables`): the
-    parameter tree, or {"params", "batch_stats"} for a model with BatchNorm."""
+    """The model's variables as the loaders return them: {"params"}, and "batch_stats" for a
+    model with BatchNorm."""
     if self.batch_stats is None:
-      return self.params
+      return {"params": self.params}
     return {"params": self.params, "batch_stats": self.batch_stats}
 
 

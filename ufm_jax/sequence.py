@@ -83,7 +83,7 @@ def pair_name(a, b) -> str:
   return f"{pathlib.Path(a).stem}__{pathlib.Path(b).stem}"
 
 
-def run(model, params, pairs, out_dir, *, batch: int = 1, save=(), overwrite=False,
+def run(model, variables, pairs, out_dir, *, batch: int = 1, save=(), overwrite=False,
         workers: int = 4, progress=True) -> dict:
   """pairs: an iterable of (source, target), each a path or a (name, image); consumed as it goes
   (a video is never decoded whole). Returns counts (done/skipped/failed) and seconds."""
@@ -145,7 +145,7 @@ def run(model, params, pairs, out_dir, *, batch: int = 1, save=(), overwrite=Fal
         srcs = [g[1][0] for g in good] + [good[-1][1][0]] * (batch - len(good))
         tgts = [g[1][1] for g in good] + [good[-1][1][1]] * (batch - len(good))
         t0 = time.perf_counter()
-        preds = inference.predict(model, params, srcs, tgts, batch_size=batch)[:len(good)]
+        preds = inference.predict(model, variables, srcs, tgts, batch_size=batch)[:len(good)]
         ms = 1e3 * (time.perf_counter() - t0) / len(good)
         for (it, (x, y)), pred in zip(good, preds):
           writes.append(pool.submit(outputs.write, it[5], x, y, pred))

@@ -196,19 +196,17 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
 
 def make_predict(model, apply_kwargs, gather_params=None):
   """predict(variables, batch) -> {"flow", "covisibility"} for evaluation batches; "covisibility"
-  only from a model that has an uncertainty head. `variables`: the parameter tree, or
-  {"params", "batch_stats"} for a model with BatchNorm (`TrainState.variables`), which then
-  normalises with its running statistics (train=False).
+  only from a model that has an uncertainty head. `variables`: {"params"[, "batch_stats"]}
+  (`TrainState.variables`); a model with BatchNorm normalises with its running statistics
+  (train=False).
 
   Training batches are symmetrized ((a, b), (b, a) rows whose images are encoded once); evaluation
   pairs are not, so `symmetrized` is dropped: with it every odd row would be predicted for the
   reverse of the pair before it.
   """
-  from ufm_jax.models import ufm
   kwargs = {k: v for k, v in apply_kwargs.items() if k != "symmetrized"}
 
   def predict(variables, batch):
-    variables = ufm.variables(variables)
     if gather_params is not None:
       variables = dict(variables, params=gather_params(variables["params"]))
     out = model.apply(variables, batch["image0"], batch["image1"], **kwargs)
@@ -318,9 +316,8 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
                          param_sh=param_sh)
   train_step = jax.jit(step, in_shardings=(state_sh, batch_sh), out_shardings=(state_sh, repl),
                        donate_argnums=(0,))
-  eval_sh = param_sh if abstract_state.batch_stats is None else variables_sh
   predict = jax.jit(make_predict(model, apply_kwargs, gather_params),
-                    in_shardings=(eval_sh, batch_sh), out_shardings=repl)
+                    in_shardings=(variables_sh, batch_sh), out_shardings=repl)
   return TrainSetup(model, tx, labels, schedules, init_fn, abstract_params, abstract_state,
                     param_sh, state_sh, batch_sh, train_step, predict, variables_sh)
 

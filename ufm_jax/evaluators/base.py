@@ -74,13 +74,13 @@ def resolution_for(mode, hw: tuple[int, int], patch: int = 14):
 class Runner:
   """Runs `ufm_jax.predict` on one pair at a time and keeps the forward-pass timings."""
 
-  def __init__(self, model, params, resolution=None):
-    self.model, self.params, self.resolution = model, params, resolution
+  def __init__(self, model, variables, resolution=None):
+    self.model, self.variables, self.resolution = model, variables, resolution
     self.timings: list[tuple[float, int]] = []
 
   def __call__(self, image0: np.ndarray, image1: np.ndarray) -> dict[str, np.ndarray]:
     res = resolution_for(self.resolution, image0.shape[:2])
-    return inference.predict(self.model, self.params, image0, image1,
+    return inference.predict(self.model, self.variables, image0, image1,
                              resolutions=None if res is None else [res], timings=self.timings)
 
   def warmup(self, image0, image1) -> None:

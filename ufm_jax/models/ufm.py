@@ -216,6 +216,14 @@ class UFM(nn.Module):
     return x if self.activation_sharding is None else self.activation_sharding(x)
 
   @nn.nowrap
+  def apply(self, variables, *args, **kwargs):
+    """flax's apply, refusing with a message what the loaders' convention rules out: the
+    variables {"params"[, "batch_stats"]} wrapped once more (`{"params": variables}`, the call
+    of the loaders' old (model, params) convention), or a bare parameter tree."""
+    check_variables(variables)
+    return super().apply(variables, *args, **kwargs)
+
+  @nn.nowrap
   def init(self, rngs, *args, **kwargs):
     """flax's init; with config.param_init "official" the fresh parameters are then redrawn as
     the official modules draw them (`official_init`)."""
@@ -333,10 +341,28 @@ def model_from_config(cfg: UFMConfig, **kw) -> UFM:
   return UFM(cfg, **kw)
 
 
-def variables(params) -> Dict[str, Any]:
-  """The variables for `model.apply` from what the loaders return: a parameter tree, or the
-  variables of a model with BatchNorm ({"params", "batch_stats"}), passed through."""
-  return params if "params" in params else {"params": params}
+def variables(tree) -> Dict[str, Any]:
+  """The variables for `model.apply` ({"params"[, "batch_stats"]}, what every loader returns)
+  from those variables (passed through) or from a bare parameter tree (wrapped): the one
+  normalisation of what users hand to predict, match, export and save_official."""
+  return tree if "params" in tree else {"params": tree}
+
+
+def check_variables(tree) -> None:
+  """Raises a TypeError saying what to write instead when `tree` is not a variables dict."""
+  if not isinstance(tree, Mapping):
+    return   # flax's own error for non-mappings
+  inner = tree.get("params")
+  if isinstance(inner, Mapping) and ("params" in inner or "batch_stats" in inner):
+    raise TypeError(
+        "model.apply got the variables wrapped in another {'params': ...}: the ufm_jax loaders "
+        "return (model, variables) with variables = {'params': ...[, 'batch_stats': ...]}; call "
+        "model.apply(variables, ...), not model.apply({'params': variables}, ...)")
+  if inner is None and tree and not set(tree) & {"batch_stats", "intermediates", "cache"}:
+    raise TypeError(
+        f"model.apply got a bare parameter tree (top-level keys {sorted(tree)[:4]}...): pass the "
+        "variables {'params': params}, as the ufm_jax loaders return them "
+        "(ufm_jax.models.ufm.variables(params) wraps a bare tree)")
 
 
 def variable_shapes(model: UFM) -> Dict[str, Any]:

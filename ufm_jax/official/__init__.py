@@ -2,14 +2,14 @@
 
   keymap.py    torch state-dict names and layouts <-> Flax param paths and arrays
   config.py    official config.json <-> our model configs; the registry of official classes
-  snapshot.py  `load_official(snapshot)` -> (model, params); `save_official` writes one back
+  snapshot.py  `load_official(snapshot)` -> (model, variables); `save_official` writes one back
+  dinov2_weights.py  released DINOv2 weights (Hub safetensors, original .pth) as encoder params
 
-    model, params = ufm_jax.load_official("path/to/UFM-Base")   # a snapshot folder
-    ufm_jax.save_official(model, params, "path/to/export")       # a new snapshot + model card
+    model, variables = ufm_jax.load_official("path/to/UFM-Base")   # a snapshot folder
+    ufm_jax.save_official(model, variables, "path/to/export")       # a new snapshot + model card
 
 Our own checkpoint format (`python -m ufm_jax convert`) is `ufm_jax.model_io`. The names below
-are imported on first use, so that `ufm_jax.models.dinov2` can map its weights with the key map
-without importing the model configs back.
+are imported on first use, so that importing the key map alone stays cheap.
 """
 
 _LAZY = {

@@ -12,7 +12,7 @@ One rule each:
 Buffers (view_pos_table, flow_mean/flow_std) are not parameters: `params_from_state_dict` checks
 them against the values the config implies. BatchNorm running statistics go to the
 "batch_stats" collection under the same rules. No model code is imported here, so the model modules
-map their own released weights with it (`ufm_jax.models.dinov2.load`).
+map their own released weights with it (`ufm_jax.official.dinov2_weights.load`).
 """
 
 import functools
@@ -142,8 +142,8 @@ def params_from_state_dict(state: Dict[str, np.ndarray], expected: Dict[Tuple[st
                            buffers: Dict[str, np.ndarray], source: str = "state dict",
                            as_jax: bool = True):
   """Map a torch-named state dict onto the variables with the `expected` {(collection, *Flax
-  path): shape}; raise listing every problem. Returns the parameter tree, or the variables
-  {"params", "batch_stats"} when BatchNorm statistics are expected.
+  path): shape}; raise listing every problem. Returns the variables {"params"[,
+  "batch_stats"]}.
 
   as_jax=False returns numpy views of `state` (no copy), for checking an export."""
   flat: Dict[Tuple[str, ...], np.ndarray] = {}
@@ -182,8 +182,8 @@ def params_from_state_dict(state: Dict[str, np.ndarray], expected: Dict[Tuple[st
         lines.append(f"  {title} ({len(items)}):")
         lines.extend(f"    {s}" for s in items)
     raise ValueError("\n".join(lines))
-  tree = traverse_util.unflatten_dict({k: jnp.asarray(v) if as_jax else v for k, v in flat.items()})
-  return tree["params"] if set(tree) == {"params"} else tree
+  return traverse_util.unflatten_dict({k: jnp.asarray(v) if as_jax else v
+                                       for k, v in flat.items()})
 
 
 def state_dict_from_params(params, buffers: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:

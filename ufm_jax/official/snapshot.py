@@ -1,5 +1,5 @@
 """Official Hugging Face snapshots (config.json + model.safetensors, as `save_pretrained` writes
-them): `load_official` reads one into (model, params), from a folder or a Hub ID through the
+them): `load_official` reads one into (model, variables), from a folder or a Hub ID through the
 standard Hugging Face cache; `save_official` writes one with a model card, read back through the
 loader before anything is written.
 """
@@ -64,6 +64,13 @@ def snapshot_folder(name, revision: Optional[str] = None) -> pathlib.Path:
         f"{name} either") from None
 
 
+def hub_commit(folder) -> Optional[str]:
+  """The Hub commit of a folder of huggingface_hub's cache (`.../snapshots/<commit>/`), else
+  None (a folder of the user's own)."""
+  folder = pathlib.Path(folder)
+  return folder.name if folder.parent.name == "snapshots" else None
+
+
 def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
   d = pathlib.Path(snapshot_dir)
   cfg_path, w_path = d / "config.json", d / "model.safetensors"
@@ -79,19 +86,19 @@ def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
 
 
 def load_official(snapshot, revision: Optional[str] = None):
-  """(model, params) from a snapshot of an official UFM release: a folder, or a Hugging Face
+  """(model, variables) from a snapshot of an official UFM release: a folder, or a Hugging Face
   model ID (`load_official("infinity1096/UFM-Base")`, `snapshot_folder`).
 
-  params is the parameter tree, or for a U-Net with BatchNorm the variables {"params",
-  "batch_stats"} (either goes to `ufm_jax.predict`; `model.apply(ufm.variables(params), ...)`).
+  variables: {"params": ...}, plus "batch_stats" for a U-Net with BatchNorm, as every loader
+  returns them: `model.apply(variables, ...)`, `ufm_jax.predict(model, variables, ...)`.
   """
   d = snapshot_folder(snapshot, revision)
   cj, state = read_snapshot(d)
   where = str(snapshot) if d == pathlib.Path(snapshot) else f"{snapshot} ({d})"
   spec = official_config.official_spec(cj, state, f"{where}/config.json")
-  params = keymap.params_from_state_dict(state, expected_variable_shapes(spec.model),
-                                         spec.buffers, f"{where}/model.safetensors")
-  return spec.model, params
+  variables = keymap.params_from_state_dict(state, expected_variable_shapes(spec.model),
+                                            spec.buffers, f"{where}/model.safetensors")
+  return spec.model, variables
 
 
 # UFMConfig fields a snapshot does not carry: compute options and initialisers (the encoder's
@@ -149,9 +156,9 @@ def _model_card(class_name: str, source: Optional[str], step: Optional[int],
   return "\n".join(lines) + "\n"
 
 
-def save_official(model, params, out_dir, *, source: Optional[str] = None,
+def save_official(model, variables, out_dir, *, source: Optional[str] = None,
                   step: Optional[int] = None) -> List[str]:
-  """Write (model, params) as an official Hugging Face snapshot: the inverse of load_official.
+  """Write (model, variables) as an official Hugging Face snapshot: the inverse of load_official.
 
   out_dir (new; written atomically) gets config.json (the official constructor kwargs, as
   `save_pretrained` writes them: for a model read by load_official, the config.json it was read
@@ -159,25 +166,22 @@ def save_official(model, params, out_dir, *, source: Optional[str] = None,
   parameter and persistent buffer in float32 under its official name and layout, BatchNorm
   batch counts in int64; a tensor shared by several modules once, under the name safetensors
   keeps, the other names in the file's metadata) and a README.md model card naming `source`,
-  `step` and the ufm_jax version. `params`: the parameter tree or the variables dict (with
-  "batch_stats" for BatchNorm). Returns notes for the user: the official kwargs written as
+  `step` and the ufm_jax version. `variables`: as the loaders return them ({"params"[,
+  "batch_stats"]}; a bare parameter tree is taken too). Returns notes for the user: the official kwargs written as
   defaults, the JAX-only options dropped, and where the official code builds a different model
   (see official_limits). Raises ValueError when config.json cannot describe the model (e.g. an
   encoder that is no DINOv2 hub size).
   """
   from safetensors.numpy import save_file
-  variables = keymap.unfreeze(params)
-  if "params" not in variables:
-    variables = {"params": variables}
+  variables = ufm.variables(keymap.unfreeze(variables))
   if getattr(model.config, "scan_blocks", False):  # official names are per layer
     from ufm_jax.models import scan
     variables = dict(variables, params=scan.unstack_blocks(variables["params"], model.config))
     model = model.clone(config=model.config.replace(scan_blocks=False))
-  params = variables if set(variables) != {"params"} else variables["params"]
   cfg = model.config
   class_name = official_config.class_name(model)
   state = {k: np.asarray(v, dtype=v.dtype if v.dtype == np.int64 else np.float32, order="C")
-           for k, v in keymap.state_dict_from_params(params,
+           for k, v in keymap.state_dict_from_params(variables,
                                                      official_config.ufm_buffers(cfg)).items()}
   with warnings.catch_warnings():   # reading our own export back: its warnings are not news
     warnings.simplefilter("ignore")
@@ -185,13 +189,13 @@ def save_official(model, params, out_dir, *, source: Optional[str] = None,
     if cfg.official_kwargs is not None:
       try:   # the source's config.json, if it still describes this model
         cj = json.loads(cfg.official_kwargs)
-        dropped = _check_export(model, params, cj, state, class_name)
+        dropped = _check_export(model, variables, cj, state, class_name)
         notes = ["config.json: the source snapshot's, key for key"]
       except ValueError:
         cj = None
     if cj is None:
       cj = official_config.official_config_dict(cfg)
-      dropped = _check_export(model, params, cj, state, class_name)
+      dropped = _check_export(model, variables, cj, state, class_name)
       notes = [f"written with the official default (not in the JAX config): {k} = "
                f"{json.dumps(v)}" for k, v in official_config.OFFICIAL_DEFAULTS.items()]
   aliases = {a: k for k in sorted(state) for a in keymap.alias_keys(k)}
