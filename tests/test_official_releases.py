@@ -71,14 +71,26 @@ def test_forward_matches_the_official_outputs(case):
       _close(k, out[k], _nhwc(io[k]), 2e-4)
 
 
+# predict_correspondences_batched's flow: 1e-3 px as the forward (measured at most 3.05e-5 px on
+# the public base cases). After refinement 6e-3 px: the refiner's softmax-weighted 7x7 window turns
+# float32 reduction-order noise into up to ~5e-3 px at isolated pixels, on the official code's side
+# too (measured on refine_bn_conv: ours 5.17e-3 / 8.7e-4 / 4.57e-3 px on hl0 / hl1 / hl2, with
+# the resized inputs identical and the unmapping within 1.5e-5 px; the official code itself, rerun
+# with torch 2.13.0 on this CPU, differs from the fixture by up to 2.8e-3 px and between 1 and 2
+# threads by up to 2.6e-3 px on the same pairs). The older fixtures' ~1e-2 px is not needed.
+HL_FLOW_ATOL = {"base": 1e-3, "refine": 6e-3}
+
+
 @pytest.mark.parametrize("pair", ["hl0", "hl1", "hl2"])
 def test_predict_matches_the_official_high_level_api(case, pair):
-  """predict_correspondences_batched; hl*_flow at the fixture README's ~1e-2 px."""
+  """predict_correspondences_batched; hl*_flow within HL_FLOW_ATOL."""
   _, model, params, io, _ = case
   if f"{pair}_src_uint8" not in io:
     pytest.skip(f"this case has no {pair}")
   got = ufm_jax.predict(model, params, io[f"{pair}_src_uint8"], io[f"{pair}_tgt_uint8"])
-  _close(f"{pair}_flow", got["flow"], _nhwc(io[f"{pair}_flow"])[0], 1e-2)
+  refined = "flow_before_refinement" in io
+  _close(f"{pair}_flow", got["flow"], _nhwc(io[f"{pair}_flow"])[0],
+         HL_FLOW_ATOL["refine" if refined else "base"])
   _close(f"{pair}_covisibility", got["covisibility"], io[f"{pair}_covisibility"][0], 5e-5)
 
 
