@@ -1,4 +1,5 @@
-"""Snapshots written by the newest official code (ufm_reference_v2: UFM main 3732a50, UniCeption
+"""Snapshots written by the newest official code (ufm_reference_v2, shared, and the in-repo
+tests/fixtures/ufm_reference_v2_options: UFM main 3732a50, UniCeption
 ee7fa0b) against their official outputs, every case folder found; their exact round trip through
 save_official; refused unknown keys; the random view-embedding rule; Hub IDs from an offline
 cache in the standard Hugging Face layout."""
@@ -22,17 +23,23 @@ from ufm_jax.models import ufm
 REPO = pathlib.Path(__file__).resolve().parents[1]
 V2 = pathlib.Path(os.environ.get("UFM_FIXTURES", REPO.parent / "shared" / "fixtures")) / \
     "ufm_reference_v2"
-CASES = sorted(p.parent.name for p in V2.glob("*/config.json"))
+# In the repository: the UniCeption v0.1.6 options no shared case uses (scalable softmax, entropy
+# scaling, a reference-only or no view table, the modulate feature combine), made by the official
+# code (tests/fixtures/ufm_reference_v2_options/README.md).
+V2_OPTIONS = REPO / "tests" / "fixtures" / "ufm_reference_v2_options"
+FOLDERS = {p.parent.name: p.parent for root in (V2, V2_OPTIONS)
+           for p in sorted(root.glob("*/config.json"))}
+CASES = sorted(FOLDERS)
 
 
 def _case_dir(name) -> pathlib.Path:
-  if name is None:
-    msg = (f"no official v2 snapshots under {V2}: set UFM_FIXTURES to the folder that holds "
-           "ufm_reference_v2/")
+  if name is None or name not in FOLDERS:
+    msg = (f"no official v2 snapshot {name or ''} under {V2}: set UFM_FIXTURES to the folder "
+           "that holds ufm_reference_v2/")
     if os.environ.get("CI", "").lower() == "true":
       pytest.fail(msg + " (CI=true: parity tests may not be skipped)")
     pytest.skip(msg)
-  return V2 / name
+  return FOLDERS[name]
 
 
 def _nhwc(a):
