@@ -34,8 +34,8 @@ CASES = sorted(FOLDERS)
 
 def _case_dir(name) -> pathlib.Path:
   if name is None or name not in FOLDERS:
-    msg = (f"no official v2 snapshot {name or ''} under {V2}: set UFM_FIXTURES to the folder "
-           "that holds ufm_reference_v2/")
+    msg = (f"no official v2 snapshot{' ' + name if name else 's'} under {V2}: set UFM_FIXTURES "
+           "to the folder that holds ufm_reference_v2/")
     if os.environ.get("CI", "").lower() == "true":
       pytest.fail(msg + " (CI=true: parity tests may not be skipped)")
     pytest.skip(msg)
