@@ -96,7 +96,7 @@ def test_crop_resize_view_upscales_then_centre_crops():
   image = np.random.default_rng(0).integers(0, 256, (h, w, 3), dtype=np.uint8)
   depth = np.tile(np.arange(w, dtype=np.float32), (h, 1))          # value = source column
   K = wide_trees.K_of(500.0, 505.0, 299.3, 199.6)
-  img, d, K2 = branch.crop_resize_view(image, depth, K)
+  img, d, K2, _ = branch.crop_resize_view(image, depth, K)
   assert img.shape == (420, 560, 3) and d.shape == (420, 560)
   # OpenCV nearest: output column j of the 630-wide map reads source column floor(j * 600/630).
   cols = np.floor((np.arange(560) + 35) * 600 / 630)
@@ -112,10 +112,30 @@ def test_crop_resize_view_upscales_then_centre_crops():
   np.testing.assert_array_equal(img, ref[:, 35:595])
 
 
-def test_crop_resize_view_refuses_portrait():
-  with pytest.raises(ValueError, match="portrait"):
-    branch.crop_resize_view(np.zeros((70, 40, 3), np.uint8), np.zeros((70, 40), np.float32),
-                            np.eye(3), where="x.jpg")
+def test_crop_resize_view_turns_portrait_views_to_landscape():
+  """A portrait view is cropped to 560 x 420 (H x W) and turned counter-clockwise (the branch's
+  transpose_to_landscape): turned pixel (u, v) is upright pixel (419 - v, u) and sees the same
+  ray. The official pipeline on portrait views: tests/test_official_benchmark_parity.py."""
+  from ufm_jax.data import official_ops
+  h, w = 70, 40
+  image = np.random.default_rng(1).integers(0, 256, (h, w, 3), dtype=np.uint8)
+  depth = np.tile(np.arange(w, dtype=np.float32), (h, 1)) + 1
+  K = wide_trees.K_of(50.0, 52.0, 19.2, 35.1)
+  c2w = wide_trees.look_at((0.1, 0.2, 0.0), (0.0, 0.3, 5.0))
+  img, d, K2, c2w2 = branch.crop_resize_view(image, depth, K, c2w)
+  assert img.shape == (420, 560, 3) and d.shape == (420, 560)
+  up = official_ops.resize_cover_center_crop(
+      official_ops.StaticView(image, depth, np.array(K, np.float32), c2w), (420, 560), False)
+  assert up.image.shape == (560, 420, 3)
+  v, u = np.mgrid[0:420:37, 0:560:41]
+  x, y = 419 - v, u
+  np.testing.assert_array_equal(img[v, u], up.image[y, x])
+  np.testing.assert_array_equal(d[v, u], up.depth[y, x])
+  ray = lambda Kx, c, a, b: c[:3, :3] @ np.linalg.solve(Kx, [a, b, 1.0])   # noqa: E731
+  for a, b in ((0, 0), (300, 100), (559, 419)):
+    r = ray(np.asarray(K2, np.float64), np.asarray(c2w2, np.float64), a, b)
+    r_up = ray(np.asarray(up.K, np.float64), np.asarray(c2w, np.float64), 419 - b, a)
+    np.testing.assert_allclose(r / np.linalg.norm(r), r_up / np.linalg.norm(r_up), atol=1e-6)
 
 
 def test_resize_short_center_crop_scales_flow_and_tests_the_crop():

@@ -1,4 +1,5 @@
-"""Snapshots written by the newest official code (ufm_reference_v2: UFM main 3732a50, UniCeption
+"""Snapshots written by the newest official code (ufm_reference_v2, shared, and the in-repo
+tests/fixtures/ufm_reference_v2_options: UFM main 3732a50, UniCeption
 ee7fa0b) against their official outputs, every case folder found; their exact round trip through
 save_official; refused unknown keys; the random view-embedding rule; Hub IDs from an offline
 cache in the standard Hugging Face layout."""
@@ -7,7 +8,6 @@ import hashlib
 import json
 import os
 import pathlib
-import struct
 import subprocess
 import sys
 import warnings
@@ -22,17 +22,23 @@ from ufm_jax import model_io
 REPO = pathlib.Path(__file__).resolve().parents[1]
 V2 = pathlib.Path(os.environ.get("UFM_FIXTURES", REPO.parent / "shared" / "fixtures")) / \
     "ufm_reference_v2"
-CASES = sorted(p.parent.name for p in V2.glob("*/config.json"))
+# In the repository: the UniCeption v0.1.6 options no shared case uses (scalable softmax, entropy
+# scaling, a reference-only or no view table, the modulate feature combine), made by the official
+# code (tests/fixtures/ufm_reference_v2_options/README.md).
+V2_OPTIONS = REPO / "tests" / "fixtures" / "ufm_reference_v2_options"
+FOLDERS = {p.parent.name: p.parent for root in (V2, V2_OPTIONS)
+           for p in sorted(root.glob("*/config.json"))}
+CASES = sorted(FOLDERS)
 
 
 def _case_dir(name) -> pathlib.Path:
-  if name is None:
-    msg = (f"no official v2 snapshots under {V2}: set UFM_FIXTURES to the folder that holds "
-           "ufm_reference_v2/")
+  if name is None or name not in FOLDERS:
+    msg = (f"no official v2 snapshot{' ' + name if name else 's'} under {V2}: set UFM_FIXTURES "
+           "to the folder that holds ufm_reference_v2/")
     if os.environ.get("CI", "").lower() == "true":
       pytest.fail(msg + " (CI=true: parity tests may not be skipped)")
     pytest.skip(msg)
-  return V2 / name
+  return FOLDERS[name]
 
 
 def _nhwc(a):
@@ -71,37 +77,41 @@ def test_forward_matches_the_official_outputs(case):
       _close(k, out[k], _nhwc(io[k]), 2e-4)
 
 
+# predict_correspondences_batched's flow: 1e-3 px as the forward (measured at most 3.05e-5 px on
+# the public base cases). After refinement 6e-3 px: the refiner's softmax-weighted 7x7 window turns
+# float32 reduction-order noise into up to ~5e-3 px at isolated pixels, on the official code's side
+# too (measured on refine_bn_conv: ours 5.17e-3 / 8.7e-4 / 4.57e-3 px on hl0 / hl1 / hl2, with
+# the resized inputs identical and the unmapping within 1.5e-5 px; the official code itself, rerun
+# with torch 2.13.0 on this CPU, differs from the fixture by up to 2.8e-3 px and between 1 and 2
+# threads by up to 2.6e-3 px on the same pairs). The older fixtures' ~1e-2 px is not needed.
+HL_FLOW_ATOL = {"base": 1e-3, "refine": 6e-3}
+
+
 @pytest.mark.parametrize("pair", ["hl0", "hl1", "hl2"])
 def test_predict_matches_the_official_high_level_api(case, pair):
-  """predict_correspondences_batched; hl*_flow at the fixture README's ~1e-2 px."""
+  """predict_correspondences_batched; hl*_flow within HL_FLOW_ATOL."""
   _, model, variables, io, _ = case
   if f"{pair}_src_uint8" not in io:
     pytest.skip(f"this case has no {pair}")
   got = ufm_jax.predict(model, variables, io[f"{pair}_src_uint8"], io[f"{pair}_tgt_uint8"])
-  _close(f"{pair}_flow", got["flow"], _nhwc(io[f"{pair}_flow"])[0], 1e-2)
+  refined = "flow_before_refinement" in io
+  _close(f"{pair}_flow", got["flow"], _nhwc(io[f"{pair}_flow"])[0],
+         HL_FLOW_ATOL["refine" if refined else "base"])
   _close(f"{pair}_covisibility", got["covisibility"], io[f"{pair}_covisibility"][0], 5e-5)
 
 
-def _safetensors_parts(path):
-  """(header as parsed JSON, data bytes): the metadata's key order is not reproducible (the
-  safetensors writer keeps it in a hash map), everything else is."""
-  raw = pathlib.Path(path).read_bytes()
-  n = struct.unpack("<Q", raw[:8])[0]
-  return json.loads(raw[8:8 + n]), raw[8 + n:]
-
-
 def test_round_trip_through_our_checkpoint_is_exact(case, tmp_path):
-  """snapshot -> our checkpoint (convert) -> official snapshot (to-official): config.json byte
-  for byte; model.safetensors with the same header (names, dtypes, offsets, alias metadata) and
-  the same data bytes."""
+  """snapshot -> our checkpoint (convert) -> official snapshot (save_official with the snapshot
+  as source): config.json and model.safetensors byte for byte (the header as the source file has
+  it, alias order included)."""
   d, model, variables, _, _ = case
   model_io.save(tmp_path / "ckpt", model, variables)
   back_model, back_params = ufm_jax.load(tmp_path / "ckpt")
   assert back_model.config == model.config
   ufm_jax.save_official(back_model, back_params, tmp_path / "out", source=str(d))
   assert (tmp_path / "out" / "config.json").read_bytes() == (d / "config.json").read_bytes()
-  assert _safetensors_parts(tmp_path / "out" / "model.safetensors") == \
-      _safetensors_parts(d / "model.safetensors")
+  assert (tmp_path / "out" / "model.safetensors").read_bytes() == \
+      (d / "model.safetensors").read_bytes()
 
 
 # --------------------------------------------------------------------------- config.json rules

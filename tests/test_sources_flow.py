@@ -25,7 +25,7 @@ def _mk(path):
 
 
 def _check_sample(s, h, w):
-  assert set(s) == set(data.SAMPLE_KEYS)
+  assert set(s) - {"fov_mask"} == set(data.SAMPLE_KEYS)   # fov_mask: official layouts only
   assert s["image0"].shape == s["image1"].shape == (h, w, 3) and s["image0"].dtype == np.uint8
   assert s["flow"].shape == (h, w, 2) and s["flow"].dtype == np.float32
   for k in ("covisibility", "flow_valid", "covis_valid"):

@@ -51,12 +51,17 @@ def test_blendedmvs_processed_pairs_next_to_root_or_given(tmp_path):
 
 def test_megadepth_processed_plane_and_val_scenes(tmp_path):
   scene = ot.write_megadepth(str(tmp_path))
-  src = data.get_source("megadepth_official", str(tmp_path / "megadepth_processed"))
+  root = str(tmp_path / "megadepth_processed")
+  src = data.get_source("megadepth_official", root, select_scenes=True)
   assert src.pairs == [("0001/0", "img0", "img1"), ("0001/0", "img1", "img0")]
   wide.check_plane_sample(src[0], scene)
   _official_meta(src[0])
-  val = data.get_source("megadepth_official", str(tmp_path / "megadepth_processed"), split="val")
+  val = data.get_source("megadepth_official", root, split="val", select_scenes=True)
   assert val.pairs == [("0015/0", "img0", "img1")]
+  # As the official class: every pair of the file, whatever the split (megadepth.py:19-35).
+  for split in ("train", "val"):
+    assert data.get_source("megadepth_official", root, split=split).pairs == [
+        ("0001/0", "img0", "img1"), ("0015/0", "img0", "img1"), ("0001/0", "img1", "img0")]
 
 
 def test_scannetpp_processed_plane_millimetre_png_and_95_percent_split(tmp_path):

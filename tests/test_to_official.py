@@ -48,6 +48,8 @@ def test_fixture_snapshot_round_trip(reference_dir, tmp_path, kind):
   # save_pretrained's file: the de-duplicated names of the shared DPT convolutions in metadata
   meta = _header_metadata(out / "model.safetensors")
   assert meta == _header_metadata(src / "model.safetensors") and len(meta) == 16
+  # byte for byte: the header as the source file has it (its alias order), the same data
+  assert (out / "model.safetensors").read_bytes() == (src / "model.safetensors").read_bytes()
   assert meta["head1.0.0.scratch.layer1_rn.weight"] == "head1.0.0.input_process.0.1.weight"
   # config.json: the same kwargs, values and types, written as save_pretrained writes it
   assert json.loads((out / "config.json").read_text()) == json.loads((src / "config.json").read_text())

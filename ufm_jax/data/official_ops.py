@@ -113,7 +113,7 @@ def flow_crop_images(image0, image1, crop: FlowCrop, exact: bool = False):
   return out
 
 
-def _in_crop(flow: np.ndarray) -> np.ndarray:
+def in_frame(flow: np.ndarray) -> np.ndarray:
   """x + u in [0, W), y + v in [0, H) (float32, integer pixel index; NaN flow passes, as the
   official `fov_mask[(x < 0) | ...] = False`)."""
   h, w = flow.shape[:2]
@@ -160,7 +160,7 @@ def flow_crop_labels(labels: Mapping[str, Any], crop: FlowCrop, view: int, mask_
   out = {"flow": flow}
   for bit, k in enumerate(masks):
     out[k] = (packed & (1 << bit)) != 0
-  inside = _in_crop(flow)
+  inside = in_frame(flow)
   before = out["covisibility"]
   out["covisibility"] = before & inside
   extra = {"in_crop": inside, "center_forward": before,

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import pathlib
 import re
+import struct
 import warnings
 from typing import Dict, List, Optional, Tuple
 
@@ -156,6 +157,33 @@ def _model_card(class_name: str, source: Optional[str], step: Optional[int],
   return "\n".join(lines) + "\n"
 
 
+def _safetensors_header(path: pathlib.Path) -> tuple[bytes, dict]:
+  """(the 8-byte length + header bytes as stored, the header parsed) of a .safetensors file."""
+  with open(path, "rb") as f:
+    raw = f.read(8)
+    n = struct.unpack("<Q", raw)[0] if len(raw) == 8 else 0
+    head = raw + f.read(n)
+  return head, json.loads(head[8:])
+
+
+def _header_as_in(path: pathlib.Path, source: pathlib.Path) -> None:
+  """Gives `path` the header bytes of `source` when both describe the same tensors at the same
+  offsets with the same metadata: only the order of the metadata entries (the alias map, which
+  the safetensors writer keeps in a hash map, so two official saves need not agree on it) and
+  padding can differ, and the file becomes byte-identical to a source holding the same data."""
+  if not source.is_file():
+    return
+  try:
+    theirs, theirs_parsed = _safetensors_header(source)
+  except (OSError, ValueError, struct.error):
+    return
+  ours, ours_parsed = _safetensors_header(path)
+  if theirs == ours or theirs_parsed != ours_parsed:
+    return
+  data = path.read_bytes()[len(ours):]
+  path.write_bytes(theirs + data)
+
+
 def save_official(model, variables, out_dir, *, source: Optional[str] = None,
                   step: Optional[int] = None) -> List[str]:
   """Write (model, variables) as an official Hugging Face snapshot: the inverse of load_official.
@@ -165,9 +193,11 @@ def save_official(model, variables, out_dir, *, source: Optional[str] = None,
   from, key for key, as long as that still describes the model), model.safetensors (every
   parameter and persistent buffer in float32 under its official name and layout, BatchNorm
   batch counts in int64; a tensor shared by several modules once, under the name safetensors
-  keeps, the other names in the file's metadata) and a README.md model card naming `source`,
-  `step` and the ufm_jax version. `variables`: as the loaders return them ({"params"[,
-  "batch_stats"]}; a bare parameter tree is taken too). Returns notes for the user: the official kwargs written as
+  keeps, the other names in the file's metadata; when `source` is a snapshot folder whose file
+  describes the same tensors, its header bytes, so the alias order is the source's too) and a
+  README.md model card naming `source`, `step` and the ufm_jax version. `variables`: as the
+  loaders return them ({"params"[, "batch_stats"]}; a bare parameter tree is taken too). Returns
+  notes for the user: the official kwargs written as
   defaults, the JAX-only options dropped, and where the official code builds a different model
   (see official_limits). Raises ValueError when config.json cannot describe the model (e.g. an
   encoder that is no DINOv2 hub size).
@@ -209,5 +239,7 @@ def save_official(model, variables, out_dir, *, source: Optional[str] = None,
   with io.atomic_dir(out_dir) as tmp:
     (tmp / "config.json").write_text(json.dumps(cj, indent=2, sort_keys=True))
     save_file(state, str(tmp / "model.safetensors"), metadata=aliases or None)
+    if source is not None:
+      _header_as_in(tmp / "model.safetensors", pathlib.Path(source) / "model.safetensors")
     (tmp / "README.md").write_text(_model_card(class_name, source, step, notes))
   return notes

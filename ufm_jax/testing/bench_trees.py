@@ -145,3 +145,14 @@ def write_official_bench_root(root, scene, tawb_samples, flow_benches=True):
                      [scan + (float(k),) for k in range(51)], object_array=False)
   write_tawb_data(os.path.join(root, "TA-WB"), tawb_samples)
   return root
+
+
+def scored_prediction(flow_gt: np.ndarray) -> np.ndarray:
+  """The prediction tests/fixtures/benchmark_protocol scores with the official metric code: GT
+  flow [2, H, W] (channel first) + an analytic field (float32) large enough that every mask,
+  outlier threshold and pooling rule of the metrics shows in the numbers."""
+  _, h, w = np.shape(flow_gt)
+  y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+  delta = np.stack([4.0 * np.sin(2 * np.pi * x / 97.0) + 0.4,
+                    3.0 * np.cos(2 * np.pi * y / 61.0) - 0.3]).astype(np.float32)
+  return (np.asarray(flow_gt, np.float32) + delta).astype(np.float32)

@@ -87,16 +87,18 @@ def write_blendedmvs(data_root, scene: wide.PlaneScene | None = None):
 
 
 def write_megadepth(data_root, scene: wide.PlaneScene | None = None):
-  """megadepth_processed/0001/0/img<i>.{jpg,exr,npz} + dust3r_data_pairs/megadepth_pairs.npz
-  (scenes "0001 0", "0015 0" (val), images without extension, structured pairs)."""
+  """megadepth_processed/<0001|0015>/0/img<i>.{jpg,exr,npz} + dust3r_data_pairs/
+  megadepth_pairs.npz (scenes "0001 0", "0015 0" (val), images without extension, structured
+  pairs); both scenes hold the same two views (the official class reads val scenes too)."""
   scene = scene or wide.PlaneScene()
-  d = wide.mkdir(data_root, "megadepth_processed", "0001", "0")
-  for i in (0, 1):
-    stem = os.path.join(d, f"img{i}")
-    wide.write_image(stem + ".jpg", scene.image(i))
-    exr.write_exr(stem + ".exr", scene.z_depth(i).astype(np.float32))
-    _save_npz(stem + ".npz", intrinsics=scene.K[i].astype(np.float32),
-              cam2world=scene.c2w[i].astype(np.float32))
+  for name in ("0001", "0015"):
+    d = wide.mkdir(data_root, "megadepth_processed", name, "0")
+    for i in (0, 1):
+      stem = os.path.join(d, f"img{i}")
+      wide.write_image(stem + ".jpg", scene.image(i))
+      exr.write_exr(stem + ".exr", scene.z_depth(i).astype(np.float32))
+      _save_npz(stem + ".npz", intrinsics=scene.K[i].astype(np.float32),
+                cam2world=scene.c2w[i].astype(np.float32))
   pairs = np.array([(0, 0, 1, 0.7), (1, 0, 1, 0.6), (0, 1, 0, 0.5)],
                    dtype=[("scene_id", "<u4"), ("im1_id", "<u4"), ("im2_id", "<u4"),
                           ("score", "<f4")])

@@ -28,23 +28,25 @@ _F = np.float32
 
 
 # ------------------------------------------------------------------------------ ETH3D / DTU views
-def crop_resize_view(image: np.ndarray, depth: np.ndarray, K: np.ndarray, size=BENCH_SIZE,
-                     where: str = "view"):
+def crop_resize_view(image: np.ndarray, depth: np.ndarray, K: np.ndarray, cam2world=None,
+                     size=BENCH_SIZE, where: str = "view"):
   """Resize so that the image covers `size` (H, W), then centre-crop to it
-  (`official_ops.resize_cover_center_crop`, with K in float32 as the branch's arrays).
+  (`official_ops.resize_cover_center_crop`, with K and the pose in float32 as the branch's
+  arrays). A portrait view (H > 1.1 W) is cropped to the transposed size and turned to landscape
+  as the branch does (`transpose_to_landscape` -> `rotate_90(k=1)`,
+  base_stereo_view_dataset.py:194-196, 417, 492-529): image and depth counter-clockwise, K's
+  focal lengths swapped and principal point (cy, W - 1 - cx), the pose turned about its z axis.
 
-  Returns (image [H', W', 3] uint8, depth [H', W'] float32, K float32). Portrait views (H > 1.1 W),
-  which the branch crops in portrait and turns to landscape, are refused; the benchmark data has
-  none.
+  Returns (image [H', W', 3] uint8, depth [H', W'] float32, K float32, cam2world float32 (the
+  identity when none is given)).
   """
   h, w = image.shape[:2]
   if depth.shape != (h, w):
     raise ValueError(f"{where}: image is {h}x{w} but depth is {depth.shape}")
-  if h > 1.1 * w:
-    raise ValueError(f"{where}: portrait view {h}x{w}; the official benches only have landscape")
+  c2w = np.eye(4, dtype=_F) if cam2world is None else np.asarray(cam2world, _F)
   v = official_ops.resize_cover_center_crop(
-      official_ops.StaticView(image, depth, np.array(K, _F), np.eye(4)), size)
-  return v.image, v.depth, v.K
+      official_ops.StaticView(image, depth, np.array(K, _F), c2w), size)
+  return v.image, v.depth, np.asarray(v.K, _F), np.asarray(v.cam2world, _F)
 
 
 # --------------------------------------------------------------------------- TA-WB stored labels
@@ -147,8 +149,8 @@ class BranchPosedPairs:
     views = []
     for f in (f0, f1):
       image, depth, K, w2c = self.load_view(scene, f)
-      image, depth, K = crop_resize_view(image, depth, K, self.size, f"{self.name}:{scene}/{f}")
-      views.append((image, depth, K, np.linalg.inv(np.asarray(w2c, _F))))
+      views.append(crop_resize_view(image, depth, K, np.linalg.inv(np.asarray(w2c, _F)),
+                                    self.size, f"{self.name}:{scene}/{f}"))
     (im0, d0, K0, c2w0), (im1, d1, K1, c2w1) = views
     lab = geometry.official_labels(d0, K0, c2w0, d1, K1, c2w1, self.thresholds)
     meta = dict(dataset=self.name, scene=scene, frame0=f0, frame1=f1, K0=K0, K1=K1,

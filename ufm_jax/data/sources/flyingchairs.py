@@ -17,7 +17,7 @@ import re
 
 import numpy as np
 
-from ufm_jax.data import io
+from ufm_jax.data import io, official_ops
 from ufm_jax.data.registry import register
 from ufm_jax.geometry import sceneflow
 
@@ -78,9 +78,13 @@ class FlyingChairs:
     io.require_finite(flow, stem + "_flow.flo")  # FlyingChairs flow is dense
     flow_valid = (np.abs(flow[..., 0]) < MAX_FLOW) & (np.abs(flow[..., 1]) < MAX_FLOW)
     flow = sceneflow.fill_invalid(flow, flow_valid)
-    covisibility = sceneflow.fov_mask(flow) & flow_valid
+    # The official test (flyingchairs.py:28-31, 65-80): x + u in [0, W), y + v in [0, H), on the
+    # integer pixel index. fov_mask: the official view's key (= its non_occluded_mask), which the
+    # official crop ANDs and the recipes' losses do not read.
+    covisibility = official_ops.in_frame(flow) & flow_valid
     return dict(image0=image0, image1=image1, flow=flow, covisibility=covisibility,
                 flow_valid=flow_valid, covis_valid=np.zeros_like(flow_valid),
+                fov_mask=covisibility.copy(),
                 meta=dict(dataset="flyingchairs", scene="", frame0=f"{pid:05d}_img1",
                           frame1=f"{pid:05d}_img2", pair_id=pid, split=self.split,
                           gt_relpath=f"{pid:05d}_flow.flo", direction="forward"))

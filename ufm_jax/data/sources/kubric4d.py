@@ -355,7 +355,10 @@ class KubricPair(posed.PosedPair):
     out = geometry.correspondence_from_rigid_objects(
         a.depth, a.K, a.cam2world, seg, pa, b.depth, b.K, b.cam2world, pb, *self.thresholds,
         rows=rows, cols=cols, official_params=params)
-    return {k: out[k] for k in ("flow", "covisibility", "flow_valid", "covis_valid")}
+    # fov_mask (the official view's own key, unused by the recipes' losses) rides along so the
+    # crop ANDs it as the official crop does (parity: tests/test_official_data_parity.py).
+    return {**{k: out[k] for k in ("flow", "covisibility", "flow_valid", "covis_valid")},
+            "fov_mask": out["flow_valid"]}
 
   def sample(self, backward: bool) -> dict:
     """The full-size sample dict of one direction."""
@@ -378,7 +381,8 @@ class Kubric4DProcessed(Kubric4D):
     kubric4d_metadata/metadata/scn%05d.npz intrinsics [V, 3, 3] (normalised, Kubric's sign flip),
         extrinsics [V, 4, 4] (camera-to-world, Blender axes), instances_position_scene
         [V, objects, frames, 3], instances_orientation_scene [V, objects, frames, 4] (w, x, y, z)
-  Conventions as the official: K = intrinsics[v] * (W, H, 1) by rows @ diag(1, -1, -1), with no
+  The official ROOT, `<root>/kubric4d_raw`, is taken too (its metadata then beside it, or at
+  `processed_root`). Conventions as the official: K = intrinsics[v] * (W, H, 1) by rows @ diag(1, -1, -1), with no
   half-pixel shift (its `intrinsics[0, 2] -= 0.5` edits a copy np.load discards, kubric4d.py
   lines 51-56), so the principal point is |K[0, 2]| * W in OpenCV's integer-centre frame; the
   camera pose is extrinsics[v] with its y and z axes negated; object id k's pose at frame t is
@@ -387,12 +391,20 @@ class Kubric4DProcessed(Kubric4D):
   name = "kubric4d"
   suitable_for_refinement = False
 
-  def __init__(self, root, split="train", pairs=None, thresholds=None):
+  def __init__(self, root, split="train", pairs=None, thresholds=None, processed_root=None):
+    # The official class's ROOT is the frames folder itself (`<root_data_dir>/kubric4d/
+    # kubric4d_raw`, configs/dataset/kubric4d/train/default.yaml) with `processed_root` its
+    # sibling kubric4d_metadata: that root is taken too.
+    root = os.fspath(root) if root is not None else root
+    if root is not None and os.path.basename(os.path.normpath(root)) == "kubric4d_raw":
+      raw, root = root, os.path.dirname(os.path.normpath(root))
+    else:
+      raw = None if root is None else os.path.join(root, "kubric4d_raw")
     posed.PosedPairSource.__init__(self, root, split, pairs, thresholds)
-    self.raw = posed.require_dir(os.path.join(self.root, "kubric4d_raw"),
-                                 "kubric4d_raw/scn%05d/ (the GCD frames)")
-    self.meta_dir = posed.require_dir(os.path.join(self.root, "kubric4d_metadata"),
-                                      "kubric4d_metadata/ (sampled_pairs.npz, metadata/)")
+    self.raw = posed.require_dir(raw, "kubric4d_raw/scn%05d/ (the GCD frames)")
+    self.meta_dir = posed.require_dir(
+        processed_root or os.path.join(self.root, "kubric4d_metadata"),
+        "kubric4d_metadata/ (sampled_pairs.npz, metadata/)")
 
   @property
   def pairs(self):

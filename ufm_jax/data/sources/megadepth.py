@@ -134,13 +134,21 @@ class MegaDepthProcessed(_official.OfficialPosed, posed.PosedPairSource):
     (intrinsics 3x3 OpenCV, cam2world 4x4; both read as float32)
     pairs: dust3r_data_pairs/megadepth_pairs.npz with `scenes` ("<scene> <subscene>"), `images`
     (names without extension) and `pairs` (fields scene_id, im1_id, im2_id, score)
-  Split: val = scenes 0015 and 0022, train = every other pair (the official `select_scene`)."""
+  Split: the official class reads every pair of the file whatever `split` says: its `split`
+  keyword never reaches the base class (megadepth.py:19-35), so the `select_scene` that would
+  keep val = scenes 0015 and 0022 and train = the others never runs (val scenes train too).
+  `select_scenes=True` applies that intended split instead."""
 
   name = "megadepth"
   has_backward = False
   static_scene = True
 
   pairs_file = "megadepth_pairs.npz"
+
+  def __init__(self, root, split="train", pairs=None, thresholds=None, pair_metadata_path=None,
+               select_scenes=False):
+    super().__init__(root, split, pairs, thresholds, pair_metadata_path)
+    self.select_scenes = bool(select_scenes)
 
   def _official_pairs(self):
     data = _official.load_npz(self.pairs_path, ("scenes", "images", "pairs"), allow_pickle=True)
@@ -154,7 +162,7 @@ class MegaDepthProcessed(_official.OfficialPosed, posed.PosedPairSource):
     scene_names = [str(s).split() for s in scenes]
     is_val = np.array([s[0].startswith(_VAL_SCENES) for s in scene_names])
     sid = cols[0].astype(np.int64)
-    keep = np.ones(len(sid), bool) if self.split in (None, "all") else (
+    keep = np.ones(len(sid), bool) if self.split in (None, "all") or not self.select_scenes else (
         is_val[sid] if self.split == "val" else ~is_val[sid])
     out = []
     for s, a, b in zip(sid[keep], cols[1][keep].astype(np.int64), cols[2][keep].astype(np.int64)):
