@@ -31,8 +31,11 @@ the official predict). Metrics are computed at the resolution of the bench's sam
 the dataset's; official: 560x420 for eth3d / dtu / tawb). Runtime = median forward time per pair
 after warm-up, excluding I/O, resize and unmap (the mean, the branch's figure, is recorded too).
 The synthetic bench renders the task a train.py workdir was trained on (its config.json: pair type,
-size, shift) on the test split, and reports `epe_zero`, the EPE of predicting no motion, beside
-the model's `epe`: a model that matches is well below it.
+size, shift) on the test split, at the size that run trained and evaluated at (`native`, unless
+--resolution says otherwise: the model config's inference resolution is a size such a model never
+saw), so its EPE agrees with the run's held-out eval; it reports `epe_zero`, the EPE of predicting
+no motion, beside the model's `epe`: a model that matches is well below it. results.json records
+each bench's resolution (`bench_resolutions`) and writes undefined metrics as null.
 """
 
 from __future__ import annotations
@@ -156,10 +159,12 @@ def main(argv=None) -> int:
           file=sys.stderr)
     return 2
   # Check data first (cheap), so a missing dataset fails before any model is loaded.
-  skipped, sources = {}, {}
+  skipped, sources, resolutions = {}, {}, {}
   for name, bench in benches.items():
     try:
       opts = synthetic_task(model_dir(args)) if name == "synthetic" else {}
+      # A synthetic run trains and evaluates at its task's size: score it there.
+      resolutions[name] = args.resolution if args.resolution is not None or not opts else "native"
       sources[name] = {s.label: evaluators.open_source(bench, s, args.data_root, **opts)
                        for s in bench.splits}
     except evaluators.MissingDataError as e:
@@ -181,7 +186,7 @@ def main(argv=None) -> int:
   results, counts, runtime, runtime_mean = {}, {}, {}, {}
   t0 = time.time()
   for name, srcs in sources.items():
-    runner = base.Runner(model, variables, args.resolution)
+    runner = base.Runner(model, variables, resolutions[name])
     res, n = evaluators.run_bench(name, runner, args.data_root, args.max_pairs, writer,
                                   progress=not args.no_progress, sources=srcs, seed=args.seed,
                                   protocol=args.protocol)
@@ -194,6 +199,8 @@ def main(argv=None) -> int:
       "benches_run": list(sources), "skipped": skipped,
       "protocol": args.protocol, "bench_protocols": {n: benches[n].protocol for n in sources},
       **source, "resolution": args.resolution if args.resolution is not None else "model",
+      "bench_resolutions": {n: resolutions[n] if resolutions[n] is not None else "model"
+                            for n in sources},
       "n_pairs": counts, "max_pairs": args.max_pairs,
       "runtime_ms_per_pair": runtime, "runtime_ms_per_pair_mean": runtime_mean,
       "wall_time_s": round(time.time() - t0, 1),

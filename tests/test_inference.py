@@ -122,6 +122,29 @@ def test_predict_input_errors():
     inference.predict(model, {}, [img, img], [img])
 
 
+def test_too_small_an_image_is_refused_by_every_tool(tmp_path, monkeypatch, capsys):
+  """One rule (min_image_side: one image pixel per encoder patch at the inference resolution,
+  30 px for 420x560) in predict, so the CLI refuses what the demo refuses."""
+  from ufm_jax import cli
+  from ufm_jax.data import io as image_io
+  model = _Replay(np.zeros((1, 420, 560, 2), np.float32), np.zeros((1, 420, 560), np.float32),
+                  [(420, 560)])
+  assert inference.min_image_side(model) == 30
+  ok = np.zeros((30, 40, 3), np.uint8)
+  with pytest.raises(ValueError, match=r"target\[0\] is 29x64 px \(HxW\), under this model's "
+                                       r"minimum of 30 px"):
+    inference.predict(model, {}, ok, np.zeros((29, 64, 3), np.uint8))
+  image_io.write_image(tmp_path / "a.png", ok)
+  image_io.write_image(tmp_path / "dot.png", np.zeros((1, 1, 3), np.uint8))
+  monkeypatch.setattr(cli, "load_model", lambda *a, **k: (model, {}))
+  rc = cli.main(["infer", str(tmp_path / "a.png"), str(tmp_path / "dot.png"), "--checkpoint", "x",
+                 "--out", str(tmp_path / "out")])
+  assert rc == 2 and "1x1 px (HxW), under this model's minimum of 30 px" in capsys.readouterr().err
+  (tmp_path / "text.png").write_text("not an image")
+  with pytest.raises(ValueError, match="not a readable image .expected PNG, JPEG, WebP"):
+    image_io.read_image(tmp_path / "text.png")
+
+
 def _load_official(reference_dir):
   from ufm_jax.official import snapshot
   return snapshot.load_official(reference_dir / "base")

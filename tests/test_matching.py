@@ -75,3 +75,18 @@ def test_match_cli_writes_npz_and_drawing(scene, tmp_path, monkeypatch):
   flow = fwd["flow"][d["keypoints0"][:, 1].astype(int), d["keypoints0"][:, 0].astype(int)]
   np.testing.assert_allclose(d["keypoints1"], d["keypoints0"] + flow, atol=1e-3)
   assert io.read_image(tmp_path / "m.png").shape == (96, 256, 3)
+
+
+def test_fewer_matches_than_asked_says_why():
+  """A 10x10 block of covisible pixels whose flow stays in the target: 100 eligible pixels, so
+  500 asked give 100 matches and the message names both counts."""
+  flow = np.zeros((32, 32, 2), np.float32)
+  covis = np.zeros((32, 32), np.float32)
+  covis[4:14, 4:14] = 0.9
+  flow[20:, :, 0] = 100.0     # covisible in the input but never: these land outside the target
+  covis[20:30, 0:10] = 0.9
+  m = matching.matches_from_dense(flow, covis, num=500, min_covisibility=0.5)
+  assert len(m["keypoints0"]) == 100 and int(m["eligible"]) == 100
+  why = matching.shortfall(m, 500, 0.5)
+  assert why.startswith("100 of the 500 asked: only 100 source pixels") and "0.5" in why
+  assert matching.shortfall(matching.matches_from_dense(flow, covis, num=50), 50, 0.0) == ""

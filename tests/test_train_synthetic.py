@@ -71,7 +71,13 @@ def test_synthetic_config_learns(tmp_path):
                      env=env, capture_output=True, text=True, timeout=600, cwd=REPO)
   assert r.returncode == 0, r.stderr[-3000:]
   assert "| epe | epe_zero |" in r.stdout
-  m = json.loads((out / "results.json").read_text())["metrics"]
+  # Standard JSON (no bare NaN), and the task scored at the size the run trained at (56x56, as its
+  # held-out eval), not resized to the model config's inference resolution.
+  results = json.loads((out / "results.json").read_text(),
+                       parse_constant=lambda c: pytest.fail(f"results.json holds a bare {c}"))
+  assert results["bench_resolutions"] == {"synthetic": "native"}
+  assert results["checkpoint"] == str(tmp_path) and results["step"] == steps
+  m = results["metrics"]
   src = data.get_source("synthetic", None, split="test", size=(56, 56), pair_type="flow")
   norm, count = 0.0, 0
   for i in range(4):

@@ -227,7 +227,8 @@ def _match_main(args) -> int:
                      min_covisibility=args.min_covisibility, bidirectional=args.bidirectional,
                      max_fb_error_px=args.max_fb_error, seed=args.seed)
   out = matching.save_matches(args.out, m, source.shape, target.shape)
-  print(f"{out}: {len(m['keypoints0'])} matches")
+  why = matching.shortfall(m, args.num, args.min_covisibility, args.bidirectional)
+  print(f"{out}: {len(m['keypoints0'])} matches" + (f" ({why})" if why else ""))
   if args.draw:
     io.write_image(args.draw, matching.draw_matches(source, target, m["keypoints0"], m["keypoints1"]))
     print(args.draw)

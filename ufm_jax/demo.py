@@ -9,7 +9,8 @@ below it are greyed out and never matched) and the matches download as the `.npz
 inference shape); a changed threshold re-samples the cached prediction without running the model.
 
 It binds 127.0.0.1 unless --host says otherwise, refuses uploads over --max-file-size, files that
-are no image, and images with a side over --max-side or under the model's minimum (`min_side`),
+are no image, and images with a side over --max-side or under the model's minimum
+(`ufm_jax.inference.min_image_side`, the rule of every tool),
 with a message naming the limit and the image's size, and makes a public share link only with
 --share. Its API (`gradio_client`): `Client(url).predict(source,
 target, threshold, num, api_name="/analyse")` -> (flow colours, covisibility, warped target,
@@ -37,32 +38,14 @@ EXAMPLE_SIZE = (240, 320)  # (H, W): the 3:4 aspect of the released models' 420x
 MAX_LINES = 300            # matches drawn; the .npz holds all of them
 
 
-def min_side(model) -> int:
-  """The smallest image side the demo accepts for `model`: one image pixel per encoder patch.
-
-  `ufm_jax.predict` resizes both images to the model's inference resolution (420x560 for the
-  released models, 30x40 patches of 14 px). A side shorter than its number of patches is
-  stretched so that every image pixel covers more than a patch: the patches then carry no
-  texture of their own and the flow means nothing (a 1x1 image gives a constant field). So the
-  limit is ceil(inference side / patch size): 30 px for the released 420x560 models."""
-  from ufm_jax import inference
-  config = getattr(model, "config", None)
-  patch = getattr(getattr(config, "encoder", None), "patch_size", 14)
-  return max(-(-min(min(r) for r in inference.inference_resolutions(model)) // patch), 1)
-
-
-def check_size(image: np.ndarray, what: str, max_side: int, smallest: int = 1) -> None:
-  """Refuses an image with a side over max_side or under `smallest` (`min_side`), naming the
-  limit and the image's size."""
+def check_size(image: np.ndarray, what: str, max_side: int) -> None:
+  """Refuses an image with a side over max_side (this page's upload limit), naming the limit and
+  the image's size. Too small an image is refused by `ufm_jax.predict` (min_image_side)."""
   h, w = image.shape[:2]
   if max(h, w) > max_side:
     raise ValueError(f"the {what} image is {h}x{w} px (HxW), over this demo's limit of {max_side} "
                      f"px per side (--max-side {max_side}); downscale it or restart the demo "
                      "with a larger --max-side")
-  if min(h, w) < smallest:
-    raise ValueError(f"the {what} image is {h}x{w} px (HxW), under this model's minimum of "
-                     f"{smallest} px per side (one image pixel per encoder patch at its inference "
-                     "resolution); use a larger image")
 
 
 def read_upload(payload, what: str) -> np.ndarray | None:
@@ -78,8 +61,8 @@ def read_upload(payload, what: str) -> np.ndarray | None:
   try:
     return io.read_image(path)
   except (OSError, ValueError):
-    raise ValueError(f"the {what} file is not an image this demo can read (PNG, JPEG, WebP, BMP, "
-                     "TIFF, ...)") from None
+    raise ValueError(f"the {what} file is not an image this demo can read ({io.IMAGE_FORMATS})"
+                     ) from None
 
 
 def example_pair(folder) -> list[str]:
@@ -107,10 +90,11 @@ class Analyser:
   """Prediction (cached by image content) -> the demo's views; no gradio in here."""
 
   def __init__(self, model, variables, out_dir, max_side: int = DEFAULT_MAX_SIDE, cache_size: int = 8):
+    from ufm_jax import inference
     self.model, self.variables = model, variables
     self.out_dir = pathlib.Path(out_dir)
     self.max_side = max_side
-    self.min_side = min_side(model)
+    self.min_side = inference.min_image_side(model)
     self.cache_size = cache_size
     self._cache: collections.OrderedDict = collections.OrderedDict()
     self._lock = threading.Lock()
@@ -139,8 +123,8 @@ class Analyser:
     if source is None or target is None:
       raise ValueError("upload a source and a target image (or pick the example pair)")
     source, target = np.asarray(source), np.asarray(target)
-    check_size(source, "source", self.max_side, self.min_side)
-    check_size(target, "target", self.max_side, self.min_side)
+    check_size(source, "source", self.max_side)
+    check_size(target, "target", self.max_side)
     key, pred, ms = self.predict(source, target)
     # A model without covisibility: matches_from_dense refuses it, naming why.
     flow, covis = pred["flow"], pred.get("covisibility")
@@ -153,7 +137,9 @@ class Analyser:
     npz = matching.save_matches(self.out_dir / f"matches_{key}_{threshold:.3f}_{num}.npz", m,
                                 source.shape, target.shape)
     n = len(m["keypoints0"])
-    summary = (f"{n} matches at covisibility >= {threshold:.2f} ({min(n, MAX_LINES)} drawn); "
+    why = matching.shortfall(m, num, threshold)
+    summary = (f"{n} matches at covisibility >= {threshold:.2f} ({min(n, MAX_LINES)} drawn"
+               + (f"; {why}" if why else "") + "); "
                f"{100 * float(np.mean(covis >= threshold)):.1f}% of source pixels covisible; "
                + (f"forward {ms:.0f} ms" if ms else "prediction cached"))
     return colours, viz.covisibility_to_image(covis), warped, drawing, str(npz), summary

@@ -226,10 +226,14 @@ def _forward_fn(model):
   return entry[1], entry[2]
 
 
-def _check_image(x, what: str) -> np.ndarray:
+def _check_image(x, what: str, smallest: int = 1) -> np.ndarray:
   x = np.asarray(x)
   if x.ndim != 3 or x.shape[-1] != 3:
     raise ValueError(f"{what}: expected an HWC RGB image [H, W, 3], got shape {x.shape}")
+  if min(x.shape[:2]) < smallest:
+    raise ValueError(f"{what} is {x.shape[0]}x{x.shape[1]} px (HxW), under this model's minimum "
+                     f"of {smallest} px per side (one image pixel per encoder patch at its "
+                     f"inference resolution, ufm_jax.inference.min_image_side); use a larger image")
   if x.dtype != np.uint8 and not np.issubdtype(x.dtype, np.floating):
     raise ValueError(f"{what}: expected uint8 (or float 0..255), got dtype {x.dtype}")
   if min(x.shape[:2]) < 1:
@@ -271,6 +275,19 @@ def unmap_prediction(flow, covisibility, book) -> dict[str, np.ndarray]:
   return out
 
 
+def min_image_side(model) -> int:
+  """The shortest image side `predict` takes for `model`: one image pixel per encoder patch.
+
+  predict resizes both images to the model's inference resolution (420x560 for the released
+  models, 30x40 patches of 14 px). A side shorter than its number of patches is stretched so that
+  every image pixel covers more than a patch: the patches then carry no texture of their own and
+  the flow means nothing (a 1x1 image gives a constant field). So the limit is
+  ceil(inference side / patch size): 30 px for the released 420x560 models."""
+  config = getattr(model, "config", None)
+  patch = getattr(getattr(config, "encoder", None), "patch_size", 14)
+  return max(-(-min(min(r) for r in inference_resolutions(model)) // patch), 1)
+
+
 def predict(model, variables, source, target, *, batch_size: int = 8, resolutions=None,
             timings: list | None = None):
   """Official high-level inference (`predict_correspondences_batched`).
@@ -302,8 +319,9 @@ def predict(model, variables, source, target, *, batch_size: int = 8, resolution
   targets = [target] if single else list(target)
   if len(sources) != len(targets):
     raise ValueError(f"predict: {len(sources)} source images but {len(targets)} target images")
-  sources = [_check_image(s, f"source[{i}]") for i, s in enumerate(sources)]
-  targets = [_check_image(t, f"target[{i}]") for i, t in enumerate(targets)]
+  smallest = min_image_side(model)
+  sources = [_check_image(s, f"source[{i}]", smallest) for i, s in enumerate(sources)]
+  targets = [_check_image(t, f"target[{i}]", smallest) for i, t in enumerate(targets)]
   resolutions = [tuple(r) for r in resolutions] if resolutions else inference_resolutions(model)
   fwd, compiled_shapes = _forward_fn(model)
   from ufm_jax.models import ufm

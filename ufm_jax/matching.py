@@ -4,6 +4,7 @@
   m["keypoints0"], m["keypoints1"]   # [N, 2] float pixels (x right, y down, pixel centres at
                                      # integers) of the ORIGINAL source / target images
   m["confidence"]                    # [N] predicted covisibility of each match
+  m["eligible"]                      # source pixels it could draw from: N < num when fewer
 
 The sampling is the pose benchmark's (ufm_jax.metrics.sample_matches: covisibility-weighted,
 KDE-balanced), so matches fed to a solver here are distributed as in the paper's Table 4.
@@ -47,11 +48,26 @@ def matches_from_dense(flow, covisibility, *, num=5000, min_covisibility=0.5, ta
   covis = np.asarray(covisibility, np.float32)
   if backward_flow is not None:
     covis = np.where(forward_backward_error(flow, backward_flow) <= max_fb_error_px, covis, 0.0)
+  stats = {}
   k0, k1, idx = metrics.sample_matches(flow, covis, num, np.random.default_rng(seed),
                                        target_hw=target_hw, min_covisibility=min_covisibility,
-                                       return_index=True)
+                                       return_index=True, stats=stats)
   return {"keypoints0": k0.astype(np.float32), "keypoints1": k1.astype(np.float32),
-          "confidence": covis.reshape(-1)[idx].astype(np.float32)}
+          "confidence": covis.reshape(-1)[idx].astype(np.float32),
+          "eligible": np.int64(stats["eligible"])}
+
+
+def shortfall(m: dict, num: int, min_covisibility: float, bidirectional: bool = False) -> str:
+  """Why a match dict holds fewer than the `num` matches asked for ("" when it holds them all):
+  only m["eligible"] source pixels pass the rules a match must meet."""
+  n = len(m["keypoints0"])
+  if n >= num:
+    return ""
+  rules = f"covisibility >= {min_covisibility:g} and a match inside the target"
+  if bidirectional:
+    rules += ", forward-backward consistent"
+  return (f"{n} of the {num} asked: only {int(m['eligible'])} source pixels have {rules} (lower "
+          f"--min-covisibility / the threshold for more)")
 
 
 def match(model, variables, source, target, num=5000, min_covisibility=0.5, bidirectional=False,

@@ -290,7 +290,7 @@ def kde_density(x: np.ndarray, sigma: float, method: str = "auto") -> np.ndarray
 def sample_matches(flow: np.ndarray, covisibility: np.ndarray, num: int, rng, target_hw=None,
                    certainty_threshold: float = 0.05, balanced: bool = True,
                    kde_sigma: float = 0.1, min_covisibility: float = 0.0,
-                   return_index: bool = False, kde: str = "auto"):
+                   return_index: bool = False, kde: str = "auto", stats: dict | None = None):
   """Draws `num` matches from a dense flow weighted by covisibility (DKM/RoMa `sample`).
 
   Certainty = covisibility, zeroed where x + flow leaves the target image (size `target_hw`,
@@ -303,7 +303,8 @@ def sample_matches(flow: np.ndarray, covisibility: np.ndarray, num: int, rng, ta
   Pixels with covisibility below `min_covisibility` are never drawn (ufm_jax.match; the pose
   benchmark keeps 0).
   Returns (kpts0 [n, 2], kpts1 [n, 2]) in pixels (x, y), pixel centres at integers, plus the flat
-  source-pixel indices [n] with `return_index`.
+  source-pixel indices [n] with `return_index`; n = min(num, the eligible pixels), which a dict
+  passed as `stats` gets as "eligible" (pixels with certainty > 0) so a caller can say why n < num.
   """
   flow = np.asarray(flow, np.float64)
   h, w = flow.shape[:2]
@@ -317,6 +318,8 @@ def sample_matches(flow: np.ndarray, covisibility: np.ndarray, num: int, rng, ta
   cert = np.where(keep, cert, 0.0)
   cert = np.where(cert > certainty_threshold, 1.0, cert)
   nz = np.flatnonzero(cert > 0)
+  if stats is not None:
+    stats["eligible"] = int(nz.size)
   if nz.size == 0:
     empty = (np.zeros((0, 2)), np.zeros((0, 2)))
     return empty + (np.zeros(0, np.int64),) if return_index else empty

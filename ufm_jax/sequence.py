@@ -22,8 +22,8 @@ import time
 import numpy as np
 
 from ufm_jax import outputs
+from ufm_jax.data import io
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".tif", ".tiff", ".webp")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
 SAVE_CHOICES = tuple(outputs.SAVE_CHOICES)
 
@@ -33,7 +33,7 @@ def natural_key(name: str):
 
 
 def frame_pairs(folder, stride: int = 1) -> list[tuple[str, str]]:
-  files = sorted((p for p in pathlib.Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
+  files = sorted((p for p in pathlib.Path(folder).iterdir() if p.suffix.lower() in io.IMAGE_SUFFIXES),
                  key=lambda p: natural_key(p.name))
   if len(files) < stride + 1:
     raise ValueError(f"{folder}: {len(files)} images; need at least {stride + 1} for --stride {stride}")
@@ -90,7 +90,6 @@ def run(model, variables, pairs, out_dir, *, batch: int = 1, save=(), overwrite=
   from tqdm import tqdm
 
   from ufm_jax import inference
-  from ufm_jax.data import io
 
   out_dir = pathlib.Path(out_dir)
   out_dir.mkdir(parents=True, exist_ok=True)

@@ -340,10 +340,9 @@ class Writer:
     if self.active:
       # A metric with nothing to average (e.g. epe_occluded on pairs without occlusions) is NaN:
       # written as null, so that every line stays standard JSON for jq and friends.
-      record = {k: None if isinstance(v, float) and not math.isfinite(v) else v
-                for k, v in record.items()}
+      from ufm_jax.data.io import json_safe
       with open(self.workdir / name, "a") as f:
-        f.write(json.dumps(record) + "\n")
+        f.write(json.dumps(json_safe(record), allow_nan=False) + "\n")
 
   def scalars(self, name, step, record, prefix):
     self._append(name, record)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import pathlib
 import re
@@ -402,9 +403,15 @@ def write_float3(path: str | os.PathLike, array: np.ndarray) -> None:
 _IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)  # OpenCV >= 4.11 decodes straight to RGB
 
 
+# The image files read_image reads (OpenCV's codecs in opencv-python-headless), by suffix: the list
+# that --frames folders are filtered by and that every refusal names.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp")
+IMAGE_FORMATS = "PNG, JPEG, WebP, BMP, TIFF, PPM/PGM"
+
+
 def read_image(path: str | os.PathLike, bgr: bool = False) -> np.ndarray:
-  """Any OpenCV-readable image (PNG, JPEG, PPM, ...) -> [H, W, 3] uint8 RGB: the one image reader
-  of the project (datasets, benchmarks, the CLI).
+  """An image file (IMAGE_FORMATS) -> [H, W, 3] uint8 RGB: the one image reader of the project
+  (datasets, benchmarks, the CLI, the demo).
 
   Gray images are repeated to 3 channels, alpha is dropped, 16-bit images are scaled to 8 bits.
   Common PNGs go through `decode.decode_png` (~2x OpenCV's decoder); everything else through
@@ -419,7 +426,7 @@ def read_image(path: str | os.PathLike, bgr: bool = False) -> np.ndarray:
     flag = cv2.IMREAD_COLOR if (bgr or _IMREAD_RGB is None) else _IMREAD_RGB
     img = cv2.imdecode(np.frombuffer(buf, np.uint8), flag)
     if img is None:
-      raise ValueError(f"{path}: not a readable image (expected PNG/JPEG/PPM)")
+      raise ValueError(f"{path}: not a readable image (expected {IMAGE_FORMATS})")
     if not bgr and _IMREAD_RGB is None:
       img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)  # a plain channel swap, ~20x [..., ::-1]
     return img
@@ -553,17 +560,38 @@ def check_dir(path: str | os.PathLike, layout: str) -> str:
 
 
 def write_json_atomic(path: str | os.PathLike, obj) -> None:
-  """JSON file written through a temp file + rename (readers never see half a file); the folder
-  is created. Values JSON cannot hold (numpy scalars, paths) are written as float, else str."""
+  """Standard JSON (`json_safe`: undefined numbers as null) written through a temp file + rename
+  (readers never see half a file); the folder is created. Other values JSON cannot hold (paths)
+  are written as str."""
   path = os.fspath(path)
   os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
   with atomic_file(path, ".json") as tmp:
     with open(tmp, "w") as f:
-      json.dump(obj, f, indent=1, sort_keys=False, default=_json_default)
+      json.dump(json_safe(obj), f, indent=1, sort_keys=False, default=_json_default,
+                allow_nan=False)
+
+
+def json_safe(obj):
+  """`obj` for standard JSON: NaN and infinities (Python's or numpy's) as None, since strict
+  parsers (jq, JSON.parse, serde) reject the bare NaN that Python's json writes; numpy scalars
+  as Python numbers. Containers are copied, other values passed through."""
+  if isinstance(obj, dict):
+    return {k: json_safe(v) for k, v in obj.items()}
+  if isinstance(obj, (list, tuple)):
+    return [json_safe(v) for v in obj]
+  if isinstance(obj, np.ndarray) and obj.ndim == 0:
+    obj = obj.item()
+  if isinstance(obj, (float, np.floating)):
+    return float(obj) if math.isfinite(obj) else None
+  if isinstance(obj, np.bool_):
+    return bool(obj)
+  if isinstance(obj, np.integer):
+    return int(obj)
+  return obj
 
 
 def _json_default(x):
   try:
-    return float(x)
+    return json_safe(float(x))   # e.g. a jax scalar
   except (TypeError, ValueError):
     return str(x)
