@@ -15,6 +15,9 @@ from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
 # DPT head of the release: hooks on [encoder last, fusion layer 6, fusion layer 9, fusion final].
 _UFM_LAYER_DIMS = (96, 192, 384, 768)
 _UFM_FEATURE_DIM = 256
+# The distillation students' DPT layer dims: UFM-Base's halved and quartered.
+_SMALL_LAYER_DIMS = (48, 96, 192, 384)
+_TINY_LAYER_DIMS = (24, 48, 96, 192)
 
 
 def _dpt(enc_dim: int, fusion_dim: int, output_dim: int, layer_dims=_UFM_LAYER_DIMS,
@@ -127,6 +130,40 @@ def fixture_small(**kw) -> ufm.UFMConfig:
   return cfg.replace(**kw)
 
 
+def ufm_small(**kw) -> ufm.UFMConfig:
+  """UFM-Small, a distillation student (configs/distill.py): DINOv2 ViT-S/14 (all 12 blocks,
+  initialisable from facebook/dinov2-small with `model_init=dinov2:`), a 6 x 384 fusion
+  transformer with 6 heads tapped after blocks 3 and 5 (0-based 2, 4: UFM-Base's 6 and 9 of 12
+  scaled to 6), DPT heads at half UFM-Base's widths (layer dims [48, 96, 192, 384], feature dim
+  128); about 33.6M parameters, inferred at 420 x 560 like UFM-Base. Sizes and speed beside
+  UFM-Base: docs/distillation.md."""
+  cfg = ufm_base(
+      encoder=dinov2_small(),
+      info_sharing=info_sharing.InfoSharingConfig(
+          input_embed_dim=384, dim=384, depth=6, num_heads=6, mlp_ratio=4.0, qkv_bias=True,
+          qk_norm=False, init_values=None, indices=(2, 4)),
+      flow_head=_dpt(384, 384, 2, _SMALL_LAYER_DIMS, 128),
+      covisibility_head=_dpt(384, 384, 1, _SMALL_LAYER_DIMS, 128))
+  return cfg.replace(**kw)
+
+
+def ufm_tiny(**kw) -> ufm.UFMConfig:
+  """UFM-Tiny, the smallest distillation student: UFM-Small's ViT-S/14 encoder (facebook/dinov2-
+  small), a 4 x 256 fusion transformer with 4 heads tapped after blocks 2 and 3 (0-based 1, 2),
+  DPT heads at a quarter of UFM-Base's widths (layer dims [24, 48, 96, 192], feature dim 64),
+  inferred at 294 x 392 (3:4, 21 x 28 patches: half the tokens of 420 x 560). Sizes and speed:
+  docs/distillation.md."""
+  cfg = ufm_base(
+      encoder=dinov2_small(),
+      info_sharing=info_sharing.InfoSharingConfig(
+          input_embed_dim=384, dim=256, depth=4, num_heads=4, mlp_ratio=4.0, qkv_bias=True,
+          qk_norm=False, init_values=None, indices=(1, 2)),
+      flow_head=_dpt(384, 256, 2, _TINY_LAYER_DIMS, 64),
+      covisibility_head=_dpt(384, 256, 1, _TINY_LAYER_DIMS, 64),
+      inference_resolution=(294, 392))
+  return cfg.replace(**kw)
+
+
 def tiny(**kw) -> ufm.UFMConfig:
   """A very small UFM for smoke tests and the synthetic training config (~1M parameters)."""
   cfg = ufm.UFMConfig(
@@ -164,6 +201,19 @@ def synth(**kw) -> ufm.UFMConfig:
   return cfg.replace(**kw)
 
 
+def synth_small(**kw) -> ufm.UFMConfig:
+  """The distillation student of the synthetic demonstration (docs/distillation.md): `synth` 48
+  wide (2 heads of 24), its 2 encoder and 3 fusion blocks kept, DPT heads of width 8 (layer dims
+  [8, 8, 16, 16]): 188,687 parameters, 0.47 x `synth`'s 403,707."""
+  cfg = synth()
+  cfg = cfg.replace(
+      encoder=dataclasses.replace(cfg.encoder, embed_dim=48),
+      info_sharing=dataclasses.replace(cfg.info_sharing, input_embed_dim=48, dim=48),
+      flow_head=_dpt(48, 48, 2, (8, 8, 16, 16), 8),
+      covisibility_head=_dpt(48, 48, 1, (8, 8, 16, 16), 8))
+  return cfg.replace(**kw)
+
+
 def tiny_refine(**kw) -> refine.UFMRefineConfig:
   """`tiny` plus a small refiner (U-Net [8, 16], 8 feature channels, 7 x 7 window): smoke tests
   and synthetic refine-stage training."""
@@ -187,7 +237,8 @@ def tiny_refine_recipe(**kw) -> refine.UFMRefineConfig:
 
 
 VARIANTS = {"fixture_small": fixture_small, "tiny": tiny, "tiny_synth": tiny_synth, "synth": synth,
-            "ufm_base": ufm_base,
+            "synth_small": synth_small, "ufm_base": ufm_base, "ufm_small": ufm_small,
+            "ufm_tiny": ufm_tiny,
             "ufm_base_980": ufm_base_980, "ufm_refine": ufm_refine, "tiny_refine": tiny_refine,
             "ufm_refine_recipe": ufm_refine_recipe, "tiny_refine_recipe": tiny_refine_recipe,
             "ufm_base_dinov2l_init": ufm_base_dinov2l_init}
