@@ -1,0 +1,167 @@
+"""configs/distill.py trains a student from a teacher's predictions: no label reaches the loss
+(labels poisoned in the batch change nothing, unless `labels=W` mixes them in), the teacher's
+variables are a bound argument of the step and not the student's state, and on a (data 4, fsdp 2)
+mesh of 8 fake CPU devices the run on unlabeled pairs (image-only pair folders, video frames)
+equals the one-device run."""
+
+import json
+import pathlib
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ufm_jax
+from ufm_jax import checkpoint, config_lib, model_init, model_io, sharding, testing, trainer
+from ufm_jax import teacher as teacher_lib
+from ufm_jax.data import io, synthetic
+from ufm_jax.models import variants
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+LABELS = ("flow", "covisibility", "flow_valid", "covis_valid")
+
+
+def _config(extra=""):
+  return config_lib.load_config(
+      f"{REPO}/configs/distill.py:teacher=variant:synth,student=synth_small,data=synthetic,"
+      f"steps=2,batch=4,eval=False{extra}")
+
+
+def _setup(config):
+  mesh = sharding.make_mesh("data:1,fsdp:1", jax.devices()[:1])
+  teacher = teacher_lib.load_teacher(config, mesh)
+  it, info = trainer.build_input(config, 4, config.seed, teacher)
+  ts = trainer.setup(config, mesh, info["image_shape"], 2, teacher=teacher)
+  return mesh, ts, sharding.make_global_batch(next(it), mesh)
+
+
+def _labelled(batch, poison: bool):
+  """The batch with labels: plausible ones, or NaN flow and random covisibility (one key set,
+  so one compiled step serves both)."""
+  b, h, w = batch["image0"].shape[:3]
+  rng = np.random.default_rng(int(poison))
+  flow = np.full((b, h, w, 2), np.nan if poison else 1.0, np.float32)
+  return dict(batch, flow=jnp.asarray(flow),
+              covisibility=jnp.asarray(rng.random((b, h, w)) < 0.5),
+              flow_valid=jnp.ones((b, h, w), bool), covis_valid=jnp.ones((b, h, w), bool))
+
+
+@pytest.mark.slow
+def test_no_label_reaches_the_loss():
+  config = _config()
+  _, ts, batch = _setup(config)
+  assert not set(LABELS) & set(batch)            # the pipeline reads none of the source's labels
+  assert ts.teacher.resolution == (112, 112)     # variant: its inference resolution
+  state0 = ts.init_state(0)
+  copy = lambda s: jax.tree.map(jnp.copy, s)     # noqa: E731 - the step donates its state
+  clean, m_clean = ts.train_step(copy(state0), _labelled(batch, poison=False))
+  dirty, m_dirty = ts.train_step(copy(state0), _labelled(batch, poison=True))
+  assert np.isfinite(float(m_clean["loss"])) and float(m_clean["loss"]) > 0
+  assert float(m_clean["loss"]) == float(m_dirty["loss"])
+  jax.tree.map(np.testing.assert_array_equal, clean.params, dirty.params)
+  assert sorted(k for k in m_clean if k.startswith("loss_")) == ["loss_teacher_bce",
+                                                                  "loss_teacher_robust"]
+  # the student's state holds the student alone: its parameters, no teacher, no teacher moments
+  student = variants.build_model("synth_small")
+  assert jax.tree.structure(state0.params) == jax.tree.structure(
+      ufm_jax.models.ufm.param_shapes(student))
+  # ... and labels=W mixes the labels back in: then the poison shows
+  mixed = _config(",labels=0.5")
+  _, ts2, batch2 = _setup(mixed)
+  assert set(LABELS) <= set(batch2)
+  s = ts2.init_state(0)
+  _, m = ts2.train_step(copy(s), _labelled(batch2, poison=False))
+  assert {"loss_robust_epe", "loss_covisibility_ce"} <= set(m)
+  _, m_bad = ts2.train_step(s, _labelled(batch2, poison=True))
+  assert float(m["loss"]) != float(m_bad["loss"])
+
+
+def test_the_step_compiles_ahead_of_time_with_an_abstract_teacher():
+  """`train_step.lower(state, batch)` (the planner's call) takes the teacher's sharded shapes:
+  nothing is loaded, and the distillation batch has the teacher's keys and no labels."""
+  config = _config(",teacher=variant:ufm_base")
+  mesh = sharding.make_mesh("data:1,fsdp:1", jax.devices()[:1])
+  ts = trainer.setup(config, mesh, (56, 56), 2, teacher=teacher_lib.load_teacher(config, mesh))
+  assert ts.teacher._host is None and ts.teacher.resolution == (420, 560)
+  batch = ts.abstract_batch(2, (56, 56))
+  assert batch["teacher_image0"].shape == (2, 420, 560, 3) and not set(LABELS) & set(batch)
+  lowered = ts.train_step.lower(ts.sharded_abstract_state(), batch)
+  text = lowered.as_text()
+  assert "420x560" in text.replace(",", "x") or "420" in text
+  assert ts.teacher._host is None                # still nothing loaded
+
+
+def test_teacher_from_a_workdir_sees_its_training_shape(tmp_path):
+  (tmp_path / "checkpoints").mkdir()
+  (tmp_path / "config.json").write_text(json.dumps(
+      {"model_name": "synth", "input": {"shapes": [], "longest_side": 56,
+                                        "aspect_ratios": [1.0]}}))
+  assert teacher_lib.workdir_training_shape(tmp_path) == (56, 56)
+  (tmp_path / "config.json").write_text(json.dumps({"input": {"shapes": [[28, 42]]}}))
+  assert teacher_lib.workdir_training_shape(tmp_path / "checkpoints") == (28, 42)
+
+
+# ------------------------------------------------------------------- 8 fake devices, no labels
+
+
+def _image_only_pairs(root, n=8, size=(56, 56)):
+  cfg = synthetic.SyntheticConfig(size=size, pair_type="shift", max_shift=6)
+  for i in range(n):
+    s, = synthetic.generate_pair(100 + i, cfg, directions=(0,))
+    d = root / f"pair_{i:02d}"
+    d.mkdir(parents=True)
+    io.write_image(d / "image0.png", s["image0"])
+    io.write_image(d / "image1.png", s["image1"])
+
+
+def _frames(root, n=6, size=(56, 56)):
+  """A texture panned by 3 px a frame."""
+  root.mkdir(parents=True)
+  big = synthetic._smooth_texture(np.random.default_rng(0), size[0] + 3 * n, size[1] + 3 * n)
+  for k in range(n):
+    io.write_image(root / f"frame_{k}.png", big[3 * k:3 * k + size[0], 3 * k:3 * k + size[1]])
+
+
+def _run(workdir, teacher, data, root, mesh, extra=()):
+  env = testing.fake_devices_env(8)
+  cmd = [sys.executable, str(REPO / "train.py"),
+         f"--config={REPO}/configs/distill.py:teacher={teacher},student=synth_small,data={data},"
+         f"data_root={root},strides=1-2,steps=2,batch=8,eval=False,pairs=8,recipe=synthetic",
+         f"--workdir={workdir}", f"--config.mesh={mesh}", "--config.sharding_min_size=0",
+         "--config.ckpt_steps=1", "--config.log_training_steps=1", *extra]
+  r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900, cwd=REPO)
+  assert r.returncode == 0, r.stderr[-4000:]
+  return [json.loads(l) for l in (workdir / "metrics.jsonl").read_text().splitlines()]
+
+
+@pytest.mark.slow
+def test_trains_from_unlabeled_pairs_on_eight_fake_devices(tmp_path):
+  """Image-only pair folders (no flow.flo: a labelled run refuses them) and a frames folder at
+  strides 1 and 2; the teacher a converted checkpoint (`ufm_jax.load`), its variables and the
+  student's sharded over fsdp. The (4, 2) mesh gives the one-device run's losses and params."""
+  teacher_model = variants.build_model("synth")
+  model_io.save(tmp_path / "teacher", teacher_model,
+                {"params": trainer.random_params(teacher_model, 3)})
+  _image_only_pairs(tmp_path / "pairs")
+  _frames(tmp_path / "frames")
+  runs = {}
+  for name, data, mesh in (("mesh", "pairs_folder", "data:4,fsdp:2"),
+                           ("single", "pairs_folder", "data:1,fsdp:1"),
+                           ("frames", "frames", "data:4,fsdp:2")):
+    root = tmp_path / ("frames" if data == "frames" else "pairs")
+    runs[name] = _run(tmp_path / name, tmp_path / "teacher", data, root, mesh)
+  for a, b in zip(runs["mesh"], runs["single"]):
+    for k in ("loss", "loss_teacher_robust", "loss_teacher_bce"):
+      assert a[k] == pytest.approx(b[k], rel=1e-4), k
+  assert all(np.isfinite(m["loss"]) for m in runs["frames"])
+  a, _ = checkpoint.read_state_numpy(tmp_path / "mesh", 2)
+  b, _ = checkpoint.read_state_numpy(tmp_path / "single", 2)
+  flat_a, flat_b = model_init.flatten(a["params"]), model_init.flatten(b["params"])
+  for k in flat_a:
+    np.testing.assert_allclose(flat_a[k], flat_b[k], rtol=1e-4, atol=1e-6, err_msg=k)
+  # the student's workdir is an ordinary UFM checkpoint
+  model, variables = ufm_jax.load(tmp_path / "mesh")
+  assert model.config == variants.synth_small() and set(variables) == {"params"}
