@@ -122,6 +122,8 @@ def get_config(arg=None):
   c.model_name = arg.student
   if synthetic:
     c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
+    # The student infers at the size it trained at (`ufm_jax.predict`, evaluate.py).
+    c.model.inference_resolution = hw
   else:
     c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
     c.model.param_init = "official"

@@ -137,31 +137,95 @@ def _run(workdir, teacher, data, root, mesh, extra=()):
   return [json.loads(l) for l in (workdir / "metrics.jsonl").read_text().splitlines()]
 
 
-@pytest.mark.slow
-def test_trains_from_unlabeled_pairs_on_eight_fake_devices(tmp_path):
-  """Image-only pair folders (no flow.flo: a labelled run refuses them) and a frames folder at
-  strides 1 and 2; the teacher a converted checkpoint (`ufm_jax.load`), its variables and the
-  student's sharded over fsdp. The (4, 2) mesh gives the one-device run's losses and params."""
+def test_image_only_pair_folders_make_distillation_rows(tmp_path):
+  """Pair folders without flow.flo: a labelled run refuses every one (skipped and counted), a
+  distillation run reads their images alone."""
+  from ufm_jax.data import pipeline
+  _image_only_pairs(tmp_path / "pairs", n=4)
+  block = dict(datasets={"pairs_folder": {"quota": 4, "root": str(tmp_path / "pairs"),
+                                          "options": {}}},
+               batch_size=4, shapes=((28, 28),), read_threads=0, prefetch_buffer_size=0,
+               num_workers=0)
+  pipe = pipeline.create(pipeline.input_config(**block, teacher_shape=(56, 56)), seed=0,
+                         num_epochs=1, process_index=0, process_count=1)
+  b = next(iter(pipe))
+  assert b["teacher_image0"].shape == (4, 56, 56, 3) and not set(LABELS) & set(b)
+  labelled = pipeline.create(pipeline.input_config(**block, max_retries=0), seed=0,
+                             num_epochs=1, process_index=0, process_count=1)
+  with pytest.raises(Exception, match="flow.flo"):
+    next(iter(labelled))
+
+
+@pytest.fixture(scope="module")
+def frames_runs(tmp_path_factory):
+  """Two distillation runs on a folder of video frames at strides 1 and 2, no labels anywhere:
+  on a (data 4, fsdp 2) mesh of 8 fake devices and on one device; the teacher a converted
+  checkpoint (`ufm_jax.load`), its variables and the student's sharded over fsdp on the mesh."""
+  tmp = tmp_path_factory.mktemp("frames_runs")
   teacher_model = variants.build_model("synth")
-  model_io.save(tmp_path / "teacher", teacher_model,
-                {"params": trainer.random_params(teacher_model, 3)})
-  _image_only_pairs(tmp_path / "pairs")
-  _frames(tmp_path / "frames")
-  runs = {}
-  for name, data, mesh in (("mesh", "pairs_folder", "data:4,fsdp:2"),
-                           ("single", "pairs_folder", "data:1,fsdp:1"),
-                           ("frames", "frames", "data:4,fsdp:2")):
-    root = tmp_path / ("frames" if data == "frames" else "pairs")
-    runs[name] = _run(tmp_path / name, tmp_path / "teacher", data, root, mesh)
+  model_io.save(tmp / "teacher", teacher_model, teacher_lib.random_variables(teacher_model, 3))
+  _frames(tmp / "frames")
+  metrics = {name: _run(tmp / name, tmp / "teacher", "frames", tmp / "frames", mesh)
+             for name, mesh in (("mesh", "data:4,fsdp:2"), ("single", "data:1,fsdp:1"))}
+  return tmp, metrics
+
+
+@pytest.mark.slow
+def test_trains_from_video_frames_on_eight_fake_devices(frames_runs):
+  """The (4, 2) mesh gives the one-device run's losses and parameters."""
+  tmp, runs = frames_runs
+  assert len(runs["mesh"]) == 2 and all(np.isfinite(m["loss"]) for m in runs["mesh"])
   for a, b in zip(runs["mesh"], runs["single"]):
     for k in ("loss", "loss_teacher_robust", "loss_teacher_bce"):
       assert a[k] == pytest.approx(b[k], rel=1e-4), k
-  assert all(np.isfinite(m["loss"]) for m in runs["frames"])
-  a, _ = checkpoint.read_state_numpy(tmp_path / "mesh", 2)
-  b, _ = checkpoint.read_state_numpy(tmp_path / "single", 2)
+  a, _ = checkpoint.read_state_numpy(tmp / "mesh", 2)
+  b, _ = checkpoint.read_state_numpy(tmp / "single", 2)
   flat_a, flat_b = model_init.flatten(a["params"]), model_init.flatten(b["params"])
+  assert flat_a.keys() == flat_b.keys()
   for k in flat_a:
-    np.testing.assert_allclose(flat_a[k], flat_b[k], rtol=1e-4, atol=1e-6, err_msg=k)
-  # the student's workdir is an ordinary UFM checkpoint
-  model, variables = ufm_jax.load(tmp_path / "mesh")
-  assert model.config == variants.synth_small() and set(variables) == {"params"}
+    # atol: the attention key biases get a zero gradient up to rounding, which Adam's
+    # normalisation turns into updates of ~1e-6 that differ between the two reductions.
+    np.testing.assert_allclose(flat_a[k], flat_b[k], rtol=1e-4, atol=2e-5, err_msg=k)
+
+
+@pytest.mark.slow
+def test_a_student_is_an_ordinary_checkpoint_for_every_tool(frames_runs, tmp_path, capsys):
+  """The distilled workdir through ufm_jax.load, infer, match, export (ONNX), the demo's
+  analyser and to-official, unchanged: to-official refuses synth_small's 48-wide encoder as it
+  refuses the synth teacher's (no DINOv2 hub size; ufm_small and ufm_tiny export:
+  tests/test_distill_students.py)."""
+  from ufm_jax import cli, demo
+  tmp, _ = frames_runs
+  student = tmp / "mesh"
+  model, variables = ufm_jax.load(student)
+  assert model.config == variants.synth_small(inference_resolution=(56, 56))
+  assert set(variables) == {"params"}
+  frames = sorted((tmp / "frames").iterdir())
+  pair = [str(frames[0]), str(frames[2])]
+  src, tgt = (io.read_image(p) for p in pair)
+  want = ufm_jax.predict(model, variables, src, tgt)
+
+  assert cli.main(["infer", *pair, "--checkpoint", str(student), "--out",
+                   str(tmp_path / "infer")]) == 0
+  flo, = (tmp_path / "infer").glob("*.flo")
+  np.testing.assert_allclose(io.read_flo(flo), want["flow"], atol=1e-4)
+  assert cli.main(["match", *pair, "--checkpoint", str(student), "--out", str(tmp_path / "m.npz"),
+                   "--min-covisibility", "0"]) == 0
+  with np.load(tmp_path / "m.npz") as m:
+    assert len(m["keypoints0"]) > 0
+  views = demo.Analyser(model, variables, tmp_path / "demo")(src, tgt, threshold=0.0)
+  assert views[0].shape == src.shape and "matches" in views[-1]
+
+  testing.require_extra("onnx", ("jax2onnx", "onnxruntime"))
+  onnx_path = tmp_path / "student.onnx"
+  assert cli.main(["export", "--checkpoint", str(student), "--size", "56x56", "--format", "onnx",
+                   "--out", str(onnx_path)]) == 0
+  import onnxruntime as ort
+  sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+  flow, _ = sess.run(["flow", "covisibility"], {"source": src[None], "target": tgt[None]})
+  np.testing.assert_allclose(flow[0], want["flow"], atol=1e-3)
+
+  capsys.readouterr()
+  assert cli.main(["to-official", str(student), str(tmp_path / "snap")]) == 2
+  assert "not a DINOv2 hub size" in capsys.readouterr().err
+  assert not (tmp_path / "snap").exists()

@@ -5,8 +5,9 @@ the student's rules. The step that runs it: ufm_jax.distill.
 `config.teacher` (configs/distill.py):
   checkpoint  anything `ufm_jax.load` takes: a converted checkpoint, a train.py workdir, an
               official snapshot folder, or a Hugging Face ID with snapshot=True; or
-              "variant:NAME" (a `ufm_jax.models.variants` structure with random weights: for
-              compiling and planning, where only shapes matter, and for tests)
+              "variant:NAME" (a `ufm_jax.models.variants` structure with random weights,
+              `random_variables`: for compiling and planning, where only shapes matter, and
+              for tests)
   snapshot, revision, step   as `ufm_jax.load`'s
   dtype       the teacher's compute dtype (None: the student's `config.model.dtype`)
   resolution  (H, W) the teacher sees the un-augmented pair at (None: a workdir's training
@@ -37,10 +38,9 @@ def _load_spec(spec) -> tuple:
                      "snapshot=True, or variant:NAME)")
   checkpoint = str(checkpoint)
   if checkpoint.startswith(VARIANT_PREFIX):
-    from ufm_jax import trainer
     from ufm_jax.models import variants
     model = variants.build_model(checkpoint[len(VARIANT_PREFIX):])
-    return model, lambda: {"params": trainer.random_params(model)}, None, checkpoint
+    return model, lambda: random_variables(model), None, checkpoint
   from ufm_jax import model_io
   model, variables = model_io.load_model(checkpoint, snapshot=bool(spec.get("snapshot")),
                                          revision=spec.get("revision"), step=spec.get("step"))
@@ -48,6 +48,22 @@ def _load_spec(spec) -> tuple:
   if model_io.what_is(checkpoint) == model_io.WORKDIR:
     shape = workdir_training_shape(checkpoint)
   return model, variables, shape, checkpoint
+
+
+def random_variables(model, seed: int = 0) -> dict:
+  """{"params"} of `model` drawn with numpy at its shapes, N(0, 1 / fan_in) (norm scales around
+  1): a variant:NAME teacher's weights. Only shapes matter where it is used (compiling, planning,
+  tests), and compiling flax's initialisers costs seconds to minutes on CPU."""
+  from flax import traverse_util
+  from ufm_jax.models import ufm
+  rng = np.random.default_rng(seed)
+  flat = {}
+  for path, leaf in traverse_util.flatten_dict(ufm.param_shapes(model)).items():
+    shape = leaf.shape
+    scale = 0.05 if len(shape) < 2 else (1.0 / int(np.prod(shape[:-1]))) ** 0.5
+    base = 1.0 if path[-1] in ("scale", "gamma") else 0.0
+    flat[path] = (base + scale * rng.standard_normal(shape)).astype(np.float32)
+  return {"params": traverse_util.unflatten_dict(flat)}
 
 
 def workdir_training_shape(workdir) -> Optional[tuple]:
