@@ -2,6 +2,7 @@
 
   python benchmarks/distill_models.py --models ufm_base,ufm_small,ufm_tiny --size 420x560
   python benchmarks/distill_models.py --models ufm_small,ufm_tiny --runs 3 --no_onnx   # quicker
+  python benchmarks/distill_models.py --candidates     # FLOPs and params of the sizes weighed
 
 Per model: parameters; GFLOP per pair at --size (XLA's cost analysis of the lowered loop-free
 float32 twin, benchmarks/inference.py's counter; the FLOPs do not depend on the dtype); CPU
@@ -37,6 +38,28 @@ import inference as bench   # benchmarks/inference.py, beside this script
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
+def candidates() -> dict:
+  """The structures weighed against ufm_small and ufm_tiny: each changes one part of ufm_small."""
+  import dataclasses
+  from ufm_jax.models import variants
+  s = variants.ufm_small()
+  heads = lambda dim, dims, f: dict(flow_head=variants._dpt(384, dim, 2, dims, f),  # noqa: E731
+                                    covisibility_head=variants._dpt(384, dim, 1, dims, f))
+  fusion = lambda dim, depth, n, taps: dataclasses.replace(  # noqa: E731
+      s.info_sharing, dim=dim, depth=depth, num_heads=n, indices=taps)
+  return {
+      "ufm_small": s,
+      "ufm_small with UFM-Base's DPT widths (96..768, 256)": s.replace(
+          **heads(384, (96, 192, 384, 768), 256)),
+      "ufm_small with quarter DPT widths (24..192, 64)": s.replace(
+          **heads(384, (24, 48, 96, 192), 64)),
+      "ufm_small with a 12 x 384 fusion": s.replace(info_sharing=fusion(384, 12, 6, (5, 8))),
+      "ufm_small with a 4 x 256 fusion": s.replace(info_sharing=fusion(256, 4, 4, (1, 2)),
+                                                   **heads(256, (48, 96, 192, 384), 128)),
+      "ufm_tiny": variants.ufm_tiny(),
+  }
+
+
 def gflop_per_pair(model, params, hw) -> float:
   from ufm_jax import hlo_stats
   twin = bench.loop_free(model)
@@ -68,10 +91,24 @@ def main(argv=None) -> dict:
   ap.add_argument("--runs", type=int, default=5)
   ap.add_argument("--no_onnx", action="store_true")
   ap.add_argument("--json", default=None)
+  ap.add_argument("--candidates", action="store_true",
+                  help="only params and GFLOP at --size of `candidates()` (no weights, no runs)")
   args = ap.parse_args(argv)
 
   from ufm_jax import inference, optim, trainer
-  from ufm_jax.models import variants
+  from ufm_jax.models import ufm, variants
+  if args.candidates:
+    out = {}
+    for label, cfg in candidates().items():
+      model = ufm.model_from_config(cfg)
+      shapes = ufm.param_shapes(model)
+      out[label] = {"params": optim.count_params(shapes)["total"],
+                    "gflop_per_pair": gflop_per_pair(model, shapes, tuple(args.size))}
+      print(f"{label}: {out[label]['params'] / 1e6:.1f}M parameters, "
+            f"{out[label]['gflop_per_pair']:.1f} GFLOP at {args.size[0]}x{args.size[1]}",
+            flush=True)
+    print(json.dumps(out))
+    return out
   names = [n for n in args.models.split(",") if n]
   rng = np.random.default_rng(0)
   rows, timed = {}, []

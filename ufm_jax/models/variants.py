@@ -15,9 +15,6 @@ from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
 # DPT head of the release: hooks on [encoder last, fusion layer 6, fusion layer 9, fusion final].
 _UFM_LAYER_DIMS = (96, 192, 384, 768)
 _UFM_FEATURE_DIM = 256
-# The distillation students' DPT layer dims: UFM-Base's halved and quartered.
-_SMALL_LAYER_DIMS = (48, 96, 192, 384)
-_TINY_LAYER_DIMS = (24, 48, 96, 192)
 
 
 def _dpt(enc_dim: int, fusion_dim: int, output_dim: int, layer_dims=_UFM_LAYER_DIMS,
@@ -130,38 +127,37 @@ def fixture_small(**kw) -> ufm.UFMConfig:
   return cfg.replace(**kw)
 
 
+def _student(dim: int, depth: int, heads: int, taps, layer_dims, feature_dim: int,
+             **kw) -> ufm.UFMConfig:
+  """UFM-Base's structure on a DINOv2 ViT-S/14 encoder (all 12 blocks) with a narrower fusion
+  transformer and DPT heads: the distillation students."""
+  return ufm_base(
+      encoder=dinov2_small(),
+      info_sharing=info_sharing.InfoSharingConfig(
+          input_embed_dim=384, dim=dim, depth=depth, num_heads=heads, mlp_ratio=4.0,
+          qkv_bias=True, qk_norm=False, init_values=None, indices=tuple(taps)),
+      flow_head=_dpt(384, dim, 2, layer_dims, feature_dim),
+      covisibility_head=_dpt(384, dim, 1, layer_dims, feature_dim), **kw)
+
+
 def ufm_small(**kw) -> ufm.UFMConfig:
   """UFM-Small, a distillation student (configs/distill.py): DINOv2 ViT-S/14 (all 12 blocks,
   initialisable from facebook/dinov2-small with `model_init=dinov2:`), a 6 x 384 fusion
   transformer with 6 heads tapped after blocks 3 and 5 (0-based 2, 4: UFM-Base's 6 and 9 of 12
   scaled to 6), DPT heads at half UFM-Base's widths (layer dims [48, 96, 192, 384], feature dim
-  128); about 33.6M parameters, inferred at 420 x 560 like UFM-Base. Sizes and speed beside
-  UFM-Base: docs/distillation.md."""
-  cfg = ufm_base(
-      encoder=dinov2_small(),
-      info_sharing=info_sharing.InfoSharingConfig(
-          input_embed_dim=384, dim=384, depth=6, num_heads=6, mlp_ratio=4.0, qkv_bias=True,
-          qk_norm=False, init_values=None, indices=(2, 4)),
-      flow_head=_dpt(384, 384, 2, _SMALL_LAYER_DIMS, 128),
-      covisibility_head=_dpt(384, 384, 1, _SMALL_LAYER_DIMS, 128))
-  return cfg.replace(**kw)
+  128); 42.2M parameters, inferred at 420 x 560 like UFM-Base. Sizes and speed beside UFM-Base:
+  docs/distillation.md."""
+  return _student(384, 6, 6, (2, 4), (48, 96, 192, 384), 128).replace(**kw)
 
 
 def ufm_tiny(**kw) -> ufm.UFMConfig:
   """UFM-Tiny, the smallest distillation student: UFM-Small's ViT-S/14 encoder (facebook/dinov2-
   small), a 4 x 256 fusion transformer with 4 heads tapped after blocks 2 and 3 (0-based 1, 2),
-  DPT heads at a quarter of UFM-Base's widths (layer dims [24, 48, 96, 192], feature dim 64),
-  inferred at 294 x 392 (3:4, 21 x 28 patches: half the tokens of 420 x 560). Sizes and speed:
-  docs/distillation.md."""
-  cfg = ufm_base(
-      encoder=dinov2_small(),
-      info_sharing=info_sharing.InfoSharingConfig(
-          input_embed_dim=384, dim=256, depth=4, num_heads=4, mlp_ratio=4.0, qkv_bias=True,
-          qk_norm=False, init_values=None, indices=(1, 2)),
-      flow_head=_dpt(384, 256, 2, _TINY_LAYER_DIMS, 64),
-      covisibility_head=_dpt(384, 256, 1, _TINY_LAYER_DIMS, 64),
-      inference_resolution=(294, 392))
-  return cfg.replace(**kw)
+  DPT heads at a quarter of UFM-Base's widths (layer dims [24, 48, 96, 192], feature dim 64);
+  27.7M parameters, inferred at 294 x 392 (3:4, 21 x 28 patches: half the tokens of 420 x 560).
+  Sizes and speed: docs/distillation.md."""
+  return _student(256, 4, 4, (1, 2), (24, 48, 96, 192), 64,
+                  inference_resolution=(294, 392)).replace(**kw)
 
 
 def tiny(**kw) -> ufm.UFMConfig:
