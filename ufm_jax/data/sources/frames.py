@@ -18,11 +18,11 @@ import pathlib
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
-from ufm_jax.sequence import IMAGE_SUFFIXES, frame_pairs
+from ufm_jax.sequence import frame_pairs
 
 
 def _has_frames(folder: pathlib.Path) -> bool:
-  return any(p.suffix.lower() in IMAGE_SUFFIXES for p in folder.iterdir() if p.is_file())
+  return any(p.suffix.lower() in io.IMAGE_SUFFIXES for p in folder.iterdir() if p.is_file())
 
 
 @register("frames")
@@ -42,7 +42,7 @@ class Frames:
         (p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and
          _has_frames(p)), key=lambda p: p.name)
     if not folders:
-      raise FileNotFoundError(f"frames: no image files ({', '.join(IMAGE_SUFFIXES)}) in {root} "
+      raise FileNotFoundError(f"frames: no image files ({', '.join(io.IMAGE_SUFFIXES)}) in {root} "
                               "or its sub-folders")
     self.root = root
     self.pairs = []
