@@ -3,6 +3,8 @@
   python benchmarks/distill_models.py --models ufm_base,ufm_small,ufm_tiny --size 420x560
   python benchmarks/distill_models.py --models ufm_small,ufm_tiny --runs 3 --no_onnx   # quicker
   python benchmarks/distill_models.py --candidates     # FLOPs and params of the sizes weighed
+  python benchmarks/distill_models.py --step_flops --models ufm_small --teacher variant:ufm_base
+      # FLOPs of the distillation train step against the same student's step without a teacher
 
 Per model: parameters; GFLOP per pair at --size (XLA's cost analysis of the lowered loop-free
 float32 twin, benchmarks/inference.py's counter; the FLOPs do not depend on the dtype); CPU
@@ -60,6 +62,25 @@ def candidates() -> dict:
   }
 
 
+def step_flops(students, teacher: str, hw, batch: int) -> dict:
+  """{student: GFLOP per row of the distillation step and of the plain 560-recipe step}."""
+  from ufm_jax import config_lib, hlo_stats
+  out = {}
+  for student in students:
+    distill = config_lib.load_config(f"{REPO}/configs/distill.py:teacher={teacher},"
+                                     f"student={student},data=synthetic,recipe=560")
+    plain = config_lib.load_config(f"{REPO}/configs/ufm560.py:model={student}")
+    rows = {k: hlo_stats.train_step_flops(c, hw, batch) / batch / 1e9
+            for k, c in (("distill", distill), ("plain", plain))}
+    rows["teacher_share"] = 1 - rows["plain"] / rows["distill"]
+    out[student] = rows
+    print(f"{student} taught by {teacher} at {hw[0]}x{hw[1]}, {batch} rows: "
+          f"{rows['distill']:.0f} GFLOP per row with the teacher, {rows['plain']:.0f} without "
+          f"(the teacher's forward {100 * rows['teacher_share']:.0f}% of the step)", flush=True)
+  print(json.dumps(out))
+  return out
+
+
 def gflop_per_pair(model, params, hw) -> float:
   from ufm_jax import hlo_stats
   twin = bench.loop_free(model)
@@ -91,12 +112,21 @@ def main(argv=None) -> dict:
   ap.add_argument("--runs", type=int, default=5)
   ap.add_argument("--no_onnx", action="store_true")
   ap.add_argument("--json", default=None)
+  ap.add_argument("--step_flops", action="store_true",
+                  help="FLOPs of configs/distill.py's train step (teacher --teacher, the student "
+                       "each of --models) at --size and --batch rows, beside the same student's "
+                       "step in the 560 recipe without a teacher (ufm_jax.hlo_stats)")
+  ap.add_argument("--teacher", default="variant:ufm_base")
+  ap.add_argument("--batch", type=int, default=2, help="rows of the --step_flops step")
   ap.add_argument("--candidates", action="store_true",
                   help="only params and GFLOP at --size of `candidates()` (no weights, no runs)")
   args = ap.parse_args(argv)
 
   from ufm_jax import inference, optim, trainer
   from ufm_jax.models import ufm, variants
+  if args.step_flops:
+    return step_flops([n for n in args.models.split(",") if n], args.teacher, tuple(args.size),
+                      args.batch)
   if args.candidates:
     out = {}
     for label, cfg in candidates().items():

@@ -200,5 +200,9 @@ def train_step_flops(config, hw, batch: int) -> float | None:
   config.model.attention_impl = "xla"
   config.model.scan_blocks = False
   mesh = sharding.make_mesh("data:-1,fsdp:1", jax.devices("cpu")[:1])
-  ts = trainer.setup(config, mesh, hw, total_steps=1000)
+  teacher = None
+  if config.get("teacher"):   # a distillation step: the teacher's forward counts too
+    from ufm_jax import teacher as teacher_lib
+    teacher = teacher_lib.load_teacher(config, mesh)
+  ts = trainer.setup(config, mesh, hw, total_steps=1000, teacher=teacher)
   return flops(ts.train_step.lower(ts.sharded_abstract_state(), ts.abstract_batch(batch, hw)))
