@@ -35,8 +35,9 @@ synthetic for data=synthetic, else 560).
 
 recipe=synthetic follows configs/synthetic.py (56 px shift pairs, 2000 steps of 8 rows, lr 1e-3
 everywhere, float32, flax's init; with data=synthetic the held-out eval every 100 steps);
-recipe=560 follows the 560 recipe (configs/ufm560.py: its shapes, AdamW, encoder lr 5e-6 and
-1e-4 elsewhere, 10% warmup and cosine to 1%, bf16, scan, remat, the official init). The
+recipe=560 follows the 560 recipe (configs/ufm560.py: its shapes, scaled to the student's
+inference width for ufm_tiny's 392, AdamW, encoder lr 5e-6 and 1e-4 elsewhere, 10% warmup and
+cosine to 1%, bf16, scan, remat, the official init). The
 demonstration and the students' sizes and speed: docs/distillation.md.
 """
 
@@ -46,6 +47,7 @@ import ml_collections
 
 from ufm_jax import config_lib, model_io, optim
 from ufm_jax.data import augment, mixture, pipeline
+from ufm_jax.models import variants
 
 
 def _teacher_block(arg) -> ml_collections.ConfigDict:
@@ -74,6 +76,15 @@ def _datasets(arg, hw):
   return ml_collections.ConfigDict(block)
 
 
+def _shapes(student):
+  """The 560 recipe's training shapes, scaled to the width the student infers at (ufm_tiny:
+  392), each side a multiple of 14."""
+  width = variants.get(student).inference_resolution[1]
+  if width == 560:
+    return augment.SHAPES_560
+  return tuple((max(14, round(h * width / 560 / 14) * 14), width) for h, _ in augment.SHAPES_560)
+
+
 def get_config(arg=None):
   arg = config_lib.parse_arg(arg, teacher="", student="ufm_small", data="synthetic",
                              data_root="", strides="1", pairs=0, steps=0, batch=0, size=56,
@@ -94,7 +105,7 @@ def get_config(arg=None):
   c.num_epochs = config_lib.unset(int)
 
   hw = (arg.size, arg.size)
-  shapes = (hw,) if synthetic else augment.SHAPES_560
+  shapes = (hw,) if synthetic else _shapes(arg.student)
   c.input = pipeline.input_config(
       _datasets(arg, hw), batch_size=arg.batch or (8 if synthetic else 96), shapes=shapes,
       # Labels are read only when a loss term uses them.
