@@ -23,7 +23,7 @@ official robust EPE (alpha 0.5, c 0.24) against the teacher's flow on the teache
 pixels, each pixel weighted by the teacher's covariance where it has one
 (`--config.loss.teacher_robust.covariance=off` to ignore it); teacher_bce, the covisibility BCE
 (x 10) against the teacher's covisibility as a soft target. `loss=l1` is the synthetic config's
-(alpha 1, c 0.01).
+(alpha 1, c 0.01), the default of recipe=synthetic as in configs/synthetic.py.
 
 Args: teacher, student, data, data_root, strides (frames: e.g. 1-2-4), pairs (pairs per
 epoch of a source), steps, batch (global rows, both directions counted), size (recipe
@@ -34,7 +34,8 @@ the teacher sees; default: a workdir's training shape, else its inference resolu
 synthetic for data=synthetic, else 560).
 
 recipe=synthetic follows configs/synthetic.py (56 px shift pairs, 2000 steps of 8 rows, lr 1e-3
-everywhere, float32, flax's init; with data=synthetic the held-out eval every 100 steps);
+everywhere, loss l1, float32, flax's init; with data=synthetic the held-out eval every 100
+steps), except that the student's input takes the official augmentation;
 recipe=560 follows the 560 recipe (configs/ufm560.py: its shapes, scaled to the student's
 inference width for ufm_tiny's 392, AdamW, encoder lr 5e-6 and 1e-4 elsewhere, 10% warmup and
 cosine to 1%, bf16, scan, remat, the official init). The
@@ -88,17 +89,18 @@ def _shapes(student):
 def get_config(arg=None):
   arg = config_lib.parse_arg(arg, teacher="", student="ufm_small", data="synthetic",
                              data_root="", strides="1", pairs=0, steps=0, batch=0, size=56,
-                             lr=0.0, loss="paper", labels=0.0, teacher_res="", eval=True,
+                             lr=0.0, loss="", labels=0.0, teacher_res="", eval=True,
                              recipe="")
   if not arg.teacher:
     raise ValueError("configs/distill.py: name the teacher, e.g. "
                      "configs/distill.py:teacher=workdirs/synthetic,student=synth_small")
-  if arg.loss not in ("paper", "l1"):
-    raise ValueError(f"configs/distill.py: loss must be 'paper' or 'l1', got {arg.loss!r}")
   recipe = arg.recipe or ("synthetic" if arg.data == "synthetic" else "560")
   if recipe not in ("synthetic", "560"):
     raise ValueError(f"configs/distill.py: recipe must be 'synthetic' or '560', got {recipe!r}")
   synthetic = recipe == "synthetic"
+  loss = arg.loss or ("l1" if synthetic else "paper")
+  if loss not in ("paper", "l1"):
+    raise ValueError(f"configs/distill.py: loss must be 'paper' or 'l1', got {arg.loss!r}")
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.teacher = _teacher_block(arg)
   c.total_steps = arg.steps or (2000 if synthetic else 100_000)
@@ -113,7 +115,7 @@ def get_config(arg=None):
       **({"num_workers": 0, "read_threads": 2, "prefetch_buffer_size": 2} if synthetic else
          {"augment": {"fast_image_ops": True}}))
 
-  alpha, scale = (1.0, 0.01) if arg.loss == "l1" else (0.5, 0.24)
+  alpha, scale = (1.0, 0.01) if loss == "l1" else (0.5, 0.24)
   terms = ("teacher_robust", "teacher_bce")
   c.loss = ml_collections.ConfigDict({
       "teacher_robust": {"type": "teacher_robust", "alpha": alpha, "c": scale,
