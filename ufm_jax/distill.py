@@ -26,11 +26,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable
 
-import numpy as np
+from ufm_jax.data.distill_rows import TEACHER_KEYS
 
-# Batch keys of a distillation row besides image0 / image1 (the student's input).
-TEACHER_IMAGES = ("teacher_image0", "teacher_image1")
-TEACHER_MAPS = ("teacher_to_crop0", "teacher_to_crop1")   # [2, 3] float32 per row
 INTERPOLATIONS = ("bilinear", "nearest")
 
 
@@ -167,17 +164,10 @@ def make_targets_fn(teacher: Teacher, gather_params=None, symmetrized: bool = Fa
                                  if k in out})
     warped = warp_to_crop(out, batch["teacher_to_crop0"], batch["teacher_to_crop1"],
                           batch["image0"].shape[1:3], teacher.interpolation)
-    rest = {k: v for k, v in batch.items() if k not in TEACHER_IMAGES + TEACHER_MAPS}
+    rest = {k: v for k, v in batch.items() if k not in TEACHER_KEYS}
     return {**rest, **warped}
 
   return targets
-
-
-def row_shapes(image_hw, teacher_hw) -> dict:
-  """{key: (per-row shape, numpy dtype)} of the teacher's part of a distillation row."""
-  th, tw = teacher_hw
-  return {"teacher_image0": ((th, tw, 3), np.uint8), "teacher_image1": ((th, tw, 3), np.uint8),
-          "teacher_to_crop0": ((2, 3), np.float32), "teacher_to_crop1": ((2, 3), np.float32)}
 
 
 class BoundStep:

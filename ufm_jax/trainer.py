@@ -260,8 +260,8 @@ class TrainSetup:
       rows.update({"flow": ((h, w, 2), np.float32), "covisibility": ((h, w), np.bool_),
                    "flow_valid": ((h, w), np.bool_), "covis_valid": ((h, w), np.bool_)})
     if self.teacher is not None:
-      from ufm_jax import distill
-      rows.update(distill.row_shapes(image_shape, self.teacher.resolution))
+      from ufm_jax.data import distill_rows
+      rows.update(distill_rows.row_shapes(self.teacher.resolution))
     return rows
 
   def abstract_batch(self, batch_size: int, image_shape):

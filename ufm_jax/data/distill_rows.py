@@ -33,6 +33,13 @@ from ufm_jax.data.load_pair import ARRAY_KEYS, LoadPair, check_images
 TEACHER_KEYS = ("teacher_image0", "teacher_image1", "teacher_to_crop0", "teacher_to_crop1")
 
 
+def row_shapes(teacher_hw) -> dict:
+  """{key: (per-row shape, numpy dtype)} of the teacher's part of a distillation row."""
+  th, tw = teacher_hw
+  return {"teacher_image0": ((th, tw, 3), np.uint8), "teacher_image1": ((th, tw, 3), np.uint8),
+          "teacher_to_crop0": ((2, 3), np.float32), "teacher_to_crop1": ((2, 3), np.float32)}
+
+
 def crop_map(resized_hw, crop_top_left, teacher_hw) -> np.ndarray:
   """[2, 3] float32 affine from teacher pixels to crop pixels of one view (pixel centres at
   integers, the half-pixel convention of the resizes): the view is seen by the teacher resized
