@@ -67,9 +67,13 @@ def _datasets(arg, hw):
   if arg.data == "synthetic":
     return mixture.synthetic_mixture(num_pairs=arg.pairs or 100_000, size=hw, pair_type="shift",
                                      max_shift=10)
-  root = arg.data_root or None
-  if arg.data in ("pairs_folder", "frames") and not root:
+  if arg.data in ("pairs_folder", "frames") and not arg.data_root:
     raise ValueError(f"configs/distill.py: data={arg.data} reads its pairs from data_root=DIR")
+  # A dataset of the official mixtures is looked for under the data root (its official or raw
+  # layout, ufm_jax.data.mixture); any other source reads data_root itself.
+  root = None
+  if arg.data_root and arg.data not in mixture.LAYOUTS:
+    root = os.path.abspath(os.path.expanduser(arg.data_root))
   options = {}
   if arg.data == "frames":
     options["strides"] = tuple(int(s) for s in str(arg.strides).split("-"))
@@ -110,6 +114,7 @@ def get_config(arg=None):
   shapes = (hw,) if synthetic else _shapes(arg.student)
   c.input = pipeline.input_config(
       _datasets(arg, hw), batch_size=arg.batch or (8 if synthetic else 96), shapes=shapes,
+      **({"data_root": arg.data_root} if arg.data_root and arg.data in mixture.LAYOUTS else {}),
       # Labels are read only when a loss term uses them.
       keep_labels=arg.labels > 0,
       **({"num_workers": 0, "read_threads": 2, "prefetch_buffer_size": 2} if synthetic else
