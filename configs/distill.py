@@ -30,8 +30,10 @@ epoch of a source), steps, batch (global rows, both directions counted), size (r
 synthetic: the square image side), lr (peak learning rate of the groups that are not the
 encoder), loss (paper|l1), labels (weight of the label terms; 0: none read), teacher_res (HxW
 the teacher sees; default: a workdir's training shape, else its inference resolution), eval
-(data=synthetic: the held-out evaluation against the true flow), recipe (synthetic|560; default
-synthetic for data=synthetic, else 560).
+(the held-out evals on or off), recipe (synthetic|560; default synthetic for data=synthetic, else
+560), eval_root (a folder of held-out pairs of the same kind as data=: every 1000 steps, 100 in
+recipe synthetic, the student is scored against the teacher's predictions on 32 of them,
+`teacher_agreement`; data=synthetic is also scored against the true flow of its val split).
 
 recipe=synthetic follows configs/synthetic.py (56 px shift pairs, 2000 steps of 8 rows, lr 1e-3
 everywhere, loss l1, float32, flax's init; with data=synthetic the held-out eval every 100
@@ -94,7 +96,7 @@ def get_config(arg=None):
   arg = config_lib.parse_arg(arg, teacher="", student="ufm_small", data="synthetic",
                              data_root="", strides="1", pairs=0, steps=0, batch=0, size=56,
                              lr=0.0, loss="", labels=0.0, teacher_res="", eval=True,
-                             recipe="")
+                             recipe="", eval_root="")
   if not arg.teacher:
     raise ValueError("configs/distill.py: name the teacher, e.g. "
                      "configs/distill.py:teacher=workdirs/synthetic,student=synth_small")
@@ -169,9 +171,19 @@ def get_config(arg=None):
   c.evals = ml_collections.ConfigDict()
   if arg.data == "synthetic" and arg.eval:
     # The held-out pairs' true flow scores the student; training never reads a label.
-    c.evals = ml_collections.ConfigDict({"heldout": {
+    c.evals.heldout = ml_collections.ConfigDict({
         "type": "heldout", "source": "synthetic", "root": None,
         "kwargs": {"split": "val", "num_pairs": 32, "size": hw, "pair_type": "shift",
                    "max_shift": 10},
-        "num_pairs": 32, "shape": hw, "batch_size": 16, "every": 100, "num_images": 2}})
+        "num_pairs": 32, "shape": hw, "batch_size": 16, "every": 100, "num_images": 2})
+  if arg.eval_root and arg.eval:
+    # Held-out pairs of the run's own domain, scored against the teacher (no ground truth).
+    held_out = ml_collections.ConfigDict(arg.to_dict())
+    held_out.data_root = arg.eval_root
+    (source, spec), = _datasets(held_out, hw).items()
+    c.evals.teacher = ml_collections.ConfigDict({
+        "type": "teacher_agreement", "source": source, "root": spec.root,
+        "kwargs": spec.options.to_dict(), "teacher": c.teacher.to_dict(), "num_pairs": 32,
+        "shape": shapes[0], "batch_size": 8, "every": 100 if synthetic else 1000,
+        "num_images": 2})
   return c

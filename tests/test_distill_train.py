@@ -229,3 +229,24 @@ def test_a_student_is_an_ordinary_checkpoint_for_every_tool(frames_runs, tmp_pat
   assert cli.main(["to-official", str(student), str(tmp_path / "snap")]) == 2
   assert "not a DINOv2 hub size" in capsys.readouterr().err
   assert not (tmp_path / "snap").exists()
+
+
+def test_teacher_agreement_eval_scores_the_student_against_the_teacher(tmp_path):
+  """Held-out frames, no labels: the teacher's predictions are the labels. A student equal to
+  the teacher agrees with it everywhere; another one does not."""
+  import ml_collections
+  from ufm_jax.evaluators import train_evals
+  _frames(tmp_path / "frames", n=3, size=(112, 112))
+  cfg = ml_collections.ConfigDict({
+      "type": "teacher_agreement", "source": "frames", "root": str(tmp_path / "frames"),
+      "kwargs": {"strides": (1,)}, "teacher": {"checkpoint": "variant:synth"}, "num_pairs": 4,
+      "shape": (112, 112), "batch_size": 2, "every": 1, "num_images": 1})
+  mesh = sharding.make_mesh("data:1,fsdp:1", jax.devices()[:1])
+  ev, = train_evals.build_evaluators({"teacher": cfg}, mesh, None).values()
+  assert len(ev.samples) == 2 and ev.samples[0]["flow"].shape == (112, 112, 2)
+  model = variants.build_model("synth")
+  predict = jax.jit(trainer.make_predict(model, {}))
+  same = ev.run(predict, teacher_lib.random_variables(model)).scalars
+  assert same["epe"] < 1e-3 and same["covis_acc"] == 1.0
+  other = ev.run(predict, teacher_lib.random_variables(model, seed=5)).scalars
+  assert other["epe"] > 0.1

@@ -29,8 +29,9 @@ from ufm_jax.distill import INTERPOLATIONS, Teacher
 VARIANT_PREFIX = "variant:"
 
 
-def _load_spec(spec) -> tuple:
-  """(model, variables or a loader of them, the source's own training shape or None, name)."""
+def load_spec(spec) -> tuple:
+  """(model, variables or a loader of them, the source's own training shape or None, name) of a
+  config.teacher block, as loaded (not yet rebuilt for a mesh)."""
   checkpoint = spec.get("checkpoint")
   if not checkpoint:
     raise ValueError("config.teacher.checkpoint is empty: name the teacher (a converted "
@@ -96,7 +97,7 @@ def load_teacher(config, mesh) -> Teacher:
   if interpolation not in INTERPOLATIONS:
     raise ValueError(f"config.teacher.interpolation={interpolation!r}; expected one of "
                      f"{INTERPOLATIONS}")
-  model, variables, trained_shape, source = _load_spec(spec)
+  model, variables, trained_shape, source = load_spec(spec)
   block = config.get("model") or {}
   compute = {k: block[k] for k in ("remat", "scan_blocks", "attention_impl", "head_dtype")
              if block.get(k) is not None}

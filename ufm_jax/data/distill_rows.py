@@ -51,6 +51,20 @@ def crop_map(resized_hw, crop_top_left, teacher_hw) -> np.ndarray:
                    [0.0, ay, 0.5 * ay - 0.5 - top]], np.float32)
 
 
+def read_images(src, i: int, where: str):
+  """(image0, image1) of pair i through the cheapest door the source has: `images(i)`, else
+  `lazy_pair(i)`, else the sample (its labels unused)."""
+  if callable(getattr(src, "images", None)):
+    image0, image1 = src.images(i)
+  elif callable(getattr(src, "lazy_pair", None)):
+    pair = src.lazy_pair(i)
+    image0, image1 = pair.image0, pair.image1
+  else:
+    sample = src[i]
+    image0, image1 = sample["image0"], sample["image1"]
+  return check_images(image0, image1, where)
+
+
 def teacher_view(image, teacher_hw) -> np.ndarray:
   image = np.asarray(image)
   if image.shape[:2] == tuple(teacher_hw):
@@ -67,18 +81,6 @@ class DistillPair(LoadPair):
     self.keep_labels = bool(keep_labels)
     self.row_keys = ("image0", "image1") + TEACHER_KEYS + (ARRAY_KEYS[2:] if keep_labels else ())
 
-  def _images(self, d: int, i: int, where: str):
-    src = self.sources[d]
-    if callable(getattr(src, "images", None)):
-      image0, image1 = src.images(i)
-    elif callable(getattr(src, "lazy_pair", None)):
-      pair = src.lazy_pair(i)
-      image0, image1 = pair.image0, pair.image1
-    else:
-      sample = src[i]
-      image0, image1 = sample["image0"], sample["image1"]
-    return check_images(image0, image1, where)
-
   def _augmented(self, d: int, i: int, out_hw, rng):
     where = f"{self.names[d]}[{i}]"
     cfg = self.cfg
@@ -87,7 +89,7 @@ class DistillPair(LoadPair):
       sample, backward = self._load(d, i)
       image0, image1 = sample["image0"], sample["image1"]
     else:
-      image0, image1 = self._images(d, i, where)
+      image0, image1 = read_images(self.sources[d], i, where)
     if image0.shape != image1.shape:
       raise ValueError(f"{where}: image shapes {image0.shape} and {image1.shape} differ; "
                        "distillation crops both views alike and needs equal sizes")
