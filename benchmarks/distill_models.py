@@ -141,10 +141,10 @@ def main(argv=None) -> dict:
     return out
   names = [n for n in args.models.split(",") if n]
   rng = np.random.default_rng(0)
-  rows, timed = {}, []
+  rows, timed, weights = {}, [], {}
   for name in names:
     model = variants.build_model(name)
-    params = trainer.random_params(model)
+    params = weights[name] = trainer.random_params(model)
     n = optim.count_params(params)["total"]
     sizes = [tuple(args.size)]
     own = tuple(inference.inference_resolutions(model)[0])
@@ -175,14 +175,28 @@ def main(argv=None) -> dict:
     rows[t["model"]].setdefault("cpu_ms", {})[f"{t['dtype']} {t['size']}"] = {
         "min": min(t["times"]) * 1e3, "median": statistics.median(t["times"]) * 1e3,
         "compile_s": round(t["compile_s"], 1)}
+  env = bench.machine()
+  report(rows, args, env)
   if not args.no_onnx:
-    for name in names:
-      model = variants.build_model(name)
+    for name in sorted(names, key=lambda n: rows[n]["params"]):   # the largest export last
       with tempfile.TemporaryDirectory(prefix="ufm_distill_onnx_") as tmp:
-        rows[name]["onnx_mb"] = onnx_mb(model, trainer.random_params(model), tuple(args.size), tmp)
+        try:
+          rows[name]["onnx_mb"] = onnx_mb(variants.build_model(name), weights[name],
+                                          tuple(args.size), tmp)
+        except SystemExit as e:   # one model's failed export does not lose the other figures
+          rows[name]["onnx_error"] = str(e)[-500:]
+          print(f"{name}: ONNX export failed: {str(e)[-500:]}", flush=True)
+          continue
       print(f"{name}: ONNX {rows[name]['onnx_mb']:.1f} MB at {args.size[0]}x{args.size[1]}",
             flush=True)
-  env = bench.machine()
+  res = {"size": list(args.size), "models": rows, **env}
+  print(json.dumps(res))
+  if args.json:
+    pathlib.Path(args.json).write_text(json.dumps(res, indent=1))
+  return res
+
+
+def report(rows, args, env) -> None:
   print(f"\nload average {env['load_avg_1m']} on {env['cpu_count']} CPUs, {env['threads']} "
         f"threads; {args.runs} interleaved runs, batch 1; {jax.devices()[0].platform}")
   base = rows.get("ufm_base")
@@ -194,12 +208,7 @@ def main(argv=None) -> dict:
       key = f"float32 {args.size[0]}x{args.size[1]}"
       rel = (f"  [{base['params'] / r['params']:.1f}x fewer params, "
              f"{base['cpu_ms'][key]['min'] / r['cpu_ms'][key]['min']:.1f}x faster f32]")
-    print(f"{name:10s} {r['params'] / 1e6:7.1f}M  {ms}{rel}")
-  res = {"size": list(args.size), "models": rows, **env}
-  print(json.dumps(res))
-  if args.json:
-    pathlib.Path(args.json).write_text(json.dumps(res, indent=1))
-  return res
+    print(f"{name:10s} {r['params'] / 1e6:7.1f}M  {ms}{rel}", flush=True)
 
 
 if __name__ == "__main__":
