@@ -172,12 +172,14 @@ def time_only(config, hw, args):
   from ufm_jax import planning
   shapes = planning.training_shapes(config)
   hw = hw or planning.largest_shape(config)
-  rows = []
+  rows, counted = [], {}
   for name in args.topology.split(","):
     tgt = planning.target(name, compile=False)
     batch = _per_chip_batch(config, args, tgt.chips) * tgt.chips
     print(f"{name}: {tgt.chips} x {tgt.device_kind}, global batch {batch}", flush=True)
-    per_row = planning.model_flops_per_row(config, set(shapes) | {hw}, batch, tgt.platform)
+    if batch not in counted:   # slices with the same batch share the count (TPU and GPU alike)
+      counted[batch] = planning.model_flops_per_row(config, set(shapes) | {hw}, batch, "tpu")
+    per_row = counted[batch]
     host_ms = (args.host_ms_per_row if args.host_ms_per_row is not None
                else planning.default_host_ms_per_row(config))
     est = planning.estimate(config, tgt, per_row, hw, batch, args.mfu, host_ms)
@@ -189,7 +191,8 @@ def time_only(config, hw, args):
           + (f", {est['recipe_steps']} steps, {est['days_estimate']:.2f} days"
              if "days_estimate" in est else "")
           + (f"; host feed {est['rows_per_s_per_host']:.0f} rows/s per host = "
-             f"{est['host_cores_per_host']:.1f} cores" if est.get("host_cores_per_host") else ""))
+             f"{est['host_cores_per_host']:.1f} cores of {est['host_vcpus'] or '?'} vCPUs"
+             if est.get("host_cores_per_host") else ""))
     rows.append(row)
   print(json.dumps(rows))
   return rows

@@ -112,6 +112,10 @@ def test_host_feed():
   assert est["hosts"] == 16
   assert est["rows_per_s_per_host"] == pytest.approx(128 / step_s / 16)
   assert est["host_cores_per_host"] == pytest.approx(128 / step_s / 16 * 0.010)
+  assert est["host_vcpus"] == 112        # a 4-chip v5e VM
+  assert est["hosts_feed_chips"] == (est["host_cores_per_host"] <= 112)
+  slow = planning.estimate(config, tgt, per_row, shapes[0], 128, 0.5, 1000.0)
+  assert slow["hosts_feed_chips"] is False   # a second per row cannot keep up
   assert planning.default_host_ms_per_row(config) == planning.HOST_MS_PER_ROW[560]
   c980 = config_lib.load_config(str(REPO / "configs" / "ufm980.py"))
   assert planning.default_host_ms_per_row(c980) is None      # never measured at 980

@@ -29,6 +29,7 @@ import copy
 import dataclasses
 import json
 import math
+import os
 import time
 
 MFU = 0.4
@@ -102,6 +103,7 @@ class Target:
   peak_flops: float | None
   hosts: int
   platform: str
+  host_vcpus: int | None = None   # per host (None: unknown)
 
 
 def target(topology: str | None = None, compile: bool = True) -> Target:  # noqa: A002
@@ -114,15 +116,17 @@ def target(topology: str | None = None, compile: bool = True) -> Target:  # noqa
     slc = topologies.get(topology)
     chip = topologies.CHIPS[slc.chip]
     devices = list(topologies.devices(topology)) if compile else None
-    per_host = math.prod(slc.host_bounds) if slc.host_bounds else slc.chips
+    per_host = min(math.prod(slc.host_bounds) if slc.host_bounds else slc.chips, slc.chips)
+    vcpus = chip.host_vcpus_per_chip and int(chip.host_vcpus_per_chip * per_host)
     return Target(topology, devices, slc.chips, chip.device_kind, chip.hbm_bytes,
                   chip.peak_bf16_flops, max(1, slc.chips // per_host),
-                  "tpu" if slc.topology else "gpu")
+                  "tpu" if slc.topology else "gpu", vcpus)
   devices = jax.devices()
   chip = topologies.chip_of(devices[0].device_kind)
   return Target(f"{len(devices)} x {devices[0].device_kind}", list(devices), len(devices),
                 devices[0].device_kind, chip.hbm_bytes if chip else None,
-                chip.peak_bf16_flops if chip else None, jax.process_count(), devices[0].platform)
+                chip.peak_bf16_flops if chip else None, jax.process_count(), devices[0].platform,
+                os.cpu_count())
 
 
 # ----------------------------------------------------------------------------- build and compile
@@ -245,9 +249,12 @@ def estimate(config, tgt: Target, per_row: dict, hw, batch: int, mfu: float,
     steps = math.ceil(rows / batch)
     out.update(recipe_rows=rows, recipe_steps=steps, days_estimate=steps * mean_step_s / 86400)
   rows_s_host = batch / mean_step_s / tgt.hosts
-  out.update(hosts=tgt.hosts, rows_per_s_per_host=rows_s_host, host_ms_per_row=host_ms_per_row)
+  out.update(hosts=tgt.hosts, rows_per_s_per_host=rows_s_host, host_ms_per_row=host_ms_per_row,
+             host_vcpus=tgt.host_vcpus)
   if host_ms_per_row:
     out["host_cores_per_host"] = rows_s_host * host_ms_per_row / 1000
+    if tgt.host_vcpus:
+      out["hosts_feed_chips"] = out["host_cores_per_host"] <= tgt.host_vcpus
   return out
 
 
@@ -349,8 +356,11 @@ def report(result: dict, log=print):
           f" {r['days_estimate']:.2f} days")
     feed = (f"{r['rows_per_s_per_host']:.0f} rows/s per host ({r['hosts']} hosts)")
     if r.get("host_cores_per_host") is not None:
+      have = (f"; the hosts have {r['host_vcpus']} vCPUs: they "
+              f"{'can' if r['hosts_feed_chips'] else 'can NOT'} feed the chips"
+              if "hosts_feed_chips" in r else "; host vCPUs unknown")
       log(f"  host feed: {feed} x {r['host_ms_per_row']} ms/row = "
-          f"{r['host_cores_per_host']:.1f} busy cores per host")
+          f"{r['host_cores_per_host']:.1f} busy cores per host{have}")
     else:
       log(f"  host feed: {feed}; no measured host ms/row for this recipe (--host_ms_per_row)")
 
