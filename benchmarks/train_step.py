@@ -27,6 +27,8 @@ per-chip batch that fits (one compile per probe, minutes each at full size), the
 recipe's own batch with the fewest microbatches that fit, and prints the train.py / sbatch /
 JobSet overrides that run that plan. --topology A,B,... --time_only skips the compile (and
 libtpu): FLOPs, step time, days and host feed per slice, GPU nodes too (h100-8, h200-8, a100-8).
+--flops counts the step's FLOPs on its jaxpr (model FLOPs, and as executed with remat) beside
+the count from the model's dimensions (ufm_jax.flops.analytic_step_flops), by part.
 --estimate_only traces abstractly (no compile): params, AdamW state, and the activations the
 backward pass keeps (JAX's saved residuals) with and without remat at the per-device batch.
 Without any of these, random batches go through the compiled step and the step time is printed.
@@ -198,6 +200,40 @@ def time_only(config, hw, args):
   return rows
 
 
+def count_flops(config, batch, hw):
+  """--flops: the step's FLOPs counted on its jaxpr (ufm_jax.flops; model FLOPs without remat,
+  and as executed with it) beside the count from the model's dimensions, by part."""
+  import copy
+
+  import jax
+  from ufm_jax import flops, sharding, trainer
+  mesh = sharding.make_mesh("data:1,fsdp:1", jax.devices()[:1])
+  model_cfg = copy.deepcopy(config)
+  if model_cfg.model.get("remat"):
+    model_cfg.model.remat = False
+  ts = trainer.setup(model_cfg, mesh, hw, total_steps=1000)
+  t0 = time.perf_counter()
+  counted = flops.step_flops(ts, batch, hw)
+  trace_s = time.perf_counter() - t0
+  executed = flops.step_flops(trainer.setup(config, mesh, hw, total_steps=1000), batch, hw)
+  analytic = flops.analytic_step_flops(config, ts, hw, batch)
+  print(f"config {config.get('model_name')}: global batch {batch} at {hw[0]}x{hw[1]}, grad_accum "
+        f"{config.get('grad_accum', 1)}")
+  print(f"  jaxpr count (model FLOPs): {counted.flops / 1e12:.4f} TFLOP per step, "
+        f"{counted.flops / batch / 1e12:.4f} per row (traced in {trace_s:.1f} s"
+        f"{f'; {counted.unknown_loops} loops of unknown trip count' if counted.unknown_loops else ''})")
+  print(f"  as executed, remat's recomputation included: {executed.flops / 1e12:.4f} TFLOP "
+        f"({executed.flops / counted.flops:.3f}x)")
+  print(f"  from the model's dimensions: {analytic['total'] / 1e12:.4f} TFLOP "
+        f"({100 * (analytic['total'] / counted.flops - 1):+.2f}% of the jaxpr count)")
+  for part, v in analytic.items():
+    if part != "total":
+      print(f"    {part:18s} {v / 1e12:10.4f} TFLOP ({100 * v / analytic['total']:.1f}%)")
+  print(json.dumps({"flops_per_step": counted.flops, "executed_flops_per_step": executed.flops,
+                    "analytic_flops_per_step": analytic, "global_batch": batch,
+                    "image_shape": list(hw), "grad_accum": int(config.get("grad_accum", 1))}))
+
+
 def time_steps(config, batch, hw, steps):
   import jax
   from ufm_jax import sharding, trainer
@@ -282,6 +318,8 @@ def main():
   ap.add_argument("--aot", action="store_true", help="compile only: memory, collectives, JSON")
   ap.add_argument("--hlo_out", default=None, help="with --aot: write compiled.as_text() here")
   ap.add_argument("--estimate_only", action="store_true", help="abstract trace, no compile")
+  ap.add_argument("--flops", action="store_true",
+                  help="the step's FLOPs on its jaxpr beside the count from the model's dimensions")
   ap.add_argument("--fsdp_gather", choices=("layer", "step"), default=None,
                   help="config.fsdp_gather: scanned blocks gathered per layer, or all at the start")
   ap.add_argument("--grad_accum", type=int, default=None,
@@ -328,7 +366,9 @@ def main():
     from ufm_jax import planning
     batch = batch or int(config.input.batch_size)
     hw = hw or planning.largest_shape(config)
-    if args.estimate_only:
+    if args.flops:
+      count_flops(config, batch, hw)
+    elif args.estimate_only:
       estimate(config, batch, hw)
     else:
       time_steps(config, batch, hw, args.steps)
