@@ -142,7 +142,7 @@ def test_compile_only_and_the_planner_agree_on_a_tpu_slice():
   collectives; a batch whose step exceeds the chip's HBM makes train.py exit 1."""
   if not topologies.has_libtpu():
     pytest.skip("libtpu is not installed: pip install 'ufm_jax[tpu]' (in its own virtualenv)")
-  spec = str(REPO / "configs" / "synthetic.py") + ":eval=false,model=tiny"
+  spec = str(REPO / "configs" / "synthetic.py") + ":eval=false,model=tiny,batch=16"
   common = ["--config.mesh=data:1,fsdp:-1", "--config.grad_accum=2"]
   a = _train_py(f"--config={spec}", "--compile_only", "--topology=v5e-4", *common, timeout=1200)
   assert a.returncode == 0, a.stderr[-3000:]
@@ -152,6 +152,7 @@ def test_compile_only_and_the_planner_agree_on_a_tpu_slice():
   ra, rb = _last_json(a), _last_json(b)
   _agree(ra, rb)
   assert ra["chips"] == 4 and ra["device_kind"] == "TPU v5 lite" and ra["fits"]
+  assert ra["mesh"] == {"data": 1, "fsdp": 4} and ra["grad_accum"] == 2
   big = _train_py(f"--config={spec},size=560,batch=4096", "--compile_only", "--topology=v5e-4",
                   *common, timeout=1200)
   assert big.returncode == 1, big.stderr[-3000:]
