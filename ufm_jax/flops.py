@@ -272,8 +272,9 @@ def analytic_products(model_cfg, image_shape, rows: int, symmetrized: bool = Tru
   out.append(_Product("encoder", n * (1 + enc.pos_grid ** 2) * enc.embed_dim, t_enc, False))
   tokens = 1 + enc.num_register_tokens + n
   depth = max(enc.take_indices()) + 1
+  # The blocks' input depends on the patch embedding and the position table: trained with them.
   out += _transformer("encoder", tokens, images, enc.embed_dim, depth, enc.mlp_ratio, t_enc,
-                      False)
+                      t_enc)
   # Fusion transformer: both views' tokens in one sequence per row.
   t_fus = "info_sharing" in trainable
   if fus.input_embed_dim != fus.dim:
