@@ -279,7 +279,8 @@ def plan(config, tgt: Target, *, batch: int | None = None, image_shape=None, mfu
   mesh, ts, hw = setup(config, tgt.devices, image_shape)
   batch = int(batch or config.input.batch_size)
   check_batch(config, mesh, batch)
-  shards = math.prod(mesh.shape[a] for a in ("data", "fsdp"))
+  from ufm_jax import sharding
+  shards = sharding.batch_divisor(mesh)
   info = state_bytes(ts)
   log(f"config {config.get('model_name', config.get('model_fn'))}: "
       f"{info['param_count'] / 1e6:.1f}M params, global batch {batch} at {hw[0]}x{hw[1]} "
