@@ -2,7 +2,7 @@ r"""Trains UFM (or its refiner) on a device mesh.
 
   python train.py --config=configs/synthetic.py --workdir=workdirs/synthetic
   python train.py --config=configs/ufm560.py:data=both --workdir=DIR --config.input.batch_size=96
-  python train.py --config=configs/ufm560.py --compile_only --topology=v5e-8 --config.grad_accum=6
+  python train.py --config=configs/ufm560.py --compile_only --topology=v5e-8 --config.grad_accum=3
 
 Sections: plan (--compile_only), mesh, data, model/optimizer/sharding/step
 (ufm_jax.trainer.setup), checkpoint, evals, loop. The run resumes from the latest checkpoint in
