@@ -39,8 +39,10 @@ def get_config(arg=None):
   c.num_epochs = 20
   refine_datasets = ("blendedmvs", "flyingthings", "hypersim")
   if arg.data == "of":
-    # dataset=ufm_980_highres, as ufm980.py: its samples per epoch, shapes and augmentation.
-    c.input = pipeline.input_config(mixture.recipe("refine980"), batch_size=32,
+    # dataset=ufm_980_highres, as ufm980.py: its samples per epoch, shapes and augmentation;
+    # FlyingChairs' second view with the official zero flow (the "all" range supervises it).
+    chairs = {"flyingchairs": {"backward_zero_flow": True}}
+    c.input = pipeline.input_config(mixture.recipe("refine980", options=chairs), batch_size=32,
                                     longest_side=980, shapes=augment.SHAPES_980,
                                     augment={"fast_image_ops": True})
   elif arg.data == "synthetic":

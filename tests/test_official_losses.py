@@ -142,3 +142,53 @@ def test_loss_matches_official(kind, case):
     assert err <= 1e-4 * scale + (0.0 if scale else 1e-12), \
         f"{kind}/{case} d/d{name}: max error {err:.3g} vs max |grad| {scale:.3g}"
   assert checked == len([k for k in z.files if k.startswith(pre + "grad_")]), "gradient not compared"
+
+
+def _all_range_cases():
+  """The cases whose every term is an 'all'-range regression (robust_epe_all_pixels, the 980
+  recipe's total)."""
+  path = testing.training_fixtures_root() / "losses" / "cases.json"
+  try:
+    spec = json.loads(path.read_text())
+  except OSError:
+    return [pytest.param(None, None, id="fixtures-missing")]
+  out = []
+  for kind, v in spec.items():
+    if kind in NON_CASE_KEYS:
+      continue
+    if v["config"]["kwargs"].get("supervision_range") == "all":
+      out += [pytest.param(kind, c, id=f"{kind}-{c}") for c in v["cases"]]
+  for r, e in spec.get("recipe_totals", {}).items():
+    if all(c["kwargs"].get("supervision_range") == "all" for c in e["term_configs"].values()):
+      out.append(pytest.param("recipe_totals", r, id=f"recipe_totals-{r}"))
+  return out
+
+
+@pytest.mark.parametrize("kind,case", _all_range_cases())
+def test_all_range_reads_no_mask(kind, case):
+  """The 'all' range on a row whose masks are all False, as the official FlyingChairs second
+  view (zero flow, every mask False: `backward_zero_flow`): the official test reads the flow
+  alone (loss/epe.py:63-69), so the official loss and gradient come out with covisibility and
+  covis_valid all False, and the pixels our term supervises are the official mask
+  (`all_pixels_fov_mask`, what the official loss used)."""
+  folder = testing.training_fixtures("losses")
+  spec = json.loads((folder / "cases.json").read_text())
+  z = np.load(folder / f"{kind}.npz")
+  pre = f"{case}_"
+  configs = (spec["recipe_totals"][case]["term_configs"] if kind == "recipe_totals" else
+             {k[len(pre) + 5:]: spec[kind]["config"] for k in z.files
+              if k.startswith(pre + "loss_") and k != pre + "loss_total"})
+  recipe = losses.Recipe(tuple(
+      (n, losses.make_term(losses.from_official(c["class"], c["kwargs"]), n))
+      for n, c in configs.items()))
+  outputs, batch, _ = _inputs(z, pre)
+  off = jnp.zeros(batch["flow"].shape[:3], bool)
+  batch = dict(batch, covisibility=off, covis_valid=off, flow_valid=~off)
+  (loss, _), grads = jax.value_and_grad(lambda o: recipe(o, batch), has_aux=True)(outputs)
+  _close(loss, z[pre + "loss_total"], f"{kind}/{case} total with every mask False")
+  ref = z[pre + "grad_pred_flow"]
+  err = float(np.abs(np.moveaxis(np.asarray(grads["flow"]), -1, 1) - ref).max())
+  assert err <= 1e-4 * float(np.abs(ref).max()), err
+  if pre + "all_pixels_fov_mask" in z.files:
+    mask, _ = recipe.terms[0][1].mask(batch, batch["flow"])
+    np.testing.assert_array_equal(np.asarray(mask), z[pre + "all_pixels_fov_mask"])
