@@ -77,7 +77,8 @@ def get_config(arg=None):
       "lr": {g: arg.lr for g in optim.PARAM_GROUPS}, "groups": dict(optim.PARAM_GROUPS),
       "b1": 0.9, "b2": 0.95, "eps": 1e-8, "weight_decay": 0.05, "no_decay": config_lib.unset(str),
       "grad_clip_norm": 1.0, "warmup_epochs": config_lib.unset(float), "warmup_frac": 0.05,
-      "min_lr_rate": 0.0, "frozen": config_lib.unset(str), "trainable": config_lib.unset(str)})
+      "min_lr_rate": 0.0, "skip_advances_schedule": True, "frozen": config_lib.unset(str),
+      "trainable": config_lib.unset(str)})
   c.mesh = "data:-1,fsdp:1"
   c.ckpt_steps = 100
   c.keep_ckpt = 2

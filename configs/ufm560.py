@@ -62,6 +62,8 @@ def get_config(arg=None):
       "grad_clip_norm": 1.0,
       "warmup_epochs": 4.8, "fractional_warmup": True, "warmup_frac": config_lib.unset(float),
       "min_lr_rate": 0.01,
+      # Official: a skipped non-finite step still steps the scheduler (train_pl.py:79-81).
+      "skip_advances_schedule": True,
       "frozen": config_lib.unset(str), "trainable": config_lib.unset(str)})
 
   # configs/loss/robust_epe_covisibility.yaml, terms summed in this order.

@@ -89,6 +89,8 @@ def get_config(arg=None):
       "grad_clip_norm": 1.0,
       "warmup_epochs": 3.0, "fractional_warmup": True, "warmup_frac": config_lib.unset(float),
       "min_lr_rate": 0.01,
+      # Official: a skipped non-finite step still steps the scheduler (train_pl.py:79-81).
+      "skip_advances_schedule": True,
       "frozen": config_lib.unset(str), "trainable": config_lib.unset(str)})
   if arg.data == "synthetic":   # a smoke run: warm up over its first 10% of steps, not 3 epochs
     c.optim.warmup_epochs, c.optim.warmup_frac = None, 0.1
