@@ -72,6 +72,7 @@ def get_config(arg=None):
   # docs/synthetic_training.md are of this layout.
   c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
   c.model_init = config_lib.unset(str)  # e.g. ckpt:WORKDIR
+  c.model_init_flow_adaptor = "check"   # a source must match the config (model_init.py)
   # One learning rate for every group, 5% linear warmup, cosine to 0 (no epochs to count in).
   c.optim = ml_collections.ConfigDict({
       "lr": {g: arg.lr for g in optim.PARAM_GROUPS}, "groups": dict(optim.PARAM_GROUPS),

@@ -53,6 +53,9 @@ def get_config(arg=None):
   # dinov2:PATH (facebook/dinov2-large), snapshot:DIR or ckpt:WORKDIR; typed so that
   # `--config.model_init=...` parses (a plain None field cannot be overridden from the flags).
   c.model_init = config_lib.unset(str)
+  # A snapshot or run given as model_init lends its flow normalisation buffers, as the official
+  # resume_model (train_pl.py:496-518); DINOv2 weights have none.
+  c.model_init_flow_adaptor = "buffers"
 
   c.optim = ml_collections.ConfigDict({
       "lr": {"encoder": 5e-6, "info_sharing": 1e-4, "output_head": 1e-4,

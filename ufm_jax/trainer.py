@@ -121,9 +121,9 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
   own per step (PRNGKey(seed) folded with the step: the refinement loss draws its pixel cap).
 
   A model with BatchNorm (`state.batch_stats`) runs with train=True: it normalises with the
-  batch's statistics (over the global batch: every device's rows) and the step stores the
-  running statistics it returns, unless the update is skipped as non-finite. Other models are
-  called exactly as before (no `train` argument).
+  batch's statistics (per group of `unet_batchnorm_group_rows` rows, else over the global batch)
+  and the step stores the running statistics it returns, unless the update is skipped as
+  non-finite. Other models are called exactly as before (no `train` argument).
 
   grad_accum=k > 1 runs the global batch as k microbatches in a loop (`accumulation.microbatches`)
   and applies one update with the mean of their gradients: the loss is the mean of k microbatch
