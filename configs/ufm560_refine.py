@@ -57,7 +57,7 @@ def get_config(arg=None):
         mixture.recipe("refine560"), batch_size=48, longest_side=560,
         shapes=augment.SHAPES_560_SQUARE,
         augment={"no_crop_datasets": (), "low_light_datasets": ("flyingchairs", "habitat"),
-                 "fast_image_ops": True})
+                 "fast_image_ops": False})   # official image operations (True: a deviation)
   elif arg.data == "synthetic":
     c.input = pipeline.input_config(mixture.synthetic_mixture(num_pairs=10_000, size=(56, 56)),
                                     batch_size=2, longest_side=56, aspect_ratios=(1.0,),

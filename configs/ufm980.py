@@ -34,7 +34,7 @@ def get_config(arg=None):
   chairs = {"flyingchairs": {"backward_zero_flow": True}}
   c.input = pipeline.input_config(mixture.recipe("ufm980", options=chairs), batch_size=32,
                                   longest_side=980, shapes=augment.SHAPES_980,
-                                  augment={"fast_image_ops": True})
+                                  augment={"fast_image_ops": False})
 
   c.model_name = arg.model
   c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)

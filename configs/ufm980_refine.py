@@ -48,7 +48,7 @@ def get_config(arg=None):
     chairs = {"flyingchairs": {"backward_zero_flow": True}}
     c.input = pipeline.input_config(mixture.recipe("refine980", options=chairs), batch_size=32,
                                     longest_side=980, shapes=augment.SHAPES_980,
-                                    augment={"fast_image_ops": True})
+                                    augment={"fast_image_ops": False})
   elif arg.data == "synthetic":
     c.input = pipeline.input_config(mixture.synthetic_mixture(num_pairs=10_000, size=(56, 56)),
                                     batch_size=2, longest_side=56, aspect_ratios=(1.0,),
