@@ -72,13 +72,18 @@ def hub_commit(folder) -> Optional[str]:
   return folder.name if folder.parent.name == "snapshots" else None
 
 
-def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
-  d = pathlib.Path(snapshot_dir)
+def _snapshot_files(d: pathlib.Path) -> Tuple[pathlib.Path, pathlib.Path]:
+  """(config.json, model.safetensors) of a snapshot folder; FileNotFoundError naming a missing one."""
   cfg_path, w_path = d / "config.json", d / "model.safetensors"
   for p in (cfg_path, w_path):
     if not p.is_file():
       raise FileNotFoundError(f"{p} not found (expected a Hugging Face snapshot folder with "
                               "config.json and model.safetensors)")
+  return cfg_path, w_path
+
+
+def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
+  cfg_path, w_path = _snapshot_files(pathlib.Path(snapshot_dir))
   try:
     cj = json.loads(cfg_path.read_text())
   except json.JSONDecodeError as e:
@@ -93,11 +98,7 @@ def snapshot_model(snapshot, revision: Optional[str] = None):
 
   from safetensors import safe_open
   d = snapshot_folder(snapshot, revision)
-  cfg_path, w_path = d / "config.json", d / "model.safetensors"
-  for p in (cfg_path, w_path):
-    if not p.is_file():
-      raise FileNotFoundError(f"{p} not found (expected a Hugging Face snapshot folder with "
-                              "config.json and model.safetensors)")
+  cfg_path, w_path = _snapshot_files(d)
   try:
     cj = json.loads(cfg_path.read_text())
     with safe_open(str(w_path), framework="numpy") as f:
