@@ -493,3 +493,28 @@ def test_no_crop_static_views_are_resized_to_cover_and_centre_cropped():
                                  depth=np.ascontiguousarray(v0.depth[:, :40]))
   turned = official_ops.resize_cover_center_crop(portrait, (28, 42))
   assert turned.image.shape == (28, 42, 3)
+
+
+def test_float_hue_step_is_mod_one_on_the_hue_plane():
+  """Kubric's float jitter takes the hue mod 1 as x - floor(x) on the contiguous hue plane:
+  equal to the strided np.mod formulation for every hue factor, negative sums included."""
+  rng = np.random.default_rng(7)
+  img = rng.integers(0, 256, (31, 45, 3)).astype(np.uint8)
+  img[:4] = 0
+  img[4:8] = 255
+  x = np.clip(img.astype(np.float32) / np.float32(255), 0, 1)
+  for h in (-0.1, -0.0999, -1e-7, 0.0, 1e-7, 0.05, 0.0999, 0.1):
+    hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
+    hue = hsv[..., 0]
+    hue *= np.float32(1 / 360)
+    hue += np.float32(h)
+    np.mod(hue, 1, out=hue)
+    hue *= np.float32(360)
+    want = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+    np.clip(want, 0, 1, out=want)
+    want = (want * np.float32(255)).astype(np.uint8)
+    np.testing.assert_array_equal(augment.color_jitter_float(img, ((3,), 1.0, 1.0, 1.0, h)),
+                                  want, err_msg=str(h))
+  vals = np.float32(rng.uniform(-1.5, 1.5, 100000))
+  vals[:3] = (-0.0, -1.0, np.nextafter(np.float32(-1), np.float32(0)))
+  np.testing.assert_array_equal(vals - np.floor(vals), np.mod(vals, 1))

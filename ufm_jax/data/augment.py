@@ -477,13 +477,14 @@ def color_jitter_float(image: np.ndarray, params) -> np.ndarray:
         x *= np.float32(s)
         x += grey[..., None]
       else:
-        hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
-        hue = hsv[..., 0]
+        # On the contiguous hue plane; x - floor(x) is mod 1 to the last bit for finite x (the
+        # subtraction is exact where np.mod's "+ 1" of a negative fmod rounds to the same value).
+        hue, sat, val = cv2.split(cv2.cvtColor(x, cv2.COLOR_RGB2HSV))
         hue *= np.float32(1 / 360)
         hue += np.float32(h)
-        np.mod(hue, 1, out=hue)
+        np.subtract(hue, np.floor(hue), out=hue)
         hue *= np.float32(360)
-        x = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+        x = cv2.cvtColor(cv2.merge((hue, sat, val)), cv2.COLOR_HSV2RGB)
       np.clip(x, 0, 1, out=x)
   x *= np.float32(255)
   return x.astype(np.uint8)
