@@ -539,3 +539,43 @@ def test_kubric_float_jitter_is_torchvisions_tensor_path():
     if 3 not in params[0]:
       assert d.max() == 0, params
     assert d.max() <= 1 and (d > 0).mean() <= 0.05, (params, d.max(), (d > 0).mean())
+
+
+def test_static_crop_warp_is_pils_bicubic_transform():
+  """The static crop's image: the bytes of PIL's bicubic `Image.transform` (the official warp),
+  computed by data/pil_warp.py, for zooms in and out, integer positions, crops reaching past the
+  image (filled with 0), flat patches (exact integers) and PIL's half-pixel frame or not."""
+  from ufm_jax.data import pil_warp
+  rng = np.random.default_rng(12)
+  img = cv2.GaussianBlur(rng.integers(0, 256, (70, 90, 3)).astype(np.uint8), (0, 0), 1.2)
+  img[10:30, 20:50] = 77
+  img[40:50] = 255
+  for trial in range(40):
+    a0, a4 = rng.uniform(0.25, 2.5, 2)
+    a2, a5 = rng.uniform(-20, 60), rng.uniform(-20, 40)
+    if trial % 4 == 0:
+      a0, a2 = 1.0, float(rng.integers(-3, 30))     # integer positions: fraction 0
+    if trial % 5 == 0:
+      a4, a5 = 0.5, 0.25
+    data = (a0, 0.0, a2, 0.0, a4, a5, 0.0, 0.0)
+    size = (int(rng.integers(20, 80)), int(rng.integers(14, 60)))
+    want = np.asarray(Image.fromarray(img).transform(size, Image.PERSPECTIVE, data,
+                                                     resample=Image.BICUBIC))
+    np.testing.assert_array_equal(pil_warp.bicubic_transform(img, data, size), want,
+                                  err_msg=str((data, size)))
+  with pytest.raises(ValueError, match="not a scale"):
+    pil_warp.bicubic_transform(img, (1.0, 0.1, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0), (10, 10))
+  # Through the static crop, with PIL's frame and without: the same bytes as PIL's own call.
+  v = augment.StaticView(img, np.ones(img.shape[:2], np.float32),
+                         np.array([[60.0, 0, 45], [0, 60.0, 35], [0, 0, 1]]), np.eye(4))
+  calls = []
+  pil = lambda im, data, size: calls.append(data) or np.asarray(  # noqa: E731
+      Image.fromarray(im).transform(size, Image.PERSPECTIVE, data, resample=Image.BICUBIC))
+  for pil_sampling in (True, False):
+    for box in ((5.3, 4.1, 61.7, 46.9), (-8.0, -3.0, 100.0, 80.0), (20.0, 10.0, 40.0, 25.0)):
+      got = augment.crop_view_affine(v, box, (42, 56), pil_sampling).image
+      with pytest.MonkeyPatch.context() as m:
+        m.setattr(pil_warp, "bicubic_transform", pil)
+        want = augment.crop_view_affine(v, box, (42, 56), pil_sampling).image
+      np.testing.assert_array_equal(got, want, err_msg=str((box, pil_sampling)))
+  assert len(calls) == 6   # every crop took the scale + shift path

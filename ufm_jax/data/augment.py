@@ -42,7 +42,7 @@ import numpy as np
 from PIL import Image, ImageEnhance
 
 from ufm_jax import geometry
-from ufm_jax.data import hsv_tables
+from ufm_jax.data import hsv_tables, pil_warp
 from ufm_jax.data.official_ops import (FlowCrop, StaticView, center_flow_crop, flow_crop_images,
                                        flow_crop_labels, nearest_index, portrait_resolution,
                                        resize_cover_center_crop, resize_short_axis_size,
@@ -354,7 +354,8 @@ def crop_view_affine(v: StaticView, box, crop_hw, pil_sampling: bool = True,
   The homography is a scale and shift per axis, so the depth is gathered per row and column
   where PIL's nearest sampling reads it; fast=True warps the image with OpenCV's bicubic
   (a = -0.75, positions in 1/32 px) instead of PIL's transform (a = -1: libImaging/Geometry.c's
-  BICUBIC, each output pixel's 4 x 4 taps in double, truncated to uint8)."""
+  BICUBIC, each output pixel's 4 x 4 taps in double, truncated to uint8; its bytes computed by
+  `pil_warp.bicubic_transform`)."""
   sx, sy, ex, ey = np.round(np.asarray(box, np.float64))
   ch, cw = crop_hw
   ax, ay = cw / (ex - sx), ch / (ey - sy)
@@ -384,8 +385,11 @@ def crop_view_affine(v: StaticView, box, crop_hw, pil_sampling: bool = True,
     if not pil_sampling:   # shift PIL's frame so that it samples where K2 says
       data = (data[0], data[1], data[2] + 0.5 - 0.5 * data[0], data[3], data[4],
               data[5] + 0.5 - 0.5 * data[4], data[6], data[7])
-    image = np.asarray(Image.fromarray(np.asarray(v.image)).transform(
-        (cw, ch), Image.PERSPECTIVE, data, resample=Image.BICUBIC))
+    if data[1] == data[3] == data[6] == data[7] == 0.0:   # PIL's bytes, ~3x faster
+      image = pil_warp.bicubic_transform(v.image, data, (cw, ch))
+    else:
+      image = np.asarray(Image.fromarray(np.asarray(v.image)).transform(
+          (cw, ch), Image.PERSPECTIVE, data, resample=Image.BICUBIC))
   return StaticView(image, depth, K2.astype(np.float64), np.asarray(v.cam2world, np.float64))
 
 
