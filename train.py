@@ -76,6 +76,11 @@ def main(argv):
 
   mesh = sharding.make_mesh(config.mesh)
   is_main = jax.process_index() == 0
+  # The source's flow normalisation buffers into the config before it is written (official
+  # resume_model; config.model_init_flow_adaptor).
+  for line in model_init.adopt_flow_adaptor(config):
+    if is_main:
+      print(f"model_init: {line}", flush=True)
   workdir.mkdir(parents=True, exist_ok=True)
   if is_main:
     io.write_json_atomic(workdir / "config.json", json.loads(config.to_json_best_effort()))
@@ -121,7 +126,8 @@ def main(argv):
     if config.model_init:
       host = jax.tree.map(np.asarray, variables)
       loaded, report = model_init.load_init_variables(
-          config.model_init, host, getattr(model, "config", None), config.get("model"))
+          config.model_init, host, getattr(model, "config", None), config.get("model"),
+          flow_adaptor=config.get("model_init_flow_adaptor") or "check")
       if is_main:
         print(report.summary(), flush=True)
       variables = jax.device_put(loaded, ts.variables_sh)

@@ -46,7 +46,7 @@ class Pipeline:
   dataset: grain.IterDataset    # iter(dataset) -> checkpointable grain DatasetIterator of batches
   names: tuple[str, ...]        # dataset_id -> name
   quotas: tuple[int, ...]
-  sizes: tuple[int, ...]
+  sizes: tuple[int, ...]         # samples the epoch plan draws from (official samples)
   dropped: tuple[str, ...]      # configured but absent on disk
   epoch_size: int               # unique pairs per epoch
   steps_per_epoch: float        # global batches per epoch (batches may straddle epochs)
@@ -136,7 +136,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   batch_size (global pairs per step, counting both directions when symmetrized), symmetrize,
   longest_side, aspect_ratios, shapes, augment {...}, num_workers, worker_buffer_size, read_threads,
   prefetch_buffer_size, max_skip_fraction, skip_check_min_samples, backward_fallback, split,
-  keep_heap.
+  keep_heap, draw_variants.
   process_index/count default to jax's (grain ShardByJaxProcess).
   """
   cfg = dict(config.to_dict() if hasattr(config, "to_dict") else config)
@@ -162,7 +162,10 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   names = tuple(present)
   sources = [present[n][0] for n in names]
   quotas = tuple(present[n][1] for n in names)
-  sizes = tuple(len(s) for s in sources)
+  # Renderings of one official sample (`variants` consecutive indices) drawn as one sample.
+  variants = tuple(int(getattr(s, "variants", 1)) if cfg["draw_variants"] else 1
+                   for s in sources)
+  sizes = tuple(len(s) // v for s, v in zip(sources, variants))
   modes = ()
   if symmetrize:
     fallback = str(cfg["backward_fallback"])
@@ -189,7 +192,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
                      f"{layout.unique_per_step} unique pairs")
   load = LoadPair(sources, names, backward_modes=modes, layout=layout, shapes=shapes,
                   augment_cfg=augment_lib.AugmentConfig.from_dict(cfg["augment"]),
-                  symmetrize=symmetrize, max_retries=int(cfg["max_retries"]))
+                  symmetrize=symmetrize, max_retries=int(cfg["max_retries"]), variants=variants)
   ds = MixtureIndex(layout).map(load).batch(unique_per_host, drop_remainder=True, batch_fn=collate)
   ds = ds.to_iter_dataset(grain.ReadOptions(
       num_threads=int(cfg["read_threads"]),
