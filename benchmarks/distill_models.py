@@ -64,13 +64,13 @@ def candidates() -> dict:
 
 def step_flops(students, teacher: str, hw, batch: int) -> dict:
   """{student: GFLOP per row of the distillation step and of the plain 560-recipe step}."""
-  from ufm_jax import config_lib, hlo_stats
+  from ufm_jax import config_lib, flops
   out = {}
   for student in students:
     distill = config_lib.load_config(f"{REPO}/configs/distill.py:teacher={teacher},"
                                      f"student={student},data=synthetic,recipe=560")
     plain = config_lib.load_config(f"{REPO}/configs/ufm560.py:model={student}")
-    rows = {k: hlo_stats.train_step_flops(c, hw, batch) / batch / 1e9
+    rows = {k: flops.model_flops(c, hw, batch).flops / batch / 1e9
             for k, c in (("distill", distill), ("plain", plain))}
     rows["teacher_share"] = 1 - rows["plain"] / rows["distill"]
     out[student] = rows
@@ -115,7 +115,8 @@ def main(argv=None) -> dict:
   ap.add_argument("--step_flops", action="store_true",
                   help="FLOPs of configs/distill.py's train step (teacher --teacher, the student "
                        "each of --models) at --size and --batch rows, beside the same student's "
-                       "step in the 560 recipe without a teacher (ufm_jax.hlo_stats)")
+                       "step in the 560 recipe without a teacher (ufm_jax.flops.model_flops: the "
+                       "step's jaxpr, remat left out)")
   ap.add_argument("--teacher", default="variant:ufm_base")
   ap.add_argument("--batch", type=int, default=2, help="rows of the --step_flops step")
   ap.add_argument("--candidates", action="store_true",

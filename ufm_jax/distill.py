@@ -172,7 +172,8 @@ def make_targets_fn(teacher: Teacher, gather_params=None, symmetrized: bool = Fa
 
 class BoundStep:
   """The jitted step(state, batch, teacher_variables) called and lowered as (state, batch):
-  `lower` takes the teacher's sharded abstract variables (AOT compiles need no weights); the
+  `lower` and `trace` take the teacher's sharded abstract variables (AOT compiles and FLOP counts
+  need no weights); the
   first call puts the teacher's variables on the mesh (or `bind` gives them)."""
 
   def __init__(self, jitted, teacher: Teacher):
@@ -189,3 +190,6 @@ class BoundStep:
 
   def lower(self, state, batch):
     return self.jitted.lower(state, batch, self.teacher.abstract)
+
+  def trace(self, state, batch):
+    return self.jitted.trace(state, batch, self.teacher.abstract)

@@ -104,6 +104,19 @@ def build_input(config, process_batch: int, seed: int, teacher=None):
   return pipeline.make_train_iterator(block, process_batch=process_batch, seed=seed)
 
 
+def schedule_steps(config, pairs_per_epoch):
+  """(total optimizer steps, steps per epoch or None) of a run: config.total_steps, or
+  config.num_epochs whole batches of the epoch's `pairs_per_epoch` rows (drop_last, as the
+  official loaders; epochs and warmup count these)."""
+  steps_per_epoch = int(pairs_per_epoch or 0) // int(config.input.batch_size) or None
+  if config.total_steps:
+    return int(config.total_steps), steps_per_epoch
+  if config.get("num_epochs") and steps_per_epoch:
+    return int(config.num_epochs * steps_per_epoch), steps_per_epoch
+  raise ValueError("config needs total_steps, or num_epochs with a pipeline that knows its "
+                   "pairs per epoch")
+
+
 def build_loss(config, model=None, dataset_names=None):
   """loss(model outputs, batch, rng) -> (loss, aux dict of scalars): the recipe of config.loss
   (`ufm_jax.losses.recipe_from_config`). `model` supplies the refinement temperature,
@@ -121,7 +134,8 @@ def build_loss(config, model=None, dataset_names=None):
 
 
 def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None, seed: int = 0,
-                    grad_accum: int = 1, mesh=None, param_sh=None, targets_fn=None):
+                    grad_accum: int = 1, mesh=None, param_sh=None, targets_fn=None,
+                    skip_advances_schedule: bool = True):
   """train_step(state, batch[, teacher_variables]) -> (state, metrics): one optimizer update.
 
   `targets_fn(teacher_variables, batch) -> batch` (distillation, ufm_jax.distill): the frozen
@@ -134,9 +148,9 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
   own per step (PRNGKey(seed) folded with the step: the refinement loss draws its pixel cap).
 
   A model with BatchNorm (`state.batch_stats`) runs with train=True: it normalises with the
-  batch's statistics (over the global batch: every device's rows) and the step stores the
-  running statistics it returns, unless the update is skipped as non-finite. Other models are
-  called exactly as before (no `train` argument).
+  batch's statistics (per group of `unet_batchnorm_group_rows` rows, else over the global batch)
+  and the step stores the running statistics it returns, unless the update is skipped as
+  non-finite. Other models are called exactly as before (no `train` argument).
 
   grad_accum=k > 1 runs the global batch as k microbatches in a loop (`accumulation.microbatches`)
   and applies one update with the mean of their gradients: the loss is the mean of k microbatch
@@ -146,7 +160,8 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
   microbatches' (for the running mean exactly the whole batch's step at k=1; the variance leaves
   out the spread between microbatches). Activation memory is that of one microbatch. `mesh`,
   `param_sh`: the batch's mesh and the params' shardings, which keep each microbatch on every
-  device and the summed gradients sharded like the params.
+  device and the summed gradients sharded like the params. `skip_advances_schedule`: whether a
+  skipped (non-finite) update moves the learning-rate schedules on (`optim.apply_gradients`).
   """
   import jax
   import jax.numpy as jnp
@@ -201,7 +216,7 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
     (loss, (aux, new_stats)), g = step_fn(trainable, frozen, state.batch_stats, batch, rng,
                                           teacher)
     grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
-    new_state, ok = optim.apply_gradients(state, grads, loss, tx)
+    new_state, ok = optim.apply_gradients(state, grads, loss, tx, skip_advances_schedule)
     if new_stats is not None:   # a skipped (non-finite) step leaves the running statistics too
       new_state = new_state.replace(batch_stats=jax.tree.map(
           lambda new, old: jnp.where(ok, new, old), new_stats, state.batch_stats))
@@ -264,11 +279,18 @@ class TrainSetup:
       rows.update(distill_rows.row_shapes(self.teacher.resolution))
     return rows
 
-  def abstract_batch(self, batch_size: int, image_shape):
-    """ShapeDtypeStructs of a global training batch, sharded as the step expects (AOT)."""
+  def abstract_batch(self, batch_size: int, image_shape, row_ids: bool = False):
+    """ShapeDtypeStructs of a global training batch, sharded as the step expects (AOT).
+    `row_ids`: with the per-row dataset_id and epoch the training pipeline adds
+    (ufm_jax.data.pipeline; the refinement loss reads dataset_id)."""
     import jax
+    import jax
+    rows = self.row_shapes(image_shape)
+    if row_ids:
+      import numpy as np
+      rows.update(dataset_id=((), np.int32), epoch=((), np.int32))
     return {k: jax.ShapeDtypeStruct((batch_size,) + s, d, sharding=self.batch_sh)
-            for k, (s, d) in self.row_shapes(image_shape).items()}
+            for k, (s, d) in rows.items()}
 
   def init_state(self, seed: int = 0):
     """A fresh sharded TrainState from the modules' initializers (benchmarks, smoke runs)."""
@@ -322,9 +344,10 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
 
   steps_per_epoch: optimizer steps per epoch (for warmup counted in epochs; default
   total_steps / config.num_epochs). dataset_names: the pipeline's, in dataset_id order.
-  A distillation config (`config.teacher`): the step runs `teacher` (ufm_jax.teacher.
-  load_teacher(config, mesh)) before the student, its variables an argument the step binds on
-  its first call (distill.BoundStep)."""
+  A distillation config (`config.teacher`): the step runs `teacher` (default
+  ufm_jax.teacher.load_teacher(config, mesh), which puts nothing on the devices) before the
+  student, its variables an argument the step binds on its first call (distill.BoundStep); the
+  planner and the FLOP count lower it with the teacher's abstract variables."""
   import jax
   from ufm_jax import optim, sharding
   gather_params, layer_gather = sharding.fsdp_gathers(mesh, config)
@@ -353,15 +376,16 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   loss_fn = build_loss(config, model, dataset_names)
   targets_fn = None
   if config.get("teacher") and teacher is None:
-    raise ValueError("config.teacher names a teacher: load it for this mesh first and pass it, "
-                     "trainer.setup(..., teacher=ufm_jax.teacher.load_teacher(config, mesh))")
+    from ufm_jax import teacher as teacher_lib
+    teacher = teacher_lib.load_teacher(config, mesh)
   if teacher is not None:
     from ufm_jax import distill
     targets_fn = distill.make_targets_fn(teacher, gather_params,
                                          symmetrized=bool(apply_kwargs.get("symmetrized")))
   step = make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params,
                          seed=config.seed, grad_accum=config.grad_accum, mesh=mesh,
-                         param_sh=param_sh, targets_fn=targets_fn)
+                         param_sh=param_sh, targets_fn=targets_fn,
+                         skip_advances_schedule=config.optim.get("skip_advances_schedule", True))
   if teacher is None:
     train_step = jax.jit(step, in_shardings=(state_sh, batch_sh),
                          out_shardings=(state_sh, repl), donate_argnums=(0,))
