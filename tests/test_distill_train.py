@@ -250,3 +250,35 @@ def test_teacher_agreement_eval_scores_the_student_against_the_teacher(tmp_path)
   assert same["epe"] < 1e-3 and same["covis_acc"] == 1.0
   other = ev.run(predict, teacher_lib.random_variables(model, seed=5)).scalars
   assert other["epe"] > 0.1
+
+
+def test_the_planner_sets_up_the_distillation_step_with_its_teacher():
+  """planning.setup (train.py --compile_only) builds the distillation step from the config alone:
+  the teacher's variables are counted beside the student's state, and the step's FLOPs are the
+  same student's plain step plus the teacher's forward on the un-augmented pair (both counted on
+  their jaxprs, traced only)."""
+  from ufm_jax import flops, planning
+  config = _config()
+  devices = jax.devices()[:1]
+  _, ts, hw = planning.setup(config, devices)
+  info = planning.state_bytes(ts)
+  teacher_model = variants.build_model("synth")
+  params = teacher_lib.random_variables(teacher_model)["params"]
+  assert info["teacher_param_count"] == sum(x.size for x in jax.tree.leaves(params))
+  assert info["teacher_bytes_per_device"] == 4 * info["teacher_param_count"]
+  assert info["teacher_resolution"] == [112, 112]
+  plain = config_lib.load_config(f"{REPO}/configs/synthetic.py:model=synth_small,batch=4,"
+                                 "eval=False")
+  _, ts_plain, hw_plain = planning.setup(plain, devices)
+  assert hw == hw_plain == (56, 56)
+  x = jax.ShapeDtypeStruct((4, 112, 112, 3), jnp.uint8)
+  forward = jax.make_jaxpr(lambda p, a, b: teacher_model.apply(
+      {"params": p}, a, b, symmetrized=True))(params, x, x)   # rows (a, b), (b, a) as trained
+  teacher_flops = flops.jaxpr_flops(forward, "cpu").flops
+  step = flops.step_flops(ts, 4, hw, "cpu").flops
+  student = flops.step_flops(ts_plain, 4, hw, "cpu").flops
+  assert teacher_flops > 0 and student > 0
+  # Beyond the two models: the warp's 2x2 coordinate map per crop pixel (distill.warp_to_crop),
+  # 8 FLOPs per pixel of each view, and the 2x2 inverses of the crop maps.
+  warp = 2 * 4 * hw[0] * hw[1] * 8
+  assert warp <= step - (student + teacher_flops) <= warp + 64
