@@ -31,13 +31,17 @@ synthetic: the square image side), lr (peak learning rate of the groups that are
 encoder), loss (paper|l1), labels (weight of the label terms; 0: none read), teacher_res (HxW
 the teacher sees; default: a workdir's training shape, else its inference resolution), eval
 (the held-out evals on or off), recipe (synthetic|560; default synthetic for data=synthetic, else
-560), eval_root (a folder of held-out pairs of the same kind as data=: every 1000 steps, 100 in
-recipe synthetic, the student is scored against the teacher's predictions on 32 of them,
-`teacher_agreement`; data=synthetic is also scored against the true flow of its val split).
+560), init (teacher: the student starts from the teacher's parameters wherever their paths and
+shapes agree, the rest at init, model_init=teacher:SRC; fresh: from its own init or
+--config.model_init; default teacher in recipe synthetic, fresh otherwise), eval_root (a folder
+of held-out pairs of the same kind as data=: every 1000 steps, 100 in recipe synthetic, the
+student is scored against the teacher's predictions on 32 of them, `teacher_agreement`;
+data=synthetic is also scored against the true flow of its val split).
 
 recipe=synthetic follows configs/synthetic.py (56 px shift pairs, 2000 steps of 8 rows, lr 1e-3
-everywhere, loss l1, float32, flax's init; with data=synthetic the held-out eval every 100
-steps), except that the student's input takes the official augmentation;
+everywhere, loss l1, float32; the student from the teacher's shared parameters, init=teacher,
+where the teacher is not a variant:NAME, else flax's init; with data=synthetic the held-out
+eval every 100 steps), except that the student's input takes the official augmentation;
 recipe=560 follows the 560 recipe (configs/ufm560.py: its shapes, scaled to the student's
 inference width for ufm_tiny's 392, AdamW, encoder lr 5e-6 and 1e-4 elsewhere, 10% warmup and
 cosine to 1%, bf16, scan, remat, the official init). The
@@ -96,7 +100,7 @@ def get_config(arg=None):
   arg = config_lib.parse_arg(arg, teacher="", student="ufm_small", data="synthetic",
                              data_root="", strides="1", pairs=0, steps=0, batch=0, size=56,
                              lr=0.0, loss="", labels=0.0, teacher_res="", eval=True,
-                             recipe="", eval_root="")
+                             recipe="", eval_root="", init="")
   if not arg.teacher:
     raise ValueError("configs/distill.py: name the teacher, e.g. "
                      "configs/distill.py:teacher=workdirs/synthetic,student=synth_small")
@@ -150,8 +154,15 @@ def get_config(arg=None):
     c.model.flow_adaptor = ml_collections.ConfigDict({
         "flow_mean": (0.0, 0.0), "flow_std": (25.0, 25.0), "base_shape": (224, 224),
         "scale_strategy": "scale_both"})
-  # dinov2:PATH (facebook/dinov2-small for ufm_small / ufm_tiny), snapshot:DIR or ckpt:WORKDIR.
+  # dinov2:PATH (facebook/dinov2-small for ufm_small / ufm_tiny), snapshot:DIR or ckpt:WORKDIR;
+  # init=teacher: every parameter the student shares with the teacher (path and shape) from it.
+  init = arg.init or ("teacher" if synthetic and not arg.teacher.startswith("variant:") else
+                      "fresh")
+  if init not in ("teacher", "fresh"):
+    raise ValueError(f"configs/distill.py: init must be 'teacher' or 'fresh', got {arg.init!r}")
   c.model_init = config_lib.unset(str)
+  if init == "teacher":
+    c.model_init = "teacher:" + ("snapshot:" if c.teacher.snapshot else "") + arg.teacher
 
   if synthetic:
     lr = {g: arg.lr or 1e-3 for g in optim.PARAM_GROUPS}

@@ -23,7 +23,7 @@ def _count(name):
 def test_student_sizes():
   """synth_small at most half of synth (the demonstration's bound); the real students well
   below UFM-Base, their encoder the whole ViT-S/14."""
-  assert _count("synth_small") == 188_687 and 2 * _count("synth_small") <= _count("synth")
+  assert _count("synth_small") == 198_223 and 2 * _count("synth_small") <= _count("synth")
   assert _count("ufm_small") == 42_205_827
   assert _count("ufm_tiny") == 27_743_939
   for name in ("ufm_small", "ufm_tiny"):
@@ -70,3 +70,32 @@ def test_students_export_to_official_and_load_back(tmp_path, name):
                                                                                         dim)
   assert ("info_sharing.proj_embed.weight" in shapes) == (dim != 384)
   assert shapes["head1.0.1.conv1.weight"][1] == cfg.flow_head.feature_dim
+
+
+def test_synth_small_starts_from_its_teacher(tmp_path):
+  """model_init=teacher:SRC (configs/distill.py init=teacher, the synthetic recipe's default):
+  every parameter synth_small shares with synth by path and shape comes from the teacher, the
+  narrower MLPs and heads stay at init and are listed with both shapes; a plain ckpt: source of
+  the other structure is still refused."""
+  from flax import traverse_util
+  from ufm_jax import model_io
+  from ufm_jax import teacher as teacher_lib
+  teacher = variants.build_model("synth")
+  tv = teacher_lib.random_variables(teacher, seed=3)
+  model_io.save(tmp_path / "teacher", teacher, tv)
+  student = variants.build_model("synth_small")
+  template = jax.tree.map(lambda a: np.zeros(a.shape, a.dtype), ufm.variable_shapes(student))
+  out, report = model_init.load_init_variables(f"teacher:{tmp_path / 'teacher'}", template,
+                                               student.config)
+  flat_t = traverse_util.flatten_dict(tv["params"], sep="/")
+  flat_o = traverse_util.flatten_dict(out["params"], sep="/")
+  assert report.loaded and report.left_at_init
+  for k in report.loaded:
+    np.testing.assert_array_equal(flat_o[k], flat_t[k], err_msg=k)
+  left = [k.split(" ")[0] for k in report.left_at_init]
+  assert any("mlp" in k for k in left) and any(k.startswith("head1") for k in left)
+  assert not any("attn" in k for k in left)          # the attention is the teacher's
+  for k in left:
+    assert not np.any(np.asarray(flat_o[k])), k       # the template's (zeros here)
+  with pytest.raises(ValueError):
+    model_init.load_init_variables(f"ckpt:{tmp_path / 'teacher'}", template, student.config)

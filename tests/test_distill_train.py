@@ -191,7 +191,7 @@ def test_trains_from_video_frames_on_eight_fake_devices(frames_runs):
 @pytest.mark.slow
 def test_a_student_is_an_ordinary_checkpoint_for_every_tool(frames_runs, tmp_path, capsys):
   """The distilled workdir through ufm_jax.load, infer, match, export (ONNX), the demo's
-  analyser and to-official, unchanged: to-official refuses synth_small's 48-wide encoder as it
+  analyser and to-official, unchanged: to-official refuses synth_small's 64-wide encoder as it
   refuses the synth teacher's (no DINOv2 hub size; ufm_small and ufm_tiny export:
   tests/test_distill_students.py)."""
   from ufm_jax import cli, demo
