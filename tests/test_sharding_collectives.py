@@ -118,3 +118,40 @@ ENTRY %main (a: f32[64,48]) -> f32[64,48] {
   assert s["all-gather"]["count"] == 25
   assert s["all-gather"]["bytes"] == 24 * 64 * 192 * 4 + 64 * 8 * 2
   assert s["reduce-scatter"]["count"] == 24 and s["reduce-scatter"]["bytes"] == 24 * 64 * 48 * 4
+
+
+def test_collectives_parser_counts_an_async_chain_once():
+  # XLA:TPU splits one asynchronous collective into a start fusion in the entry and continuation
+  # fusions (each a copy of the op under the same channel_id) inside the loop whose compute they
+  # overlap: one gather per step, not one per loop trip. Another collective in the loop (its own
+  # channel) runs every trip.
+  text = """
+%fused_computation.1 (p0: bf16[4,8]) -> (bf16[4,8], bf16[64,8]) {
+  %all-gather.1 = bf16[64,8]{1,0} all-gather(%p0), channel_id=7, dimensions={0}
+  ROOT %t = (bf16[4,8], bf16[64,8]) tuple(%p0, %all-gather.1)
+}
+
+%async_collective_fusion.2 (p0: bf16[4,8], p1: f32[16]) -> (f32[16], bf16[64,8]) {
+  %all-gather.2 = bf16[64,8]{1,0} all-gather(%p0), channel_id=7, dimensions={0}
+  ROOT %t = (f32[16], bf16[64,8]) tuple(%p1, %all-gather.2)
+}
+
+%body (p: (s32[], f32[16])) -> (s32[], f32[16]) {
+  %f = (f32[16], bf16[64,8]) fusion(%a, %b), kind=kCustom, calls=%async_collective_fusion.2
+  %ar = f32[16]{0} all-reduce(%x), channel_id=8, to_apply=%add
+  ROOT %t = (s32[], f32[16]) tuple(%i, %ar)
+}
+
+%cond (p: (s32[], f32[16])) -> pred[] {
+  ROOT %lt = pred[] compare(%a, %b), direction=LT
+}
+
+ENTRY %main (a: bf16[4,8]) -> f32[16] {
+  %async-collective-start = (bf16[4,8], bf16[64,8]) fusion(%a), kind=kCustom, calls=%fused_computation.1
+  %w = (s32[], f32[16]) while(%init), condition=%cond, body=%body, backend_config={"known_trip_count":{"n":"24"}}
+  ROOT %r = f32[16] get-tuple-element(%w), index=1
+}
+"""
+  s = hlo_stats.summary(hlo_stats.collectives(text))
+  assert s["all-gather"]["count"] == 1 and s["all-gather"]["bytes"] == 64 * 8 * 2
+  assert s["all-reduce"]["count"] == 24 and s["all-reduce"]["bytes"] == 24 * 16 * 4

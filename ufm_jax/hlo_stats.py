@@ -9,7 +9,10 @@ result shape and bytes per device, counted as often as it runs: ops inside a `wh
 over layers) are multiplied by the loop's trip count (XLA's known_trip_count, or the bound of the
 loop condition in XLA:TPU's programs, which carry none). XLA:TPU's reduce-scatter, a custom fusion
 around an all-reduce, counts as a reduce-scatter of its results, and its asynchronous collectives
-(a start and a done fusion, each holding a copy of the op) once.
+once: XLA:TPU splits one into a start fusion, continuation fusions and a done fusion, each holding
+a copy of the op under the one channel_id, and may place the continuations inside the loops whose
+compute they overlap (a DPT weight's gather started before the encoder's loop, progressed in its 24
+iterations); the collective runs as often as its least-run copy, the start.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ _TRIP = re.compile(r'"known_trip_count":\{"n":"(\d+)"\}')
 _CONST = re.compile(r"%([\w.\-]+)\s+=\s+s32\[\]\S*\s+constant\((\d+)\)")
 _LT = re.compile(r"^\s*ROOT\s.*\scompare\(%?[\w.\-]+,\s*%?([\w.\-]+)\),\s*direction=LT")
 _COND = re.compile(r"\bcondition=%?([\w.\-]+)")
+_CHANNEL = re.compile(r"\bchannel_id=(\d+)")
 # XLA:TPU's asynchronous collectives: a start fusion and a done fusion, each calling a copy of the
 # collective. The start's copy is counted, the done's is not.
 _ASYNC_DONE = re.compile(r"^\s*(?:ROOT\s+)?%?async-collective-done[\w.\-]*\s+=")
@@ -50,6 +54,7 @@ class Collective:
   bytes: int             # result bytes on one device, per execution
   count: int             # executions per program run (trip counts of enclosing loops)
   computation: str
+  channel: int | None = None   # channel_id: copies of one asynchronous collective share it
 
   def shape_str(self) -> str:
     return ", ".join(f"{d}[{','.join(map(str, s))}]" for d, s in self.shapes)
@@ -143,8 +148,23 @@ def collectives(hlo_text: str) -> list[Collective]:
       shapes = _shapes(m.group(1))
       if m.group(3) == "-start" and len(shapes) > 1:
         shapes = shapes[len(shapes) // 2:]  # (operands..., results...): keep the results
-      out.append(Collective(m.group(2), shapes, _nbytes(shapes), runs[name], name))
-  return out
+      channel = _CHANNEL.search(line)
+      out.append(Collective(m.group(2), shapes, _nbytes(shapes), runs[name], name,
+                            int(channel.group(1)) if channel else None))
+  return _one_per_channel(out)
+
+
+def _one_per_channel(colls: list[Collective]) -> list[Collective]:
+  """One entry per asynchronous collective: of the copies sharing a kind and a channel_id, the
+  least-run one (its start; the continuations may sit in loops)."""
+  first: dict = {}
+  for c in colls:
+    if c.channel is None:
+      continue
+    key = (c.kind, c.channel)
+    if key not in first or c.count < first[key].count:
+      first[key] = c
+  return [c for c in colls if c.channel is None or first[(c.kind, c.channel)] is c]
 
 
 def summary(colls: list[Collective], top: int = 5) -> dict:
