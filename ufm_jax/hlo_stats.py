@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 import re
 
 KINDS = ("all-gather", "all-reduce", "reduce-scatter", "all-to-all", "collective-permute")
@@ -38,6 +39,9 @@ _CONST = re.compile(r"%([\w.\-]+)\s+=\s+s32\[\]\S*\s+constant\((\d+)\)")
 _LT = re.compile(r"^\s*ROOT\s.*\scompare\(%?[\w.\-]+,\s*%?([\w.\-]+)\),\s*direction=LT")
 _COND = re.compile(r"\bcondition=%?([\w.\-]+)")
 _CHANNEL = re.compile(r"\bchannel_id=(\d+)")
+_GROUPS_MESH = re.compile(r"replica_groups=mesh\[([^\]]*)\]\s*\{([^}]*)\}")
+_GROUPS_IOTA = re.compile(r"replica_groups=\[\d+,(\d+)\]<=")
+_GROUPS_LIST = re.compile(r"replica_groups=\{\{([^}]*)\}")
 # XLA:TPU's asynchronous collectives: a start fusion and a done fusion, each calling a copy of the
 # collective. The start's copy is counted, the done's is not.
 _ASYNC_DONE = re.compile(r"^\s*(?:ROOT\s+)?%?async-collective-done[\w.\-]*\s+=")
@@ -55,6 +59,7 @@ class Collective:
   count: int             # executions per program run (trip counts of enclosing loops)
   computation: str
   channel: int | None = None   # channel_id: copies of one asynchronous collective share it
+  group: int | None = None     # devices per replica group (None: not stated, or all)
 
   def shape_str(self) -> str:
     return ", ".join(f"{d}[{','.join(map(str, s))}]" for d, s in self.shapes)
@@ -150,8 +155,25 @@ def collectives(hlo_text: str) -> list[Collective]:
         shapes = shapes[len(shapes) // 2:]  # (operands..., results...): keep the results
       channel = _CHANNEL.search(line)
       out.append(Collective(m.group(2), shapes, _nbytes(shapes), runs[name], name,
-                            int(channel.group(1)) if channel else None))
+                            int(channel.group(1)) if channel else None, group_size(line)))
   return _one_per_channel(out)
+
+
+def group_size(line: str) -> int | None:
+  """Devices per replica group of a collective's HLO line: `replica_groups={{0,1},{2,3}}`, the
+  iota form `[groups,size]<=[...]`, or `mesh['axis_0'=2,'axis_1'=4] {'axis_1'}` (the product of
+  the listed axes' sizes). None where the line states none (every device)."""
+  m = _GROUPS_MESH.search(line)
+  if m:
+    sizes = {k: int(v) for k, v in re.findall(r"'([\w]+)'=(\d+)", m.group(1))}
+    return math.prod(sizes[a] for a in re.findall(r"'([\w]+)'", m.group(2)))
+  m = _GROUPS_IOTA.search(line)
+  if m:
+    return int(m.group(1))
+  m = _GROUPS_LIST.search(line)
+  if m and m.group(1).strip():
+    return len(m.group(1).split(","))
+  return None
 
 
 def _one_per_channel(colls: list[Collective]) -> list[Collective]:
