@@ -111,11 +111,16 @@ ENTRY %main (a: f32[64,48]) -> f32[64,48] {
   %w = (s32[], f32[64,48]) while(%init), condition=%cond, body=%body
   %async-collective-start.1 = (bf16[16,8], bf16[64,8]) fusion(%b), kind=kCustom, calls=%fused_computation.1
   %async-collective-done.1 = bf16[64,8] fusion(%s), kind=kCustom, calls=%fused_computation.2
+  %collective-permute-start.4 = (bf16[256,1024]{1,0:T(8,128)(2,1)S(1)}, bf16[256,1024]{1,0:T(8,128)(2,1)S(1)}, u32[]{:S(2)}, u32[]{:S(2)}) collective-permute-start(%x), channel_id=13, source_target_pairs={{0,1},{1,0}}
+  %collective-permute-done.4 = bf16[256,1024]{1,0} collective-permute-done(%collective-permute-start.4)
   ROOT %r = f32[64,48] get-tuple-element(%w), index=1
 }
 """
   s = hlo_stats.summary(hlo_stats.collectives(text))
-  assert set(s) == {"all-gather", "reduce-scatter"}
+  assert set(s) == {"all-gather", "reduce-scatter", "collective-permute"}
+  # a collective-permute-start's (operand, result, u32 context, u32 context): the result
+  assert s["collective-permute"]["count"] == 1
+  assert s["collective-permute"]["bytes"] == 256 * 1024 * 2
   # 24 in the loop, and the asynchronous one once (its start, not its done).
   assert s["all-gather"]["count"] == 25
   assert s["all-gather"]["bytes"] == 24 * 64 * 192 * 4 + 64 * 8 * 2

@@ -152,7 +152,10 @@ def collectives(hlo_text: str) -> list[Collective]:
         continue
       shapes = _shapes(m.group(1))
       if m.group(3) == "-start" and len(shapes) > 1:
-        shapes = shapes[len(shapes) // 2:]  # (operands..., results...): keep the results
+        # (operands..., results...[, u32[] contexts]): keep the results. XLA:TPU's
+        # collective-permute-start ends in two u32[] synchronisation contexts.
+        shapes = [s for s in shapes if s != ("u32", ())] or shapes
+        shapes = shapes[len(shapes) // 2:]
       channel = _CHANNEL.search(line)
       out.append(Collective(m.group(2), shapes, _nbytes(shapes), runs[name], name,
                             int(channel.group(1)) if channel else None, group_size(line)))
