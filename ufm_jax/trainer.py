@@ -94,6 +94,19 @@ def build_input(config, process_batch: int, seed: int):
   return pipeline.make_train_iterator(config.input, process_batch=process_batch, seed=seed)
 
 
+def schedule_steps(config, pairs_per_epoch):
+  """(total optimizer steps, steps per epoch or None) of a run: config.total_steps, or
+  config.num_epochs whole batches of the epoch's `pairs_per_epoch` rows (drop_last, as the
+  official loaders; epochs and warmup count these)."""
+  steps_per_epoch = int(pairs_per_epoch or 0) // int(config.input.batch_size) or None
+  if config.total_steps:
+    return int(config.total_steps), steps_per_epoch
+  if config.get("num_epochs") and steps_per_epoch:
+    return int(config.num_epochs * steps_per_epoch), steps_per_epoch
+  raise ValueError("config needs total_steps, or num_epochs with a pipeline that knows its "
+                   "pairs per epoch")
+
+
 def build_loss(config, model=None, dataset_names=None):
   """loss(model outputs, batch, rng) -> (loss, aux dict of scalars): the recipe of config.loss
   (`ufm_jax.losses.recipe_from_config`). `model` supplies the refinement temperature,
@@ -232,8 +245,10 @@ class TrainSetup:
   predict: Callable            # jitted (state.variables(), batch) -> {"flow"[, "covisibility"]}
   variables_sh: Any = None     # shardings of init_fn's output
 
-  def abstract_batch(self, batch_size: int, image_shape):
-    """ShapeDtypeStructs of a global training batch, sharded as the step expects (AOT)."""
+  def abstract_batch(self, batch_size: int, image_shape, row_ids: bool = False):
+    """ShapeDtypeStructs of a global training batch, sharded as the step expects (AOT).
+    `row_ids`: with the per-row dataset_id and epoch the training pipeline adds
+    (ufm_jax.data.pipeline; the refinement loss reads dataset_id)."""
     import jax
     import jax.numpy as jnp
     h, w = image_shape
@@ -243,6 +258,8 @@ class TrainSetup:
               "covisibility": ((batch_size, h, w), jnp.bool_),
               "flow_valid": ((batch_size, h, w), jnp.bool_),
               "covis_valid": ((batch_size, h, w), jnp.bool_)}
+    if row_ids:
+      shapes.update(dataset_id=((batch_size,), jnp.int32), epoch=((batch_size,), jnp.int32))
     return {k: jax.ShapeDtypeStruct(s, d, sharding=self.batch_sh) for k, (s, d) in shapes.items()}
 
   def init_state(self, seed: int = 0):

@@ -34,6 +34,17 @@ INPUT_DEFAULTS = {
 }
 
 
+def training_shapes(block) -> tuple[tuple[int, int], ...]:
+  """The (H, W) training shapes of an input block, one drawn per global batch: `shapes` when it
+  lists them (the recipes' official ones), else W = longest_side with H from aspect_ratios. The
+  one rule for the pipeline (`pipeline.create`) and the planner (`ufm_jax.planning`), which
+  compiles the step at the largest of them."""
+  cfg = {**INPUT_DEFAULTS, **dict(block)}
+  if cfg["shapes"]:
+    return augment_lib.check_shapes(cfg["shapes"])
+  return augment_lib.training_shapes(int(cfg["longest_side"]), tuple(cfg["aspect_ratios"]))
+
+
 # glibc mallopt parameters (malloc.h).
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 

@@ -29,7 +29,8 @@ import numpy as np
 from ufm_jax.data import augment as augment_lib
 from ufm_jax.data import mixture
 from ufm_jax.data.backward_labels import backward_mode
-from ufm_jax.data.input_block import INPUT_DEFAULTS, auto_num_workers, input_config, keep_heap
+from ufm_jax.data.input_block import (INPUT_DEFAULTS, auto_num_workers, input_config, keep_heap,
+                                      training_shapes)
 from ufm_jax.data.load_pair import LoadPair, SkipAccounting, SkipLimitExceeded, collate
 from ufm_jax.data.registry import get_source
 from ufm_jax.data.sampling_plan import MixtureIndex, MixtureLayout
@@ -172,8 +173,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
     if unsup:
       log.warning("no backward labels for %s: their (b, a) rows in symmetrized batches carry no "
                   "supervision (all masks False)", ", ".join(unsup))
-  shapes = (augment_lib.check_shapes(cfg["shapes"]) if cfg["shapes"] else
-            augment_lib.training_shapes(int(cfg["longest_side"]), tuple(cfg["aspect_ratios"])))
+  shapes = training_shapes(cfg)
   if jax_processes and process_count > 1:
     # Every host derives the same plans only if it sees the same datasets with the same sizes.
     from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
