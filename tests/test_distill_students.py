@@ -74,8 +74,9 @@ def test_students_export_to_official_and_load_back(tmp_path, name):
 
 def test_synth_small_starts_from_its_teacher(tmp_path):
   """model_init=teacher:SRC (configs/distill.py init=teacher, the synthetic recipe's default):
-  every parameter synth_small shares with synth by path and shape comes from the teacher, the
-  narrower MLPs and heads stay at init and are listed with both shapes; a plain ckpt: source of
+  every parameter synth_small shares with synth by path and shape comes from the teacher (the
+  attention and the flow head), the narrower MLPs and covisibility head stay at init and are
+  listed with both shapes; a plain ckpt: source of
   the other structure is still refused."""
   from flax import traverse_util
   from ufm_jax import model_io
@@ -93,8 +94,10 @@ def test_synth_small_starts_from_its_teacher(tmp_path):
   for k in report.loaded:
     np.testing.assert_array_equal(flat_o[k], flat_t[k], err_msg=k)
   left = [k.split(" ")[0] for k in report.left_at_init]
-  assert any("mlp" in k for k in left) and any(k.startswith("head1") for k in left)
-  assert not any("attn" in k for k in left)          # the attention is the teacher's
+  assert any("mlp" in k for k in left) and any(k.startswith("uncertainty_head") for k in left)
+  # the attention and the flow head (head1) are the teacher's
+  assert not any("attn" in k or k.startswith("head1") for k in left)
+  assert any(k.startswith("head1") for k in report.loaded)
   for k in left:
     assert not np.any(np.asarray(flat_o[k])), k       # the template's (zeros here)
   with pytest.raises(ValueError):
