@@ -83,6 +83,18 @@ def training_fixtures(subdir: str | None = None) -> pathlib.Path:
   return folder
 
 
+def reference_cases(folder: str, env: str) -> tuple[pathlib.Path, list[str]]:
+  """(root, case names) of a folder of official reference snapshots: `env` when set (a folder of
+  case folders), else `<UFM_FIXTURES or ../shared/fixtures beside the repository>/<folder>`; a case
+  is any sub-folder with a config.json, so every case a folder holds is checked. No cases (or no
+  folder): an empty list, for the test to skip or fail on (`skip_or_fail`)."""
+  import os
+  repo = pathlib.Path(__file__).resolve().parents[2]
+  fixtures = pathlib.Path(os.environ.get("UFM_FIXTURES", repo.parent / "shared" / "fixtures"))
+  root = pathlib.Path(os.environ.get(env) or fixtures / folder)
+  return root, sorted(p.parent.name for p in root.glob("*/config.json"))
+
+
 def write_snapshot(folder, config: dict, state: dict, metadata=None) -> pathlib.Path:
   """A Hugging Face snapshot folder (config.json + model.safetensors) from a torch-named state."""
   from safetensors.numpy import save_file
