@@ -87,6 +87,22 @@ def model_options(dtype: str = "bfloat16", remat: bool = True, scan_blocks: bool
       "attention_impl": unset(str)})
 
 
+def add_flow_covariance(c: ml_collections.ConfigDict, pixels: str, uncertainty_output_dim: int = 1,
+                        multiplier: float = 1.0) -> ml_collections.ConfigDict:
+  """The `cov=True` switch of a recipe: a flow covariance adaptor (exp_tanh, low_confidence_init)
+  in the uncertainty head before its covisibility channel (the sorted order an official snapshot
+  reloads in; the head's output_dim grows from `uncertainty_output_dim` by 3), and the Gaussian
+  NLL term `flow_nll` (ufm_jax.losses.FlowCovarianceNLL) on the pixels of the flow term `pixels`,
+  added after the recipe's terms. Returns `c`."""
+  c.model.covisibility_head = {"output_dim": uncertainty_output_dim + 3}
+  c.model.uncertainty_head_adaptors = ("flow_cov", "non_occluded_mask")
+  c.model.flow_covariance = {"parametrization": "exp_tanh", "low_confidence_init": True}
+  c.loss.terms = tuple(c.loss.terms) + ("flow_nll",)
+  c.loss.flow_nll = {"type": "flow_nll", "pixels": pixels, "multiplier": multiplier,
+                     "detach_flow": True, "eps": 1e-4}
+  return c
+
+
 def bench_eval(bench="sintel", every=5000, max_pairs=200, resolution="560",
                data_root=mixture.DEFAULT_DATA_ROOT) -> ml_collections.ConfigDict:
   """An `evals` entry that runs a benchmark of ufm_jax.evaluators during training."""
