@@ -218,15 +218,17 @@ class FlowCovarianceNLL:
     params = outputs["flow_covariance_params"].astype(jnp.float32)
     quad, log_det = covariance.quadratic_and_log_det(params, r)
     mask = masks[self.pixels]
-    value = masked_mean(0.5 * quad + 0.5 * log_det, mask, self.eps)
-    q = jax.lax.stop_gradient(quad)
+    # where(), not the product alone: a pixel outside the mask contributes nothing, NaN included
+    value = masked_mean(jnp.where(mask, 0.5 * quad + 0.5 * log_det, 0.0), mask, self.eps)
+    q = jax.lax.stop_gradient(jnp.where(mask, quad, 0.0))
     m = mask.astype(jnp.float32)
     n = jnp.maximum(jnp.sum(m), 1.0)
     logs = {"nll": value,
             # a calibrated Gaussian: E[r^T Sigma^-1 r] = 2, P(within 2 sigma) = 1 - e^-2 = 0.865
             "mahalanobis_sq": jnp.sum(q * m) / n,
             "coverage_2sigma": jnp.sum((q <= 4.0) * m) / n,
-            "sigma_geomean": jnp.exp(jnp.sum(jax.lax.stop_gradient(log_det) * m) / n / 4)}
+            "sigma_geomean": jnp.exp(jnp.sum(jax.lax.stop_gradient(
+                jnp.where(mask, log_det, 0.0))) / n / 4)}
     return self.multiplier * value, logs, shared
 
 
