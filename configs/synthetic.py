@@ -15,7 +15,8 @@ variant, e.g. tiny_synth or synth), lr (peak learning rate of every parameter gr
 (paper: alpha 0.5, c 0.24; l1: alpha 1, c 0.01, i.e. ~100 x EPE), and for pairs=shift: max_shift
 (px) and aligned (fraction of patch-aligned shifts in training, default 0; the held-out pairs have
 none), cov (a flow covariance in the uncertainty head, trained by the Gaussian NLL on the pixels the
-flow term supervises: `config_lib.add_flow_covariance`, docs/uncertainty.md):
+flow term supervises: `config_lib.add_flow_covariance`, docs/uncertainty.md; cov_head=main puts it
+in the flow head instead):
 
   python train.py --config=configs/synthetic.py:cov=True --workdir=workdirs/synthetic_cov
 
@@ -44,7 +45,7 @@ _NO_AUGMENT = {"enabled": False, "supervise_out_of_view": True}
 def get_config(arg=None):
   arg = config_lib.parse_arg(arg, pairs="shift", steps=2000, batch=8, size=56, eval=True,
                              model="synth", lr=1e-3, loss="l1", aligned=0.0, max_shift=10,
-                             cov=False)
+                             cov=False, cov_head="uncertainty")
   hw = (arg.size, arg.size)
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.seed = 0
@@ -76,7 +77,7 @@ def get_config(arg=None):
   # docs/synthetic_training.md are of this layout.
   c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
   if arg.cov:
-    config_lib.add_flow_covariance(c, pixels="robust_epe")
+    config_lib.add_flow_covariance(c, pixels="robust_epe", head=arg.cov_head)
   c.model_init = config_lib.unset(str)  # e.g. ckpt:WORKDIR
   # One learning rate for every group, 5% linear warmup, cosine to 0 (no epochs to count in).
   c.optim = ml_collections.ConfigDict({

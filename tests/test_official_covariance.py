@@ -54,24 +54,6 @@ def _one_minus_rho2(cov):
   return 1 - cov[..., 2] ** 2 / (cov[..., 0] * cov[..., 1]) + covariance.OFFICIAL_EPS
 
 
-def _close_covariance(name, got, want, rtol, slack=None):
-  """Variances within rtol of themselves, the off-diagonal within rtol of sqrt(var_x var_y);
-  `slack` [...] widens the bound per pixel (the cancellation above)."""
-  got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
-  assert got.shape == want.shape, f"{name}: shape {got.shape} != {want.shape}"
-  bound = rtol + (0 if slack is None else slack)
-  scale = np.sqrt(want[..., 0] * want[..., 1])
-  for i, what in enumerate(("var_x", "var_y")):
-    err = np.abs(got[..., i] / want[..., i] - 1)
-    worst = np.unravel_index(np.argmax(err - bound), err.shape)
-    assert (err <= bound).all(), (f"{name} {what}: relative error {err[worst]:.3g} > "
-                                  f"{np.broadcast_to(bound, err.shape)[worst]:.3g} at {worst}")
-  err = np.abs(got[..., 2] - want[..., 2]) / scale
-  worst = np.unravel_index(np.argmax(err - bound), err.shape)
-  assert (err <= bound).all(), (f"{name} cov_xy: error {err[worst]:.3g} x sqrt(var_x var_y) > "
-                                f"{np.broadcast_to(bound, err.shape)[worst]:.3g} at {worst}")
-
-
 @pytest.fixture(scope="module", params=CASES or [None])
 def case(request):
   d = _case_dir(request.param)
@@ -95,11 +77,11 @@ def test_forward_matches_the_official_outputs(case):
     return
   want = _nhwc(io["flow_covariance"])
   assert out["flow_covariance"].dtype == np.float32
-  _close_covariance("flow_covariance", out["flow_covariance"], want, 1e-3)
+  testing.assert_covariance_close("flow_covariance", out["flow_covariance"], want, 1e-3)
   slack = CANCELLATION / _one_minus_rho2(want)
   err = np.abs(out["flow_covariance_log_det"] - io["flow_covariance_log_det"][:, 0])
   assert (err <= 1e-3 + slack).all(), f"log det: max |diff| {err.max():.3g}"
-  _close_covariance("flow_covariance_inv", out["flow_covariance_inv"],
+  testing.assert_covariance_close("flow_covariance_inv", out["flow_covariance_inv"],
                     _nhwc(io["flow_covariance_inv"]), 1e-3, slack)
 
 
@@ -117,7 +99,7 @@ def test_predict_matches_the_official_high_level_api(case, pair):
   assert ("flow_covariance" in got) == (key in io)
   if key in io:
     want = _nhwc(io[key])[0]
-    _close_covariance(key, got["flow_covariance"], want, 5e-3)
+    testing.assert_covariance_close(key, got["flow_covariance"], want, 5e-3)
     # the precision the same way, exact inverse of the official covariance aside from rounding
     inv = covariance.inverse(np.asarray(got["flow_covariance"], np.float64))
     ok = _one_minus_rho2(want) > 1e-2      # the triplet's own inverse cancels beyond that

@@ -95,6 +95,24 @@ def reference_cases(folder: str, env: str) -> tuple[pathlib.Path, list[str]]:
   return root, sorted(p.parent.name for p in root.glob("*/config.json"))
 
 
+def assert_covariance_close(name: str, got, want, rtol: float, slack=None) -> None:
+  """Flow covariance triplets [..., 3] (var_x, var_y, cov_xy) compared as issue #42 states it:
+  each variance within `rtol` of itself, cov_xy within `rtol` of sqrt(var_x var_y) (so a
+  correlation near 0 is not held to a relative bound); `slack` [...] widens the bound per pixel.
+  The message names the worst pixel."""
+  got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
+  assert got.shape == want.shape, f"{name}: shape {got.shape} != {want.shape}"
+  bound = np.broadcast_to(rtol + (0 if slack is None else slack), want.shape[:-1])
+  errors = {"var_x": np.abs(got[..., 0] / want[..., 0] - 1),
+            "var_y": np.abs(got[..., 1] / want[..., 1] - 1),
+            "cov_xy": np.abs(got[..., 2] - want[..., 2]) / np.sqrt(want[..., 0] * want[..., 1])}
+  for what, err in errors.items():
+    worst = np.unravel_index(np.argmax(err - bound), err.shape)
+    assert (err <= bound).all(), (f"{name} {what}: error {err[worst]:.3g} > {bound[worst]:.3g} "
+                                  f"(relative{' to sqrt(var_x var_y)' if what == 'cov_xy' else ''})"
+                                  f" at {worst}")
+
+
 def write_snapshot(folder, config: dict, state: dict, metadata=None) -> pathlib.Path:
   """A Hugging Face snapshot folder (config.json + model.safetensors) from a torch-named state."""
   from safetensors.numpy import save_file
