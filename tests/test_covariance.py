@@ -154,14 +154,42 @@ def test_sparsification_by_hand():
   quarters has trapezoid area 0.25 (v0 + v1 + v2 + v3) - 0.005 (v0 + v3). Oracle (1, 0, 0, 0):
   0.245. Random (flat at the mean 1): 0.99, so ause_random = 0.745. Uncertainty in the worst
   order (the error-free pixels first, 4 last): (1, 4/3, 2, 4): 2.058333, ause = 1.813333. In the
-  oracle's order: 0."""
+  oracle's order: 0. One image: pooled and per image agree."""
   epe = np.array([0.0, 0.0, 0.0, 4.0])
   for unc, want in ((np.array([1.0, 2.0, 3.0, 0.0]), 1.813333333), (epe + 1, 0.0)):
     sp = metrics.Sparsification()
     sp.add(epe, unc)
     res = sp.result()
-    np.testing.assert_allclose(res["ause"], want, atol=1e-9)
-    np.testing.assert_allclose(res["ause_random"], 0.745, atol=1e-9)
+    for pooling in ("", "_per_image"):
+      np.testing.assert_allclose(res[f"ause{pooling}"], want, atol=1e-9)
+      np.testing.assert_allclose(res[f"ause{pooling}_random"], 0.745, atol=1e-9)
+
+
+def test_pooled_and_per_image_sparsification():
+  """Two images of uniform error (1 px and 3 px), the uncertainty ranking the images: per image
+  there is nothing to rank (every area 0); pooled, the order is the oracle's (ause 0) and a random
+  one is not (ause_random > 0). The pooled histograms agree with an exact sort of all pixels."""
+  sp = metrics.Sparsification()
+  sp.add(np.ones((10, 10)), np.full((10, 10), 1.0))
+  sp.add(np.full((10, 10), 3.0), np.full((10, 10), 9.0))
+  res = sp.result()
+  assert res["ause_per_image"] == 0 and res["ause_per_image_random"] == 0
+  assert abs(res["ause"]) < 1e-12 and res["ause_random"] > 0.3
+  rng = np.random.default_rng(0)
+  sp, es, us = metrics.Sparsification(), [], []
+  for i in range(10):
+    e = np.abs(rng.normal(size=(30, 40))) * (1 + i)
+    u = e * np.exp(rng.normal(size=e.shape))
+    sp.add(e, u)
+    es.append(e.ravel())
+    us.append(u.ravel())
+  e, u = np.concatenate(es), np.concatenate(us)
+  f = metrics.Sparsification.FRACTIONS
+  oracle = metrics.Sparsification.curve(e, e)
+  res = sp.result()
+  np.testing.assert_allclose(res["ause"], np.trapezoid(
+      metrics.Sparsification.curve(e, u) - oracle, f), rtol=1e-3)
+  np.testing.assert_allclose(res["ause_random"], np.trapezoid(e.mean() - oracle, f), rtol=1e-3)
 
 
 # --------------------------------------------------------------------------- the recipe switch

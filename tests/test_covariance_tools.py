@@ -129,6 +129,7 @@ def test_stablehlo_export_carries_the_covariance(snap, tmp_path):
                                   1e-4)
 
 
+@pytest.mark.slow
 def test_onnx_export_carries_the_covariance(tmp_path):
   """ONNX through jax2onnx and onnxruntime, on the smallest official structure with the
   covariance (the fixture's graph takes minutes to convert; the ops are the same)."""
