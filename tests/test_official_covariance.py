@@ -203,14 +203,18 @@ def test_channel_order_is_the_key_order_and_exports_only_sorted(cov_case, tmp_pa
 # --------------------------------------------------------------------------- other heads
 
 
-@pytest.mark.parametrize("head,low", [("main", False), ("uncertainty", False), ("main", True)])
-def test_other_heads_load_export_and_match_the_adaptor(tmp_path, head, low):
+@pytest.mark.parametrize("structure,head,low", [
+    ("small", "main", False), ("small", "uncertainty", False), ("small", "main", True),
+    ("refine_window5", "uncertainty", True)])
+def test_other_heads_load_export_and_match_the_adaptor(tmp_path, structure, head, low):
   """The covariance in the main head (the train branch's adaptor_map/efficient_combined.yaml) or
-  the uncertainty head, low_confidence_init either way: an official snapshot written from random
-  weights loads back to the same config and params, its covariance is the exp_tanh of its
-  head's channels (split in the sorted key order), and save_official writes it back exactly."""
-  cfg = ufm.with_flow_covariance(testing.official_small_config(), head=head,
-                                 low_confidence_init=low)
+  the uncertainty head, low_confidence_init either way, also in the refinement class: an
+  official snapshot written from random weights loads back to the same config and params, its
+  covariance is the exp_tanh of its head's channels (split in the sorted key order), and
+  save_official writes it back exactly."""
+  base = testing.official_small_config() if structure == "small" else \
+      testing.STRUCTURES[structure]
+  cfg = ufm.with_flow_covariance(base, head=head, low_confidence_init=low)
   model = ufm.model_from_config(cfg)
   params = testing.perturbed_params(model, 11)
   state = keymap.state_dict_from_params(params, official_config.ufm_buffers(cfg))
@@ -223,10 +227,11 @@ def test_other_heads_load_export_and_match_the_adaptor(tmp_path, head, low):
   assert back.config == cfg
   jax.tree.map(np.testing.assert_array_equal, back_params, params)
   rng = np.random.default_rng(0)
-  x = rng.integers(0, 256, (1, 56, 56, 3), dtype=np.uint8)
+  h, w = cfg.inference_resolution
+  x = rng.integers(0, 256, (1, h, w, 3), dtype=np.uint8)
   fwd = jax.jit(lambda p, a, b: back.apply(ufm.variables(p), a, b, mutable=["intermediates"]))
   out, sown = fwd(back_params, x, x[:, ::-1])
-  assert out["flow_covariance"].shape == (1, 56, 56, 3)
+  assert out["flow_covariance"].shape == (1, h, w, 3)
   if head == "main":
     decoded = np.asarray(sown["intermediates"]["flow_decoded_channels"][0])
     assert decoded.shape[-1] == 5       # flow (2) then flow_cov (3): sorted keys

@@ -85,7 +85,8 @@ class HeldoutEval:
         i = start + j
         if i < self.num_images:
           images[f"pair{i}"] = viz.panel(chunk[j]["image0"], chunk[j]["image1"], pred["flow"],
-                                         pred.get("covisibility"))
+                                         pred.get("covisibility"),
+                                         covariance=pred.get("flow_covariance"))
           images[f"pair{i}_gt"] = viz.panel(chunk[j]["image0"], chunk[j]["image1"],
                                             chunk[j]["flow"], chunk[j]["covisibility"])
     return EvalResult({**acc.result(), "num_pairs": float(n)}, images)
