@@ -49,6 +49,18 @@ def written(files: dict[str, pathlib.Path], pred) -> dict[str, pathlib.Path]:
           if k not in OPTIONAL_KINDS or pred.get(OPTIONAL_KINDS[k]) is not None}
 
 
+def predicted(model) -> dict:
+  """Which optional outputs `model`'s predictions have, as a stand-in prediction for `written`
+  (a model without a config, e.g. a test stand-in: covisibility, no covariance)."""
+  cfg = getattr(model, "config", None)
+  covis = cfg is None or (getattr(cfg, "covisibility_head", None) is not None and
+                          "non_occluded_mask" in getattr(cfg, "uncertainty_head_adaptors",
+                                                         ("non_occluded_mask",)))
+  cov = getattr(cfg, "flow_covariance", None) is not None
+  return {"flow": True, **({"covisibility": True} if covis else {}),
+          **({"flow_covariance": True} if cov else {})}
+
+
 def write(files: dict[str, pathlib.Path], source, target, pred) -> list[pathlib.Path]:
   """Writes `written(files, pred)` ({kind: path} from `paths`) of one prediction, each
   atomically; returns their paths. `pred`: {"flow": [H, W, 2], "covisibility": [H, W]
