@@ -5,16 +5,14 @@ adaptor maps (channel order = key order, unknown parametrisations refused by nam
 fixtures do not cover (the covariance in the main head, low_confidence_init off)."""
 
 import json
-import os
 import pathlib
-import struct
 
 import jax
 import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import covariance, model_io, testing
+from ufm_jax import covariance, testing
 from ufm_jax.models import ufm
 from ufm_jax.official import config as official_config
 from ufm_jax.official import keymap
@@ -23,22 +21,7 @@ ROOT, CASES = testing.reference_cases("ufm_reference_cov", "UFM_COV_FIXTURES")
 
 
 def _case_dir(name) -> pathlib.Path:
-  if name is None:
-    testing.skip_or_fail(f"no flow covariance snapshots under {ROOT}: set UFM_COV_FIXTURES to a "
-                         "folder of case folders, or UFM_FIXTURES to the folder that holds "
-                         "ufm_reference_cov/", "CI=true: parity tests may not be skipped")
-  return ROOT / name
-
-
-def _nhwc(a):
-  return np.transpose(a, (0, 2, 3, 1))
-
-
-def _close(name, got, want, atol):
-  got = np.asarray(got, np.float64)
-  assert got.shape == want.shape, f"{name}: shape {got.shape} != {want.shape}"
-  err = float(np.abs(got - want).max())
-  assert err <= atol, f"{name}: max |diff| {err:.3g} > {atol:.3g}"
+  return testing.reference_case(ROOT, name, "UFM_COV_FIXTURES")
 
 
 # The official adaptor computes 1 - tanh(s)^2 in float32: where |rho| nears 1 the difference keeps
@@ -57,32 +40,26 @@ def _one_minus_rho2(cov):
 @pytest.fixture(scope="module", params=CASES or [None])
 def case(request):
   d = _case_dir(request.param)
-  model, params = ufm_jax.load_official(d)
-  io = dict(np.load(d / "io.npz"))
-  out = jax.jit(model.apply)(ufm.variables(params), io["img1_uint8"], io["img2_uint8"])
-  return d, model, params, io, {k: np.asarray(v) for k, v in out.items()}
+  return (d,) + testing.official_case(d)
 
 
 def test_forward_matches_the_official_outputs(case):
-  """flow 1e-3 px (5e-3 after refinement), logits 2e-4, mask 5e-5 (the older fixtures'); the
-  covariance: variances within 1e-3 of themselves, cov_xy within 1e-3 of sqrt(var_x var_y)."""
+  """flow 1e-3 px (5e-3 after refinement), logits 2e-4, mask 5e-5 (the older fixtures',
+  testing.assert_forward_parity); the covariance: variances within 1e-3 of themselves, cov_xy
+  within 1e-3 of sqrt(var_x var_y)."""
   _, model, _, io, out = case
-  refined = "flow_before_refinement" in io
-  _close("flow", out["flow"], _nhwc(io["flow"]), 5e-3 if refined else 1e-3)
-  if "covisibility_logits" in io:
-    _close("covisibility_logits", out["covisibility_logits"], io["covisibility_logits"][:, 0], 2e-4)
-    _close("covisibility", out["covisibility"], io["covisibility_mask"][:, 0], 5e-5)
+  testing.assert_forward_parity(io, out)
   assert ("flow_covariance" in out) == ("flow_covariance" in io)
   if "flow_covariance" not in io:
     return
-  want = _nhwc(io["flow_covariance"])
+  want = testing.nhwc(io["flow_covariance"])
   assert out["flow_covariance"].dtype == np.float32
   testing.assert_covariance_close("flow_covariance", out["flow_covariance"], want, 1e-3)
   slack = CANCELLATION / _one_minus_rho2(want)
   err = np.abs(out["flow_covariance_log_det"] - io["flow_covariance_log_det"][:, 0])
   assert (err <= 1e-3 + slack).all(), f"log det: max |diff| {err.max():.3g}"
   testing.assert_covariance_close("flow_covariance_inv", out["flow_covariance_inv"],
-                    _nhwc(io["flow_covariance_inv"]), 1e-3, slack)
+                    testing.nhwc(io["flow_covariance_inv"]), 1e-3, slack)
 
 
 @pytest.mark.parametrize("pair", ["hl0", "hl1", "hl2"])
@@ -90,15 +67,11 @@ def test_predict_matches_the_official_high_level_api(case, pair):
   """predict_correspondences_batched: hl*_flow at ~1e-2 px, the covariance at the source size
   (unmapped, scaled by the source's ratios) within 5e-3."""
   _, model, params, io, _ = case
-  if f"{pair}_src_uint8" not in io:
-    pytest.skip(f"this case has no {pair}")
-  got = ufm_jax.predict(model, params, io[f"{pair}_src_uint8"], io[f"{pair}_tgt_uint8"])
-  _close(f"{pair}_flow", got["flow"], _nhwc(io[f"{pair}_flow"])[0], 1e-2)
-  _close(f"{pair}_covisibility", got["covisibility"], io[f"{pair}_covisibility"][0], 5e-5)
+  got = testing.assert_predict_parity(model, params, io, pair)
   key = f"{pair}_flow_covariance"
   assert ("flow_covariance" in got) == (key in io)
   if key in io:
-    want = _nhwc(io[key])[0]
+    want = testing.nhwc(io[key])[0]
     testing.assert_covariance_close(key, got["flow_covariance"], want, 5e-3)
     # the precision the same way, exact inverse of the official covariance aside from rounding
     inv = covariance.inverse(np.asarray(got["flow_covariance"], np.float64))
@@ -107,23 +80,10 @@ def test_predict_matches_the_official_high_level_api(case, pair):
                                atol=5e-3 * np.abs(inv[ok]).max())
 
 
-def _safetensors_parts(path):
-  raw = pathlib.Path(path).read_bytes()
-  n = struct.unpack("<Q", raw[:8])[0]
-  return json.loads(raw[8:8 + n]), raw[8 + n:]
-
-
 def test_round_trip_through_our_checkpoint_is_exact(case, tmp_path):
-  """snapshot -> convert -> to-official: config.json byte for byte, model.safetensors with the
-  same header and data bytes."""
+  """snapshot -> convert -> to-official, exactly (testing.assert_exact_official_round_trip)."""
   d, model, params, _, _ = case
-  model_io.save(tmp_path / "ckpt", model, params)
-  back_model, back_params = model_io.load(tmp_path / "ckpt")
-  assert back_model.config == model.config
-  ufm_jax.save_official(back_model, back_params, tmp_path / "out", source=str(d))
-  assert (tmp_path / "out" / "config.json").read_bytes() == (d / "config.json").read_bytes()
-  assert _safetensors_parts(tmp_path / "out" / "model.safetensors") == \
-      _safetensors_parts(d / "model.safetensors")
+  testing.assert_exact_official_round_trip(d, model, params, tmp_path)
 
 
 # --------------------------------------------------------------------------- config.json rules
@@ -134,15 +94,6 @@ def cov_case():
   return _case_dir("flow_cov" if "flow_cov" in CASES else (CASES[0] if CASES else None))
 
 
-def _with_config(src, dst, edit):
-  dst.mkdir()
-  cj = json.loads((src / "config.json").read_text())
-  edit(cj)
-  (dst / "config.json").write_text(json.dumps(cj, indent=2))   # key order as edited
-  os.symlink(src / "model.safetensors", dst / "model.safetensors")
-  return dst
-
-
 def _cov_head(cj):
   return "uncertainty_adaptors_kwargs" if "flow_cov" in cj["uncertainty_adaptors_kwargs"] \
       else "adaptors_kwargs"
@@ -151,7 +102,7 @@ def _cov_head(cj):
 def test_an_unknown_parametrization_is_an_error_naming_the_key(cov_case, tmp_path):
   def edit(cj):
     cj[_cov_head(cj)]["flow_cov"]["kwargs"]["parametrization"] = "cholesky"
-  snap = _with_config(cov_case, tmp_path / "snap", edit)
+  snap = testing.snapshot_with_config(cov_case, tmp_path / "snap", edit)
   with pytest.raises(ValueError, match=r"adaptors_kwargs\.flow_cov\.kwargs\.parametrization="
                                        r"'cholesky' is not supported"):
     ufm_jax.load_official(snap)
@@ -167,7 +118,7 @@ def test_an_unknown_parametrization_is_an_error_naming_the_key(cov_case, tmp_pat
      r"flow_cov\.kwargs\.scale: not an option"),
 ])
 def test_adaptor_map_errors_name_the_key(cov_case, tmp_path, edit, match):
-  snap = _with_config(cov_case, tmp_path / "snap", edit)
+  snap = testing.snapshot_with_config(cov_case, tmp_path / "snap", edit)
   with pytest.raises(ValueError, match=match):
     ufm_jax.load_official(snap)
 
@@ -183,7 +134,7 @@ def test_channel_order_is_the_key_order_and_exports_only_sorted(cov_case, tmp_pa
 
   def reverse(cj):
     cj[head] = dict(reversed(list(cj[head].items())))
-  snap = _with_config(cov_case, tmp_path / "snap", reverse)
+  snap = testing.snapshot_with_config(cov_case, tmp_path / "snap", reverse, sort_keys=False)
   swapped, swapped_params = ufm_jax.load_official(snap)
   assert swapped.config.uncertainty_head_adaptors == tuple(
       reversed(model.config.uncertainty_head_adaptors))

@@ -193,7 +193,6 @@ def unmap_covariance(cov: np.ndarray, region0: np.ndarray, src_hw, inference_hw,
   base.py:294-319; the flow's target coordinates are scaled by the target's ratios, so for
   images of different sizes this describes the flow in source pixels). `inverse`: the triplets
   are precisions, scaled by the reciprocals."""
-  from ufm_jax import covariance
   (h, w), (hi, wi) = tuple(src_hw), tuple(inference_hw)
   # float32 like the official torch.tensor([w_ratio**2, ...]) (python floats -> float32)
   rw, rh = w / wi, h / hi

@@ -95,6 +95,75 @@ def reference_cases(folder: str, env: str) -> tuple[pathlib.Path, list[str]]:
   return root, sorted(p.parent.name for p in root.glob("*/config.json"))
 
 
+def reference_case(root: pathlib.Path, name: str | None, env: str) -> pathlib.Path:
+  """`root / name`, or for None (a folder without cases) skip naming where they were looked
+  for and the variables that move it (fails under CI=true: parity tests may not be skipped)."""
+  if name is None:
+    skip_or_fail(f"no official reference snapshots under {root}: set {env} to a folder of case "
+                 f"folders, or UFM_FIXTURES to the folder that holds {root.name}/",
+                 "CI=true: parity tests may not be skipped")
+  return root / name
+
+
+def nhwc(a):
+  """[B, C, H, W] (the official outputs) -> [B, H, W, C]."""
+  return np.transpose(a, (0, 2, 3, 1))
+
+
+def assert_max_abs(name: str, got, want, atol: float) -> None:
+  """Same shape and max |got - want| <= atol, the message naming both."""
+  got = np.asarray(got, np.float64)
+  assert got.shape == want.shape, f"{name}: shape {got.shape} != {want.shape}"
+  err = float(np.abs(got - want).max())
+  assert err <= atol, f"{name}: max |diff| {err:.3g} > {atol:.3g}"
+
+
+def official_case(case_dir) -> tuple:
+  """(model, params, io, forward outputs as numpy) of an official reference snapshot folder
+  (config.json + model.safetensors + io.npz): the snapshot loaded and run on io.npz's pair."""
+  import jax
+
+  import ufm_jax
+  from ufm_jax.models import ufm
+  model, params = ufm_jax.load_official(case_dir)
+  io = dict(np.load(pathlib.Path(case_dir) / "io.npz"))
+  out = jax.jit(model.apply)(ufm.variables(params), io["img1_uint8"], io["img2_uint8"])
+  return model, params, io, {k: np.asarray(v) for k, v in out.items()}
+
+
+def assert_forward_parity(io: dict, out: dict) -> None:
+  """The forward outputs an official io.npz has, at the fixtures' tolerances: flow 1e-3 px (5e-3
+  after refinement), covisibility logits 2e-4 and mask 5e-5; a refinement model's regressed flow
+  1e-3, residual 5e-3 and feature maps 2e-4."""
+  refined = "flow_before_refinement" in io
+  assert_max_abs("flow", out["flow"], nhwc(io["flow"]), 5e-3 if refined else 1e-3)
+  if "covisibility_logits" in io:
+    assert_max_abs("covisibility_logits", out["covisibility_logits"],
+                   io["covisibility_logits"][:, 0], 2e-4)
+    assert_max_abs("covisibility", out["covisibility"], io["covisibility_mask"][:, 0], 5e-5)
+  if refined:
+    assert_max_abs("flow_before_refinement", out["flow_before_refinement"],
+                   nhwc(io["flow_before_refinement"]), 1e-3)
+    assert_max_abs("residual", out["residual"], nhwc(io["residual"]), 5e-3)
+    for k in ("feature_map_0", "feature_map_1"):
+      assert_max_abs(k, out[k], nhwc(io[k]), 2e-4)
+
+
+def assert_predict_parity(model, params, io: dict, pair: str) -> dict:
+  """ufm_jax.predict on io.npz's high-level pair `pair` (hl0, hl1, ...) against the official
+  predict_correspondences_batched: flow at the fixture README's ~1e-2 px, covisibility 5e-5.
+  Skips when the case has no such pair; returns the prediction."""
+  import pytest
+
+  import ufm_jax
+  if f"{pair}_src_uint8" not in io:
+    pytest.skip(f"this case has no {pair}")
+  got = ufm_jax.predict(model, params, io[f"{pair}_src_uint8"], io[f"{pair}_tgt_uint8"])
+  assert_max_abs(f"{pair}_flow", got["flow"], nhwc(io[f"{pair}_flow"])[0], 1e-2)
+  assert_max_abs(f"{pair}_covisibility", got["covisibility"], io[f"{pair}_covisibility"][0], 5e-5)
+  return got
+
+
 def assert_covariance_close(name: str, got, want, rtol: float, slack=None) -> None:
   """Flow covariance triplets [..., 3] (var_x, var_y, cov_xy) compared as issue #42 states it:
   each variance within `rtol` of itself, cov_xy within `rtol` of sqrt(var_x var_y) (so a
@@ -111,6 +180,45 @@ def assert_covariance_close(name: str, got, want, rtol: float, slack=None) -> No
     assert (err <= bound).all(), (f"{name} {what}: error {err[worst]:.3g} > {bound[worst]:.3g} "
                                   f"(relative{' to sqrt(var_x var_y)' if what == 'cov_xy' else ''})"
                                   f" at {worst}")
+
+
+def safetensors_parts(path) -> tuple[dict, bytes]:
+  """(header as parsed JSON, data bytes) of a .safetensors file: the header's metadata key order
+  is not reproducible (the safetensors writer keeps it in a hash map), everything else is."""
+  import struct
+  raw = pathlib.Path(path).read_bytes()
+  n = struct.unpack("<Q", raw[:8])[0]
+  return json.loads(raw[8:8 + n]), raw[8 + n:]
+
+
+def assert_exact_official_round_trip(snapshot_dir, model, params, tmp_path) -> None:
+  """snapshot -> our checkpoint (convert) -> official snapshot (to-official): config.json byte
+  for byte; model.safetensors with the same header (names, dtypes, offsets, alias metadata) and
+  the same data bytes."""
+  from ufm_jax import model_io
+  from ufm_jax.official import snapshot
+  d, tmp = pathlib.Path(snapshot_dir), pathlib.Path(tmp_path)
+  model_io.save(tmp / "ckpt", model, params)
+  back_model, back_params = model_io.load(tmp / "ckpt")
+  assert back_model.config == model.config
+  snapshot.save_official(back_model, back_params, tmp / "out", source=str(d))
+  assert (tmp / "out" / "config.json").read_bytes() == (d / "config.json").read_bytes()
+  assert safetensors_parts(tmp / "out" / "model.safetensors") == \
+      safetensors_parts(d / "model.safetensors")
+
+
+def snapshot_with_config(src, dst, edit, sort_keys: bool = True) -> pathlib.Path:
+  """A snapshot folder `dst` with `src`'s weights (linked) and its config.json changed by
+  `edit(config_dict)`, written with sorted keys as save_pretrained writes it, or in the order
+  `edit` left them (`sort_keys=False`)."""
+  import os
+  src, dst = pathlib.Path(src), pathlib.Path(dst)
+  dst.mkdir()
+  cj = json.loads((src / "config.json").read_text())
+  edit(cj)
+  (dst / "config.json").write_text(json.dumps(cj, indent=2, sort_keys=sort_keys))
+  os.symlink(src / "model.safetensors", dst / "model.safetensors")
+  return dst
 
 
 def write_snapshot(folder, config: dict, state: dict, metadata=None) -> pathlib.Path:
