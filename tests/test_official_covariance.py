@@ -49,9 +49,10 @@ def test_forward_matches_the_official_outputs(case):
   within 1e-3 of sqrt(var_x var_y)."""
   _, model, _, io, out = case
   testing.assert_forward_parity(io, out)
-  assert ("flow_covariance" in out) == ("flow_covariance" in io)
+  # (ufm_jax also returns a main-head covariance, which UniFlowMatchConfidence computes and drops)
   if "flow_covariance" not in io:
     return
+  assert "flow_covariance" in out, "the official model predicts a flow covariance; ours none"
   want = testing.nhwc(io["flow_covariance"])
   assert out["flow_covariance"].dtype == np.float32
   testing.assert_covariance_close("flow_covariance", out["flow_covariance"], want, 1e-3)
@@ -69,8 +70,8 @@ def test_predict_matches_the_official_high_level_api(case, pair):
   _, model, params, io, _ = case
   got = testing.assert_predict_parity(model, params, io, pair)
   key = f"{pair}_flow_covariance"
-  assert ("flow_covariance" in got) == (key in io)
   if key in io:
+    assert "flow_covariance" in got
     want = testing.nhwc(io[key])[0]
     testing.assert_covariance_close(key, got["flow_covariance"], want, 5e-3)
     # the precision the same way, exact inverse of the official covariance aside from rounding
