@@ -234,3 +234,46 @@ def test_synthetic_cov_config_trains_and_its_nll_reaches_the_head():
   last = np.asarray(g_nll["uncertainty_head_0_1"]["conv2_2"]["kernel"])   # [1, 1, in, 4]
   assert np.abs(last[..., :3]).max() > 0 and np.abs(last[..., 3]).max() == 0
   assert all(np.abs(np.asarray(x)).max() == 0 for x in jax.tree.leaves(g_nll["head1_0_1"]))
+
+
+# --------------------------------------------------------------------------- model_init
+
+
+def test_model_init_adds_a_covariance_head_to_a_model_without_one(tmp_path):
+  """A released model (no covariance) initialises a cov=True model: every tensor loads but the
+  uncertainty head's last convolution, whose covisibility channel (now channel 3) takes the
+  source's channel 0 and whose covariance channels stay as initialised; two covariances that
+  disagree (low_confidence_init) are refused by name."""
+  from flax import traverse_util
+
+  from ufm_jax import model_init, testing
+  from ufm_jax.models import ufm
+  from ufm_jax.official import config as official_config
+  from ufm_jax.official import keymap
+  base_cfg = testing.official_small_config()
+  base = ufm.model_from_config(base_cfg)
+  params = testing.perturbed_params(base, 4)
+  state = keymap.state_dict_from_params(params, official_config.ufm_buffers(base_cfg))
+  testing.write_snapshot(tmp_path / "snap", official_config.official_config_dict(base_cfg), state)
+  cfg = ufm.with_flow_covariance(base_cfg)
+  template = {"params": testing.perturbed_params(ufm.model_from_config(cfg), 5)}
+  out, rep = model_init.load_init_variables(f"snapshot:{tmp_path / 'snap'}", template, cfg)
+  assert not rep.left_at_init and not rep.unused
+  assert sorted(r.split(" ")[0] for r in rep.resized) == ["uncertainty_head_0_1/conv2_2/bias",
+                                                          "uncertainty_head_0_1/conv2_2/kernel"]
+  assert "flow_cov left at init" in rep.resized[0]
+  got = np.asarray(out["params"]["uncertainty_head_0_1"]["conv2_2"]["kernel"])
+  fresh = template["params"]["uncertainty_head_0_1"]["conv2_2"]["kernel"]
+  src = params["uncertainty_head_0_1"]["conv2_2"]["kernel"]
+  np.testing.assert_array_equal(got[..., 3], src[..., 0])
+  np.testing.assert_array_equal(got[..., :3], fresh[..., :3])
+  flat = traverse_util.flatten_dict(out["params"], sep="/")
+  np.testing.assert_array_equal(flat["head1_0_1/conv2_2/kernel"],
+                                params["head1_0_1"]["conv2_2"]["kernel"])
+  # a covariance on both sides must be the same parametrisation
+  testing.write_snapshot(tmp_path / "cov", official_config.official_config_dict(cfg),
+                         keymap.state_dict_from_params(template["params"],
+                                                       official_config.ufm_buffers(cfg)))
+  other = ufm.with_flow_covariance(base_cfg, low_confidence_init=False)
+  with pytest.raises(ValueError, match="flow_covariance.low_confidence_init: source True"):
+    model_init.load_init_variables(f"snapshot:{tmp_path / 'cov'}", template, other)

@@ -46,18 +46,24 @@ class FlowAdaptorConfig:
 ADAPTOR_CHANNELS = {"flow": 2, "flow_cov": 3, "non_occluded_mask": 1}
 
 
+def adaptor_slices(names: Sequence[str]) -> dict:
+  """{adaptor name: (first, end) channel} of a head whose adaptors are `names`, in order."""
+  out, start = {}, 0
+  for name in names:
+    out[name] = (start, start + ADAPTOR_CHANNELS[name])
+    start += ADAPTOR_CHANNELS[name]
+  return out
+
+
 def split_adaptor_channels(x: jax.Array, names: Sequence[str]) -> dict:
   """A head's output [..., C] -> {adaptor name: its channels}, in the order of `names` (the
   official AdaptorMap hands out channels in the order of its keys)."""
-  out, start = {}, 0
-  for name in names:
-    n = ADAPTOR_CHANNELS[name]
-    out[name] = x[..., start:start + n]
-    start += n
-  if start != x.shape[-1]:
+  slices = adaptor_slices(names)
+  total = sum(ADAPTOR_CHANNELS[n] for n in names)
+  if total != x.shape[-1]:
     raise ValueError(f"head output has {x.shape[-1]} channels; adaptors {tuple(names)} take "
-                     f"{start}")
-  return out
+                     f"{total}")
+  return {name: x[..., a:b] for name, (a, b) in slices.items()}
 
 
 # The ConvTranspose modules of DPTFeature (by name): torch's default init counts their fan-in
