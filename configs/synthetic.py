@@ -76,6 +76,7 @@ def get_config(arg=None):
   # Unrolled: segments of 1-2 blocks gain nothing from scan, and the measured figures of
   # docs/synthetic_training.md are of this layout.
   c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
+  c.model.detach_uncertainty_head = True   # the variant's; a key so that flags can change it
   if arg.cov:
     config_lib.add_flow_covariance(c, pixels="robust_epe", head=arg.cov_head)
   c.model_init = config_lib.unset(str)  # e.g. ckpt:WORKDIR
