@@ -107,7 +107,7 @@ def test_models_without_the_head_are_unchanged(reference_dir, tmp_path):
   assert io.read_image(tmp_path / "o" / "forward_panel.png").shape == (h, 4 * w, 3)
   model, params = ufm_jax.load_official(d)
   m = matching.match(model, params, src, tgt, num=100)
-  assert set(m) == {"keypoints0", "keypoints1", "confidence"}
+  assert set(m) == {"keypoints0", "keypoints1", "confidence", "eligible"}
   with pytest.raises(ValueError, match="max_sigma.*predicts none"):
     matching.match(model, params, src, tgt, num=100, max_sigma=1.0)
   assert export.resolve_outputs(None, {"flow": 0, "covisibility": 0}) == ("flow", "covisibility")

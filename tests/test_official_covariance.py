@@ -67,8 +67,8 @@ def test_forward_matches_the_official_outputs(case):
 def test_predict_matches_the_official_high_level_api(case, pair):
   """predict_correspondences_batched: hl*_flow at ~1e-2 px, the covariance at the source size
   (unmapped, scaled by the source's ratios) within 5e-3."""
-  _, model, params, io, _ = case
-  got = testing.assert_predict_parity(model, params, io, pair)
+  _, model, variables, io, _ = case
+  got = testing.assert_predict_parity(model, variables, io, pair)
   key = f"{pair}_flow_covariance"
   if key in io:
     assert "flow_covariance" in got
@@ -83,8 +83,8 @@ def test_predict_matches_the_official_high_level_api(case, pair):
 
 def test_round_trip_through_our_checkpoint_is_exact(case, tmp_path):
   """snapshot -> convert -> to-official, exactly (testing.assert_exact_official_round_trip)."""
-  d, model, params, _, _ = case
-  testing.assert_exact_official_round_trip(d, model, params, tmp_path)
+  d, model, variables, _, _ = case
+  testing.assert_exact_official_round_trip(d, model, variables, tmp_path)
 
 
 # --------------------------------------------------------------------------- config.json rules
@@ -128,7 +128,7 @@ def test_channel_order_is_the_key_order_and_exports_only_sorted(cov_case, tmp_pa
   """The adaptor map hands out the head's channels in config.json's key order: the same weights
   listed in the other order are another model (the flow_cov channels move), and save_official
   refuses it, since save_pretrained sorts the keys and the reload would split them differently."""
-  model, params = ufm_jax.load_official(cov_case)
+  model, variables = ufm_jax.load_official(cov_case)
   head = _cov_head(json.loads((cov_case / "config.json").read_text()))
   if head != "uncertainty_adaptors_kwargs":
     pytest.skip("the order test uses an uncertainty head with two adaptors")
@@ -136,19 +136,19 @@ def test_channel_order_is_the_key_order_and_exports_only_sorted(cov_case, tmp_pa
   def reverse(cj):
     cj[head] = dict(reversed(list(cj[head].items())))
   snap = testing.snapshot_with_config(cov_case, tmp_path / "snap", reverse, sort_keys=False)
-  swapped, swapped_params = ufm_jax.load_official(snap)
+  swapped, swapped_variables = ufm_jax.load_official(snap)
   assert swapped.config.uncertainty_head_adaptors == tuple(
       reversed(model.config.uncertainty_head_adaptors))
   io = dict(np.load(cov_case / "io.npz"))
-  a = jax.jit(model.apply)(ufm.variables(params), io["img1_uint8"][:1], io["img2_uint8"][:1])
-  b = jax.jit(swapped.apply)(ufm.variables(swapped_params), io["img1_uint8"][:1],
+  a = jax.jit(model.apply)(variables, io["img1_uint8"][:1], io["img2_uint8"][:1])
+  b = jax.jit(swapped.apply)(swapped_variables, io["img1_uint8"][:1],
                              io["img2_uint8"][:1])
   # the swapped model's mask reads channel 0, which the sorted one's covariance reads as c1
   offset = covariance.LOW_CONFIDENCE_OFFSET * model.config.flow_covariance.low_confidence_init
   np.testing.assert_allclose(np.asarray(b["covisibility_logits"]),
                              np.asarray(a["flow_covariance_params"])[..., 0] - offset, atol=1e-5)
   with pytest.raises(ValueError, match="cannot be exported"):
-    ufm_jax.save_official(swapped, swapped_params, tmp_path / "out")
+    ufm_jax.save_official(swapped, swapped_variables, tmp_path / "out")
   assert not (tmp_path / "out").exists()
 
 
@@ -175,14 +175,14 @@ def test_other_heads_load_export_and_match_the_adaptor(tmp_path, structure, head
   assert cj[where]["flow_cov"] == {"class": "Covariance2DAdaptor", "kwargs": {
       "low_confidence_init": low, "name": "flow_cov", "parametrization": "exp_tanh"}}
   snap = testing.write_snapshot(tmp_path / "snap", cj, state)
-  back, back_params = ufm_jax.load_official(snap)
+  back, back_variables = ufm_jax.load_official(snap)
   assert back.config == cfg
-  jax.tree.map(np.testing.assert_array_equal, back_params, params)
+  jax.tree.map(np.testing.assert_array_equal, back_variables, {"params": params})
   rng = np.random.default_rng(0)
   h, w = cfg.inference_resolution
   x = rng.integers(0, 256, (1, h, w, 3), dtype=np.uint8)
   fwd = jax.jit(lambda p, a, b: back.apply(ufm.variables(p), a, b, mutable=["intermediates"]))
-  out, sown = fwd(back_params, x, x[:, ::-1])
+  out, sown = fwd(back_variables, x, x[:, ::-1])
   assert out["flow_covariance"].shape == (1, h, w, 3)
   if head == "main":
     decoded = np.asarray(sown["intermediates"]["flow_decoded_channels"][0])
@@ -190,5 +190,5 @@ def test_other_heads_load_export_and_match_the_adaptor(tmp_path, structure, head
     want = covariance.adaptor(decoded[..., 2:5].astype(np.float64), cfg.flow_covariance)
     np.testing.assert_allclose(np.asarray(out["flow_covariance"]), want["flow_covariance"],
                                rtol=1e-5)
-  ufm_jax.save_official(back, back_params, tmp_path / "out")
+  ufm_jax.save_official(back, back_variables, tmp_path / "out")
   assert json.loads((tmp_path / "out" / "config.json").read_text()) == cj
