@@ -1,4 +1,4 @@
-"""The flow covariance's closed forms (ufm_jax.covariance), the NLL loss term, the calibration
+"""The flow covariance's closed forms (ufm_jax.models.covariance), the NLL loss term, the calibration
 metrics on constructed cases with answers derived by hand, and the synthetic cov config training
 a few steps with its NLL finite and reaching the covariance head."""
 
@@ -10,8 +10,9 @@ import numpy as np
 import optax
 import pytest
 
-from ufm_jax import config_lib, covariance, losses, metrics, trainer
+from ufm_jax import config_lib, losses, metrics, trainer
 from ufm_jax.data import synthetic
+from ufm_jax.models import covariance
 
 
 def _exp_tanh_inputs():

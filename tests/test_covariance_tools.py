@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import cli, covariance, demo, export, matching, outputs, testing, viz
+from ufm_jax import cli, demo, export, matching, outputs, testing, viz
 from ufm_jax.data import io
-from ufm_jax.models import ufm
+from ufm_jax.models import covariance, ufm
 
 ROOT, CASES = testing.reference_cases("ufm_reference_cov", "UFM_COV_FIXTURES")
 

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import covariance, testing
+from ufm_jax import testing
+from ufm_jax.models import covariance
 from ufm_jax.models import ufm
 from ufm_jax.official import config as official_config
 from ufm_jax.official import keymap

@@ -36,9 +36,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ufm_jax import covariance, refine_training
+from ufm_jax import refine_training
 from ufm_jax.loss_common import (MAX_GT, check_choice, invalid_gt_mask, masked_mean,
                                  pixel_grid)
+from ufm_jax.models import covariance
 
 # Thresholds (px) of the official outlier-ratio logs (loss/epe.py:190, 309).
 OUTLIER_THRESHOLDS = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0)
@@ -181,11 +182,11 @@ class CovisibilityBCE:
 @dataclasses.dataclass(frozen=True)
 class FlowCovarianceNLL:
   """Negative log-likelihood of the flow under the predicted covariance (`flow_covariance_params`,
-  ufm_jax.covariance), per pixel with r = flow - gt:
+  ufm_jax.models.covariance), per pixel with r = flow - gt:
 
     gaussian  0.5 r^T Sigma^-1 r + 0.5 log|Sigma|   (the 2D Gaussian's, less its constant log 2 pi)
 
-  in the closed forms of ufm_jax.covariance (finite for any correlation), averaged over the pixels
+  in the closed forms of ufm_jax.models.covariance (finite for any correlation), averaged over the pixels
   the flow term named by `pixels` supervises (its mask, with its invalid-GT rule: that term must
   come first in `terms`), times `multiplier`. The official code has no such term (its validation
   config names a FlowEPECovarianceLoss that exists on no branch).

@@ -82,7 +82,7 @@ def matches_from_dense(flow, covisibility, *, num=5000, min_covisibility=0.5, ta
 def _rank_by_uncertainty(m, idx, cov, cov_inv, source_hw, target_hw, max_sigma):
   """Adds covariance / precision / sigma of keypoints1 in target pixels, most certain first
   (with `max_sigma`, "sigma_dropped": how many drawn matches it removed)."""
-  from ufm_jax import covariance as cov_lib
+  from ufm_jax.models import covariance as cov_lib
   (sh, sw), (th, tw) = source_hw, target_hw
   sx, sy = tw / sw, th / sh     # the official scaling used the source's ratios
   cov = cov_lib.rescale(np.asarray(cov, np.float64).reshape(-1, 3)[idx], sx, sy)

@@ -108,13 +108,13 @@ COVERAGE_SIGMAS = (1, 2, 3)
 
 def calibration_errors(flow, flow_gt, cov):
   """(d^2, per-pixel NLL, uncertainty) [H, W] of a prediction with covariance `cov` [H, W, 3]
-  ((var_x, var_y, cov_xy), px^2; ufm_jax.covariance), float64:
+  ((var_x, var_y, cov_xy), px^2; ufm_jax.models.covariance), float64:
 
     r = flow - flow_gt,  d^2 = r^T Sigma^-1 r (the squared Mahalanobis distance),
     nll = 0.5 d^2 + 0.5 log|Sigma| + log(2 pi)  (the 2D Gaussian's negative log-likelihood, nats),
     uncertainty = trace(Sigma) = E[|r|^2] under the prediction (the order of `Sparsification`).
   """
-  from ufm_jax import covariance
+  from ufm_jax.models import covariance
   cov = np.asarray(cov, np.float64)
   r = np.asarray(flow, np.float64) - np.asarray(flow_gt, np.float64)
   d2 = covariance.mahalanobis_sq(cov, r)

@@ -2,7 +2,7 @@
 uncertainty, panels.
 
 All images are HWC uint8 RGB numpy arrays; flow is [H, W, 2] float (u right, v down, pixels); a
-flow covariance is [H, W, 3] = (var_x, var_y, cov_xy) in px^2 (ufm_jax.covariance).
+flow covariance is [H, W, 3] = (var_x, var_y, cov_xy) in px^2 (ufm_jax.models.covariance).
 """
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ def uncertainty_to_image(covariance: np.ndarray, range_px=UNCERTAINTY_RANGE_PX) 
   error ellipse's long axis (sqrt of the covariance's larger eigenvalue, px), on the fixed log
   scale `range_px` of the inferno colour map (dark: sure to a fraction of a pixel; bright: tens
   of pixels)."""
-  from ufm_jax import covariance as cov_lib
+  from ufm_jax.models import covariance as cov_lib
   cov = np.asarray(covariance, np.float64)
   if cov.ndim != 3 or cov.shape[-1] != 3:
     raise ValueError(f"uncertainty_to_image: covariance must be [H, W, 3], got {cov.shape}")

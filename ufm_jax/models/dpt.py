@@ -1,6 +1,6 @@
 """DPT feature head, regression processor and output adaptors (UniCeption `DPTFeature`,
 `DPTRegressionProcessor`, `FlowAdaptor`, `MaskAdaptor`; `Covariance2DAdaptor` is
-ufm_jax.covariance), NHWC.
+models/covariance.py), NHWC.
 
 Module names follow the PyTorch ones with list indices joined by "_" (`input_process.0.0.1` ->
 `input_process_0_0_1`); `input_process_k_1` is the module UniCeption also registers as

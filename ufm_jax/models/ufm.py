@@ -6,7 +6,7 @@ Contract: `model.apply(variables(params), source, target)` with [B, H, W, 3] uin
 {"flow" [B, H, W, 2] (pixels, u then v), "covisibility" [B, H, W], "covisibility_logits" [B, H, W]}
 (no covisibility without an uncertainty head), and for a model with a flow covariance adaptor
 (`flow_covariance` set) "flow_covariance" [B, H, W, 3] = (var_x, var_y, cov_xy) in px^2,
-"flow_covariance_log_det" [B, H, W] and "flow_covariance_params" [B, H, W, 3] (ufm_jax.covariance).
+"flow_covariance_log_det" [B, H, W] and "flow_covariance_params" [B, H, W, 3] (models/covariance.py).
 ImageNet normalisation of x / 255 happens inside.
 Internals are sown into the "intermediates" collection (read them with `mutable=["intermediates"]`).
 `params` is the parameter tree, or for models with BatchNorm (a refiner with
@@ -24,8 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from ufm_jax import covariance
-from ufm_jax.models import dinov2, dpt, layers, scan
+from ufm_jax.models import covariance, dinov2, dpt, layers, scan
 from ufm_jax.models import info_sharing as info_sharing_lib
 
 # UniCeption data_norm_type "dinov2" (ImageNet), float32 like the official tensors.
@@ -49,7 +48,7 @@ class UFMConfig:
   # channels), "flow_cov" (3), "non_occluded_mask" (1). The head's output_dim is their sum.
   flow_head_adaptors: Tuple[str, ...] = ("flow",)
   uncertainty_head_adaptors: Tuple[str, ...] = ("non_occluded_mask",)
-  # The Covariance2DAdaptor's kwargs when a head has "flow_cov" (ufm_jax.covariance), else None.
+  # The Covariance2DAdaptor's kwargs when a head has "flow_cov" (models/covariance.py), else None.
   flow_covariance: Optional[covariance.CovarianceConfig] = None
   # (H, W) used by ufm_jax.predict, or several: predict picks the closest aspect ratio per pair.
   inference_resolution: Tuple[int, int] = (420, 560)

@@ -15,8 +15,7 @@ from typing import Any, Callable, Dict, List, Tuple
 
 import numpy as np
 
-from ufm_jax import covariance
-from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
+from ufm_jax.models import covariance, dinov2, dpt, info_sharing, refine, ufm
 
 @dataclasses.dataclass
 class OfficialSpec:
