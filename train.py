@@ -2,10 +2,14 @@ r"""Trains UFM (or its refiner) on a device mesh.
 
   python train.py --config=configs/synthetic.py --workdir=workdirs/synthetic
   python train.py --config=configs/ufm560.py:data=both --workdir=DIR --config.input.batch_size=96
+  python train.py --config=configs/ufm560.py --compile_only --topology=v5e-8 --config.grad_accum=3
 
-Sections: mesh, data, model/optimizer/sharding/step (ufm_jax.trainer.setup), checkpoint, evals,
-loop. The run resumes
-from the latest checkpoint in --workdir by itself; SIGTERM saves and exits cleanly.
+Sections: plan (--compile_only), mesh, data, model/optimizer/sharding/step
+(ufm_jax.trainer.setup), checkpoint, evals, loop. The run resumes from the latest checkpoint in
+--workdir by itself; SIGTERM saves and exits cleanly. --compile_only builds the same mesh,
+shardings and step from the config alone, compiles the step (on these devices, or with
+--topology for a TPU slice through libtpu), prints the plan (ufm_jax.planning; its JSON is the
+last line) and exits 0, or 1 where the step needs more HBM than the chip has (docs/scale.md).
 """
 
 from __future__ import annotations
@@ -20,9 +24,17 @@ import time
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Training config file.", lock_config=True)
-_WORKDIR = flags.DEFINE_string("workdir", None, "Where checkpoints, logs and metrics go.")
-flags.mark_flags_as_required(["config", "workdir"])
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", None, "the training config, PATH[:ARG] (configs/*.py)", lock_config=True)
+_WORKDIR = flags.DEFINE_string(
+    "workdir", None, "checkpoints, logs and metrics; a run resumes from it")
+_COMPILE_ONLY = flags.DEFINE_bool(
+    "compile_only", False, "compile the run's step from the config, no data; print the plan; "
+    "exit 1 if HBM does not fit")
+_TOPOLOGY = flags.DEFINE_string(
+    "topology", None, "with --compile_only: compile for this TPU slice (v5e-8, ...) via libtpu")
+flags.mark_flag_as_required("config")
+_FLAGS = (_CONFIG, _WORKDIR, _COMPILE_ONLY, _TOPOLOGY)
 
 
 def main(argv):
@@ -31,16 +43,32 @@ def main(argv):
     # One console line per log step plus warnings; --verbosity=0 shows the INFO logs (orbax's too).
     logging.set_verbosity(logging.WARNING)
   config = _CONFIG.value
-  workdir = pathlib.Path(_WORKDIR.value).absolute()
-
-  # ---------------------------------------------------------------------------------- mesh
-  from ufm_jax import sharding
-  sharding.maybe_initialize_distributed()
+  if _TOPOLOGY.value and not _COMPILE_ONLY.value:
+    print("error: --topology compiles for a slice: it needs --compile_only", file=sys.stderr)
+    return 2
+  if not _COMPILE_ONLY.value and not _WORKDIR.value:
+    print("error: --workdir is required (except with --compile_only)", file=sys.stderr)
+    return 2
   import jax
-  import numpy as np
-
+  if _TOPOLOGY.value:
+    jax.config.update("jax_platforms", "cpu")   # the slice is only compiled for, from this host
   if config.matmul_precision:
     jax.config.update("jax_default_matmul_precision", config.matmul_precision)
+
+  # ---------------------------------------------------------------------------------- plan
+  if _COMPILE_ONLY.value:
+    # What this run would build (mesh, shardings, grad_accum, the step), from the config alone.
+    from ufm_jax import planning
+    result = planning.plan(config, planning.target(_TOPOLOGY.value))
+    planning.report(result)
+    print(planning.to_json(result), flush=True)
+    return 0 if result["fits"] else 1
+
+  # ---------------------------------------------------------------------------------- mesh
+  workdir = pathlib.Path(_WORKDIR.value).absolute()
+  from ufm_jax import sharding
+  sharding.maybe_initialize_distributed()
+  import numpy as np
   from ufm_jax import checkpoint as ckpt_lib
   from ufm_jax import accumulation, loop_control, model_init, optim, trainer
   from ufm_jax.data import io
@@ -48,6 +76,11 @@ def main(argv):
 
   mesh = sharding.make_mesh(config.mesh)
   is_main = jax.process_index() == 0
+  # The source's flow normalisation buffers into the config before it is written (official
+  # resume_model; config.model_init_flow_adaptor).
+  for line in model_init.adopt_flow_adaptor(config):
+    if is_main:
+      print(f"model_init: {line}", flush=True)
   workdir.mkdir(parents=True, exist_ok=True)
   if is_main:
     io.write_json_atomic(workdir / "config.json", json.loads(config.to_json_best_effort()))
@@ -66,16 +99,7 @@ def main(argv):
   host_iter, data_info = trainer.build_input(config, process_batch, config.seed)
   # Global batches, the next `device_prefetch` already on their way to the devices.
   train_iter = sharding.DevicePrefetch(host_iter, mesh, config.device_prefetch)
-  pairs_per_epoch = int(data_info.get("pairs_per_epoch") or 0)
-  # Whole batches per epoch, as the official loaders (drop_last); epochs and warmup count these.
-  steps_per_epoch = pairs_per_epoch // config.input.batch_size or None
-  if config.total_steps:
-    total_steps = int(config.total_steps)
-  elif config.get("num_epochs") and steps_per_epoch:
-    total_steps = int(config.num_epochs * steps_per_epoch)
-  else:
-    raise ValueError("config needs total_steps, or num_epochs with a pipeline that knows its "
-                     "pairs per epoch")
+  total_steps, steps_per_epoch = trainer.schedule_steps(config, data_info.get("pairs_per_epoch"))
   sample_shape = data_info["image_shape"]  # (H, W) of the first training shape
   logging.info("data: %s", {k: v for k, v in data_info.items() if k != "iterator"})
 
@@ -102,7 +126,8 @@ def main(argv):
     if config.model_init:
       host = jax.tree.map(np.asarray, variables)
       loaded, report = model_init.load_init_variables(
-          config.model_init, host, getattr(model, "config", None), config.get("model"))
+          config.model_init, host, getattr(model, "config", None), config.get("model"),
+          flow_adaptor=config.get("model_init_flow_adaptor") or "check")
       if is_main:
         print(report.summary(), flush=True)
       variables = jax.device_put(loaded, ts.variables_sh)
@@ -184,7 +209,40 @@ def _fmt_eta(sec):
   return f"{sec // 3600}h{sec % 3600 // 60:02d}m{sec % 60:02d}s"
 
 
+def _usage() -> str:
+  """--help: what train.py does and its flags, one line each."""
+  lines = [__doc__.strip(), "", "flags:"]
+  for holder in _FLAGS:
+    lines.append(f"  --{holder.name}: {flags.FLAGS[holder.name].help}")
+  lines += ["  --config.KEY=VALUE: override a key of the config, e.g. --config.grad_accum=2",
+            "  --verbosity=0: INFO logs (default: one line per log step and warnings)",
+            "  --helpfull: every absl flag"]
+  return "\n".join(lines)
+
+
+def _config_file_missing(argv) -> str | None:
+  """The --config file named on the command line, if it does not exist (ml_collections reports
+  that as a chain of tracebacks)."""
+  for i, arg in enumerate(argv):
+    value = None
+    if arg.startswith("--config="):
+      value = arg.split("=", 1)[1]
+    elif arg == "--config" and i + 1 < len(argv):
+      value = argv[i + 1]
+    if value is not None:
+      path = value.split(":", 1)[0]
+      return None if pathlib.Path(path).is_file() else path
+  return None
+
+
 def _run():
+  if any(a in ("-h", "--help", "--helpshort", "-help") for a in sys.argv[1:]):
+    print(_usage())
+    sys.exit(0)
+  missing = _config_file_missing(sys.argv[1:])
+  if missing:
+    print(f"error: --config: no such file {missing}", file=sys.stderr)
+    sys.exit(2)
   try:
     app.run(main)
   except AttributeError as e:

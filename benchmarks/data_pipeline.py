@@ -182,7 +182,7 @@ def main(argv=None):
                       "official 560 recipe's samples per epoch)")
   p.add_argument("--augment", default="{}",
                  help="JSON of input.augment keys (ufm_jax.data.augment.AugmentConfig), e.g. "
-                      "'{\"fast_image_ops\": false}'")
+                      "'{\"fast_image_ops\": true}' (OpenCV's image operations, a deviation)")
   args = p.parse_args(argv)
   if args.table1:
     return table1(args)

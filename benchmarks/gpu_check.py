@@ -2,7 +2,7 @@ r"""One script for a machine with one GPU: the figures a user asks for first, in
 
   python benchmarks/gpu_check.py --fixture DIR --out results.jsonl   # the GPU machine, ~5 minutes
   python benchmarks/gpu_check.py --smoke         # CPU, tiny model, seconds (the test suite runs it)
-  python benchmarks/gpu_check.py --flops_only    # any machine: XLA's FLOP count of every case
+  python benchmarks/gpu_check.py --flops_only    # any machine: the FLOP count of every case
 
 In order of priority; once `--budget_s` seconds have passed no new case starts (each one left is
 listed as not run), and every finished case is appended to `--out` at once, so a run cut short by
@@ -17,8 +17,8 @@ the machine's time limit still reports what it measured:
    runs after a warm-up, pairs/s, compile seconds, XLA's FLOP count and temp memory per call,
    and which attention kernel the compiled HLO holds (cuDNN fused custom calls, or none).
 3. The full UFM-560 train step (ufm_jax.trainer.setup, the exact train.py step; bf16, remat) at
-   `--train_batch`: step time, pairs/s, peak device memory, MFU (XLA's FLOPs / step time / the
-   chip's dense bf16 peak).
+   `--train_batch`: step time, pairs/s, peak device memory, MFU (the planner's model FLOPs,
+   ufm_jax.flops.model_flops, / step time / the chip's dense bf16 peak).
 Prints a table, then one JSON line with every figure. Asserts nothing about speed.
 """
 
@@ -95,10 +95,11 @@ def forward_flops(variant, hw, batch, dtype, head_dtype) -> float | None:
 
 
 def train_flops(config, hw, batch) -> float | None:
-  """The train step's FLOP count as traced, counted on the host CPU with the blocks unrolled
-  (ufm_jax.hlo_stats.train_step_flops)."""
-  from ufm_jax import hlo_stats
-  return hlo_stats.train_step_flops(config, hw, batch)
+  """The train step's model FLOPs, as the planner counts them (ufm_jax.flops.model_flops: matrix
+  products and convolutions of the whole step on its jaxpr, every loop by its trip count,
+  remat's recomputation left out), for a GPU's branch of platform-dependent code."""
+  from ufm_jax import flops
+  return flops.model_flops(config, hw, batch, platform="gpu").flops
 
 
 def _temp_gib(compiled) -> float | None:

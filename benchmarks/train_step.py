@@ -8,26 +8,31 @@ r"""Train-step benchmark: the exact train.py step (ufm_jax.trainer.setup), timed
   python benchmarks/train_step.py --config ufm560 --estimate_only    # memory of the full config
   python benchmarks/train_step.py --config ufm560 --topology v5e-8 --fit   # plan a TPU slice
 
---aot compiles (never runs) the step on --devices fake CPU devices (set before jax is imported)
-and prints: parameter bytes (total, per device), optimizer-state bytes per device, XLA's memory
-analysis per device, compile time, and the collectives of the compiled HLO by kind (executions,
-result bytes per device, the 5 largest with shapes; ufm_jax.hlo_stats). The last line is one JSON
-object. --estimate_only traces abstractly (no compile): params, AdamW state, and the activations
-the backward pass keeps (JAX's saved residuals) with and without remat at the per-device batch.
-Without either, random batches go through the compiled step and the step time is printed.
-
---topology NAME (a TPU slice of ufm_jax.topologies: v5e-4, v5e-8, v5e-256, v5p-8, v5p-128, ...)
-compiles the step for that slice from this host (libtpu installed: `pip install "ufm_jax[tpu]"`,
-no TPU) on the mesh --mesh (default data:1,fsdp:-1: FSDP over every chip), at the largest of the
-recipe's training shapes (the most memory) or --size, and prints HBM per chip (temp + arguments +
-outputs - aliases) against the chip's, the collectives by kind, the FLOPs per step (the unrolled
-program's count, ufm_jax.hlo_stats.train_step_flops: XLA counts a scanned block once), and the
-step time and days of the recipe's epochs (the mean over its training shapes) at --mfu of the
-chips' bf16 peak. --fit searches the largest per-chip batch that fits, one compile per probe
-(minutes each at full size). The last line is one JSON object (chips, device_kind,
-hbm_bytes_per_chip, hbm_capacity_bytes, flops_per_step, collective_bytes, compile_s, ...).
---topology A,B,... --time_only skips the compile (and libtpu): step time and days per slice, GPU
-nodes too (h100-8, h200-8, a100-8), from the FLOP count alone. docs/scale.md has the figures.
+--aot and --topology run the planner, ufm_jax.planning.plan: the code path of
+`train.py --compile_only`. The step is built from the config as train.py builds it (its mesh,
+config.mesh unless --mesh; grad_accum; the largest of the recipe's training shapes unless --size;
+the recipe's batch unless --batch / --per_chip_batch) and compiled, never run: on the devices at
+hand (--aot; --devices N fake CPU devices, set before jax is imported) or for a TPU slice from
+this host (--topology NAME of ufm_jax.topologies: v5e-8, v5p-8, v5e-256, ...; libtpu installed:
+`pip install "ufm_jax[tpu]"` in its own virtualenv, no TPU). It prints the parameter and train
+state bytes, XLA's memory per chip (HBM = temp + arguments + outputs - aliases) against the
+chip's, the collectives of the compiled HLO by kind (ufm_jax.hlo_stats), the model FLOPs of the
+whole step (ufm_jax.flops: every loop body, grad_accum's microbatches and the scanned blocks, by
+its trip count) and, at --mfu of the chips' bf16 peak (an assumption), the step time, the days of
+the recipe's epochs (the mean over its training shapes) and the host CPU that feeding the chips
+at that pace needs (rows per second per host x --host_ms_per_row). The last line is one JSON
+object (chips, device_kind, mesh, grad_accum, global_batch, hbm_bytes_per_chip,
+hbm_capacity_bytes, flops_per_step, collective_bytes, compile_s, ...). --fit searches the largest
+per-chip batch that fits (one compile per probe, minutes each at full size), then compiles the
+recipe's own batch with the fewest microbatches that fit, and prints the train.py / sbatch /
+JobSet overrides that run that plan. --topology A,B,... --time_only skips the compile (and
+libtpu): FLOPs, step time, days and host feed per slice, GPU nodes too (h100-8, h200-8, a100-8).
+--flops counts the step's FLOPs on its jaxpr (model FLOPs, and as executed with remat) beside
+the count from the model's dimensions (ufm_jax.flops.analytic_step_flops), by part.
+--estimate_only traces abstractly (no compile): params, AdamW state, and the activations the
+backward pass keeps (JAX's saved residuals) with and without remat at the per-device batch.
+Without any of these, random batches go through the compiled step and the step time is printed.
+docs/scale.md has the figures.
 Prints figures; asserts nothing.
 """
 
@@ -54,24 +59,13 @@ def _tree_bytes(tree):
   return sum(int(x.size) * x.dtype.itemsize for x in jax.tree.leaves(tree))
 
 
-def _per_device_bytes(tree, shardings):
-  """Bytes one device holds of `tree` under `shardings` (the largest shard per leaf)."""
-  import jax
-  total = 0
-  for x, s in zip(jax.tree.leaves(tree), jax.tree.leaves(shardings)):
-    shape = s.shard_shape(x.shape) if len(x.shape) else ()
-    n = 1
-    for d in shape:
-      n *= d
-    total += n * x.dtype.itemsize
-  return total
-
-
 def parse_size(text: str):
   return tuple(int(x) for x in text.lower().split("x"))
 
 
 def load(args):
+  """(config, global batch or None, (H, W) or None): the config with the flags' overrides; the
+  batch and size only where the flags give them."""
   from ufm_jax import config_lib
   spec = args.config
   path, _, arg = spec.partition(":")
@@ -91,131 +85,44 @@ def load(args):
     config.fsdp_gather = args.fsdp_gather
   if args.grad_accum:
     config.grad_accum = args.grad_accum
-  batch = args.batch or int(config.input.batch_size)
-  if args.size:
-    hw = parse_size(args.size)
-  else:
-    side = int(config.input.get("longest_side", 112))
-    hw = (side, side) if "synthetic" in args.config else (side * 3 // 4 // 14 * 14, side)
-  return config, batch, hw
+  return config, args.batch, parse_size(args.size) if args.size else None
 
 
-def compile_step(ts, batch, hw, hlo_out=None) -> dict:
-  """Compile (never run) the train step at global `batch`: XLA's memory analysis per device, the
-  collectives of the compiled HLO, compile time. `fits` is False (and no figures but the error)
-  when XLA:TPU refuses the program for want of HBM."""
-  from ufm_jax import hlo_stats
-  t0 = time.perf_counter()
-  lowered = ts.train_step.lower(ts.sharded_abstract_state(), ts.abstract_batch(batch, hw))
-  t_lower = time.perf_counter() - t0
-  t0 = time.perf_counter()
-  try:
-    compiled = lowered.compile()
-  except Exception as e:  # noqa: BLE001 - jaxlib's XlaRuntimeError
-    if "RESOURCE_EXHAUSTED" not in str(e):
-      raise
-    return {"fits": False, "batch": batch, "error": str(e).splitlines()[0][:300],
-            "compile_s": round(time.perf_counter() - t0, 1), "lower_s": round(t_lower, 1)}
-  compile_s = time.perf_counter() - t0
-  text = compiled.as_text()
-  if hlo_out:
-    pathlib.Path(hlo_out).write_text(text)
-  colls = hlo_stats.collectives(text)
-  summ = hlo_stats.summary(colls)
-  ma = compiled.memory_analysis()
-  hbm = (ma.temp_size_in_bytes + ma.argument_size_in_bytes + ma.output_size_in_bytes -
-         ma.alias_size_in_bytes)
-  return {"fits": True, "batch": batch, "hbm_bytes_per_chip": hbm,
-          "temp_bytes_per_device": ma.temp_size_in_bytes,
-          "argument_bytes_per_device": ma.argument_size_in_bytes,
-          "output_bytes_per_device": ma.output_size_in_bytes,
-          "alias_bytes_per_device": ma.alias_size_in_bytes,
-          "compile_s": round(compile_s, 1), "lower_s": round(t_lower, 1),
-          "collective_bytes": {k: v["bytes"] for k, v in summ.items()},
-          "collective_count": {k: v["count"] for k, v in summ.items()},
-          "collective_bytes_total": hlo_stats.total_bytes(colls), "_summary": summ,
-          "_text": text}
+def config_spec(args) -> str:
+  """The --config value train.py takes for this config (relative to the repository root)."""
+  path, _, arg = args.config.partition(":")
+  if not pathlib.Path(path).suffix:
+    path = f"configs/{path}.py"
+  return path + (f":{arg}" if arg else "")
 
 
-def describe(config, ts, mesh, devices, batch, hw) -> dict:
-  """Prints the run's shape and the parameter/optimizer bytes; returns them."""
-  import jax
-  p_bytes = _tree_bytes(ts.abstract_params)
-  p_dev = _per_device_bytes(ts.abstract_params, ts.param_sh)
-  opt_dev = _per_device_bytes(ts.abstract_state.opt_state, ts.state_sh.opt_state)
-  state_dev = _per_device_bytes(ts.abstract_state, ts.state_sh)
-  n_params = sum(int(x.size) for x in jax.tree.leaves(ts.abstract_params))
-  print(f"config {config.get('model_name', config.get('model_fn'))}: {n_params / 1e6:.1f}M params, "
-        f"global batch {batch} at {hw[0]}x{hw[1]}, mesh {dict(mesh.shape)} on {len(devices)} "
-        f"{devices[0].device_kind} devices, dtype {config.model.get('dtype', 'float32')}, "
-        f"remat {config.model.get('remat', False)}, "
-        f"scan_blocks {config.model.get('scan_blocks', False)}, "
-        f"fsdp_gather {config.get('fsdp_gather', 'layer')}, "
-        f"grad_accum {config.get('grad_accum', 1)}")
-  print(f"  params {_gib(p_bytes)} total, {_gib(p_dev)} per device; optimizer state "
-        f"{_gib(opt_dev)} per device (train state {_gib(state_dev)})")
-  return {"param_bytes": p_bytes, "param_bytes_per_device": p_dev,
-          "state_bytes_per_device": state_dev, "opt_state_bytes_per_device": opt_dev,
-          "mesh": dict(mesh.shape), "size": list(hw), "devices": len(devices)}
+def emit(result: dict, hlo_out=None):
+  """The plan in words, then its JSON as the last line (and the compiled HLO to `hlo_out`)."""
+  from ufm_jax import planning
+  if hlo_out and "_text" in result:
+    pathlib.Path(hlo_out).write_text(result["_text"])
+  planning.report(result)
+  print(planning.to_json(result), flush=True)
 
 
-def print_compiled(r: dict, param_bytes: int):
-  from ufm_jax import hlo_stats
-  if not r["fits"]:
-    print(f"  batch {r['batch']}: does not fit ({r['error']}); compile {r['compile_s']:.1f} s")
-  if "_summary" not in r:
-    return
-  print(f"  XLA memory per device: temp {_gib(r['temp_bytes_per_device'])}, args "
-        f"{_gib(r['argument_bytes_per_device'])}, out {_gib(r['output_bytes_per_device'])}, alias "
-        f"{_gib(r['alias_bytes_per_device'])}")
-  print(f"  trace+lower {r['lower_s']:.1f} s, compile {r['compile_s']:.1f} s")
-  total = r["collective_bytes_total"]
-  print(f"  collectives per device per step: {_gib(total)} ({total / max(param_bytes, 1):.2f}x the "
-        f"parameter bytes)")
-  print(hlo_stats.format_summary(r["_summary"]))
-
-
-def aot(config, batch, hw, hlo_out=None):
-  import jax
-  from ufm_jax import sharding, trainer
-  mesh = sharding.make_mesh(config.mesh)
-  ts = trainer.setup(config, mesh, hw, total_steps=1000)
-  info = describe(config, ts, mesh, jax.devices(), batch, hw)
-  r = compile_step(ts, batch, hw, hlo_out)
-  print_compiled(r, info["param_bytes"])
-  result = {**info, **_public(r), "batch": batch}
-  print(json.dumps(result))
+def aot(config, batch, hw, args):
+  """--aot: the step compiled on the devices at hand (--devices fake CPU ones), as
+  `train.py --compile_only` compiles it."""
+  from ufm_jax import planning
+  tgt = planning.target()
+  result = planning.plan(config, tgt, batch=batch, image_shape=hw, mfu=args.mfu,
+                         host_ms_per_row=args.host_ms_per_row)
+  emit(result, args.hlo_out)
   return result
 
 
 # ----------------------------------------------------------------------------- TPU planning
 
 
-def rows_per_epoch(config) -> int:
-  """Batch rows of one epoch of the recipe: its quotas, both directions when symmetrized (as
-  ufm_jax.data.pipeline counts them, without reading the data)."""
-  quotas = sum(int(d.quota) for d in config.input.datasets.values())
-  return quotas * (2 if config.input.get("symmetrize", True) else 1)
-
-
-def recipe_shapes(config):
-  """The (H, W) training shapes of the recipe (one drawn per step, uniformly)."""
-  from ufm_jax.data import augment
-  return augment.training_shapes(int(config.input.longest_side),
-                                 tuple(config.input.get("aspect_ratios",
-                                                        augment.DEFAULT_ASPECT_RATIOS)))
-
-
-def _quantum(config) -> int:
-  """Rows per chip come in multiples of this: a symmetrized pair's (a, b), (b, a) rows stay on
-  one chip, and each of grad_accum microbatches takes whole pairs from every chip."""
-  from ufm_jax import accumulation
-  return accumulation.pair_rows(config.get("apply_kwargs")) * int(config.get("grad_accum", 1))
-
-
 def _per_chip_batch(config, args, n: int) -> int:
   """--per_chip_batch, or --batch (else the recipe's) split over `n` chips."""
-  quantum = _quantum(config)
+  from ufm_jax import planning
+  quantum = planning.quantum(config)
   if args.per_chip_batch:
     per_chip = args.per_chip_batch
   elif args.batch:
@@ -235,146 +142,96 @@ def _per_chip_batch(config, args, n: int) -> int:
   return per_chip
 
 
-def _shapes_and_size(config, args):
-  """(the recipe's training shapes, the (H, W) to compile at: --size, else the largest of them,
-  which needs the most memory)."""
-  shapes = recipe_shapes(config) if "longest_side" in config.input else []
-  if not args.size and not shapes:
-    raise SystemExit("the config's input has no longest_side: pass --size HxW")
-  hw = parse_size(args.size) if args.size else max(shapes, key=lambda s: s[0] * s[1])
-  return shapes or [hw], hw
-
-
-def plan(config, args):
-  """--topology: the step compiled for a TPU slice from this host (libtpu, no TPU)."""
-  from ufm_jax import sharding, topologies, trainer
+def plan(config, hw, args):
+  """--topology: the step compiled for a TPU slice from this host (libtpu, no TPU); --fit: the
+  largest per-chip batch that fits and the plan of the recipe's batch, with the overrides that
+  run it."""
+  from ufm_jax import planning, sharding, topologies
+  tgt = planning.target(args.topology)
   slc = topologies.get(args.topology)
-  chip = topologies.CHIPS[slc.chip]
-  devices = topologies.devices(args.topology)
-  config.mesh = args.mesh or "data:1,fsdp:-1"
-  mesh = sharding.make_mesh(config.mesh, devices)
-  shapes, hw = _shapes_and_size(config, args)
-  n = sharding.batch_divisor(mesh)
-  quantum = _quantum(config)
+  n = sharding.batch_divisor(sharding.make_mesh(config.mesh, tgt.devices))
   per_chip = _per_chip_batch(config, args, n)
-  ts = trainer.setup(config, mesh, hw, total_steps=1000)
-  info = describe(config, ts, mesh, devices, per_chip * n, hw)
-  print(f"  {args.topology}: {slc.chips} chips ({slc.topology}, {slc.chip_config}), "
-        f"{_gib(chip.hbm_bytes)} HBM per chip, bf16 peak {chip.peak_bf16_flops / 1e12:.0f} TFLOP/s",
-        flush=True)
-
-  def probe(b):
-    r = compile_step(ts, b * n, hw)
-    if r["fits"] and r["hbm_bytes_per_chip"] > chip.hbm_bytes:
-      # XLA:TPU refuses some programs that cannot fit, but not all (a v5p-8 step needing
-      # 122 GiB of the chip's 95.74 compiled): the memory analysis decides.
-      r["fits"] = False
-      r["error"] = (f"compiled, but needs {_gib(r['hbm_bytes_per_chip'])} of "
-                    f"{_gib(chip.hbm_bytes)} per chip")
-    state = f"{_gib(r['hbm_bytes_per_chip'])} per chip" if "hbm_bytes_per_chip" in r else ""
-    state += "" if r["fits"] else (" - " if state else "") + "does not fit"
-    print(f"  probe {b} per chip ({b * n} global): {state}, compile {r['compile_s']:.0f} s",
-          flush=True)
-    return r
-
-  probes, best, exact = {}, None, None
+  print(f"{args.topology}: {slc.chips} chips ({slc.topology}, {slc.chip_config}), "
+        f"{_gib(tgt.capacity)} HBM per chip, bf16 peak {tgt.peak_flops / 1e12:.0f} TFLOP/s, "
+        f"{tgt.hosts} host(s); mesh {config.mesh}", flush=True)
   if args.fit:
-    best, fails, probes = topologies.fit_search(probe, per_chip, quantum, chip.hbm_bytes,
-                                                args.max_probes)
-    listed = ", ".join(f"{b} {'fits' if r['fits'] else 'no'}" for b, r in sorted(probes.items()))
-    exact = fails is not None and fails - best <= quantum
-    print(f"  largest per-chip batch that fits: {best or 'none'}"
-          f"{'' if exact else f' or more ({args.max_probes} probes ran out)'} (probes: {listed})")
-    per_chip = best or per_chip
-  r = probes.get(per_chip) or probe(per_chip)
-  if args.hlo_out and "_text" in r:
-    pathlib.Path(args.hlo_out).write_text(r["_text"])
-  print_compiled(r, info["param_bytes"])
-  batch = per_chip * n
-  result = {"topology": args.topology, "chips": slc.chips, "device_kind": devices[0].device_kind,
-            "hbm_capacity_bytes": chip.hbm_bytes, "per_chip_batch": per_chip,
-            "global_batch": batch, **info, **_public(r)}
+    result = planning.fit(config, tgt, per_chip, image_shape=hw, max_probes=args.max_probes,
+                          mfu=args.mfu, host_ms_per_row=args.host_ms_per_row)
+  else:
+    result = planning.plan(config, tgt, batch=per_chip * n, image_shape=hw, mfu=args.mfu,
+                           host_ms_per_row=args.host_ms_per_row)
   if args.fit:
-    result.update(max_per_chip_batch=best, max_per_chip_batch_exact=exact, probes={
-        b: {"fits": p["fits"], "hbm_bytes_per_chip": p.get("hbm_bytes_per_chip"),
-            "compile_s": p["compile_s"]} for b, p in sorted(probes.items())})
-  if "hbm_bytes_per_chip" in r:
-    print(f"  HBM per chip: {_gib(r['hbm_bytes_per_chip'])} of {_gib(chip.hbm_bytes)} "
-          f"({100 * r['hbm_bytes_per_chip'] / chip.hbm_bytes:.0f}%)"
-          f"{'' if r['fits'] else ': does not fit'}")
-  if args.mfu > 0:
-    per_row = flops_per_row(config, set(shapes) | {hw}, quantum)
-    executed = flops_per_row(config, [hw], quantum, remat=config.model.get("remat"))[hw] * batch
-    result["executed_flops_per_step"] = executed
-    result.update(estimate_time(config, per_row, hw, batch, slc.chips, chip, args.mfu,
-                                executed=executed))
-  print(json.dumps(result))
+    print("run this plan (docs/launch.md):")
+    for line in planning.launch_lines(result, config_spec(args)):
+      print(f"  {line}")
+  emit(result, args.hlo_out)
   return result
 
 
-def time_only(config, args):
-  """--time_only: step time and recipe days for each of the --topology slices (a comma list,
-  GPU nodes too), from the FLOP count alone: no compile, no libtpu."""
-  from ufm_jax import topologies
-  shapes, hw = _shapes_and_size(config, args)
-  quantum = _quantum(config)
-  print(f"config {config.get('model_name')}: FLOPs per row at {len(set(shapes) | {hw})} shapes "
-        f"(unrolled count on the host CPU)", flush=True)
-  per_row = flops_per_row(config, set(shapes) | {hw}, quantum)
-  rows = []
+def time_only(config, hw, args):
+  """--time_only: step time, recipe days and host feed for each of the --topology slices (a
+  comma list, GPU nodes too), from the FLOP count alone: no compile, no libtpu."""
+  from ufm_jax import planning
+  shapes = planning.training_shapes(config)
+  hw = hw or planning.largest_shape(config)
+  rows, counted = [], {}
   for name in args.topology.split(","):
-    slc = topologies.get(name)
-    print(f"{name}: {slc.chips} x {topologies.CHIPS[slc.chip].device_kind}")
-    batch = _per_chip_batch(config, args, slc.chips) * slc.chips
-    rows.append({"topology": name, "chips": slc.chips, "global_batch": batch,
-                 **estimate_time(config, per_row, hw, batch, slc.chips,
-                                 topologies.CHIPS[slc.chip], args.mfu)})
+    tgt = planning.target(name, compile=False)
+    batch = _per_chip_batch(config, args, tgt.chips) * tgt.chips
+    print(f"{name}: {tgt.chips} x {tgt.device_kind}, global batch {batch}", flush=True)
+    if batch not in counted:   # slices with the same batch share the count (TPU and GPU alike)
+      counted[batch] = planning.model_flops_per_row(config, set(shapes) | {hw}, batch, "tpu")
+    per_row = counted[batch]
+    host_ms = (args.host_ms_per_row if args.host_ms_per_row is not None
+               else planning.default_host_ms_per_row(config))
+    est = planning.estimate(config, tgt, per_row, hw, batch, args.mfu, host_ms)
+    row = {"topology": name, "chips": tgt.chips, "hosts": tgt.hosts, "global_batch": batch,
+           "grad_accum": int(config.grad_accum), "image_shape": list(hw), **est}
+    print(f"  {est['flops_per_row'] / 1e12:.3f} TFLOP per row at {hw[0]}x{hw[1]}, "
+          f"{est['mean_flops_per_row'] / 1e12:.3f} on average; step {est['mean_step_s_estimate']:.3g}"
+          f" s on average at {100 * args.mfu:.0f}% MFU"
+          + (f", {est['recipe_steps']} steps, {est['days_estimate']:.2f} days"
+             if "days_estimate" in est else "")
+          + (f"; host feed {est['rows_per_s_per_host']:.0f} rows/s per host = "
+             f"{est['host_cores_per_host']:.1f} cores of {est['host_vcpus'] or '?'} vCPUs"
+             if est.get("host_cores_per_host") else ""))
+    rows.append(row)
   print(json.dumps(rows))
   return rows
 
 
-def _public(r: dict) -> dict:
-  return {k: v for k, v in r.items() if not k.startswith("_")}
-
-
-def flops_per_row(config, shapes, quantum: int, remat: bool = False) -> dict:
-  """{(H, W): FLOPs of the train step per batch row} (ufm_jax.hlo_stats.train_step_flops, the
-  unrolled count), without remat's recomputation unless `remat`: model FLOPs, as MFU counts them.
-  Counted at `quantum` rows: a step's FLOPs are linear in its rows but for the optimizer update,
-  counted once per step (UFM-Base: ~20 FLOPs per parameter, under 0.1% of a 2-row step)."""
+def count_flops(config, batch, hw):
+  """--flops: the step's FLOPs counted on its jaxpr (ufm_jax.flops; model FLOPs without remat,
+  and as executed with it) beside the count from the model's dimensions, by part."""
   import copy
-  from ufm_jax import hlo_stats
-  config = copy.deepcopy(config)
-  config.model.remat = bool(remat)
-  return {s: hlo_stats.train_step_flops(config, s, quantum) / quantum for s in shapes}
 
-
-def estimate_time(config, per_row, hw, batch, chips, chip, mfu, executed=None) -> dict:
-  """The step time at `hw` and the duration of the recipe's epochs (each step draws one of its
-  shapes uniformly: the mean over them) at `mfu` of the chips' bf16 peak."""
-  import math
-  peak = chips * chip.peak_bf16_flops
-  step_flops = per_row[hw] * batch
-  step_s = step_flops / (peak * mfu)
-  print(f"  FLOPs per step at {hw[0]}x{hw[1]}: {step_flops / 1e12:.4g} TFLOP "
-        f"({per_row[hw] / 1e9:.0f} GFLOP per row" +
-        (f"; with remat's recomputation {executed / 1e12:.4g} TFLOP)" if executed else ")"))
-  print(f"  at {100 * mfu:.0f}% MFU (assumed) of {chips} x {chip.peak_bf16_flops / 1e12:.0f} "
-        f"TFLOP/s: {step_s:.3g} s per step of {batch} rows, {batch / step_s:.0f} rows/s" +
-        (f" (hardware utilisation with remat {100 * executed / (peak * step_s):.0f}%)"
-         if executed else ""))
-  out = {"flops_per_step": step_flops, "mfu_assumed": mfu, "step_s_estimate": step_s}
-  if config.get("num_epochs") and "datasets" in config.input:
-    shapes = recipe_shapes(config)
-    mean_row = sum(per_row[s] for s in shapes) / len(shapes)
-    rows = config.num_epochs * rows_per_epoch(config)
-    steps = math.ceil(rows / batch)
-    days = steps * mean_row * batch / (peak * mfu) / 86400
-    print(f"  recipe: {config.num_epochs} epochs x {rows_per_epoch(config)} rows = {steps} steps "
-          f"of {batch}; {mean_row / 1e9:.0f} GFLOP per row on average over "
-          f"{', '.join(f'{h}x{w}' for h, w in shapes)}: {days:.1f} days at {100 * mfu:.0f}% MFU")
-    out.update(recipe_steps=steps, mean_flops_per_row=mean_row, days_estimate=days)
-  return out
+  import jax
+  from ufm_jax import flops, sharding, trainer
+  mesh = sharding.make_mesh("data:1,fsdp:1", jax.devices()[:1])
+  model_cfg = copy.deepcopy(config)
+  if model_cfg.model.get("remat"):
+    model_cfg.model.remat = False
+  ts = trainer.setup(model_cfg, mesh, hw, total_steps=1000)
+  t0 = time.perf_counter()
+  counted = flops.step_flops(ts, batch, hw)
+  trace_s = time.perf_counter() - t0
+  executed = flops.step_flops(trainer.setup(config, mesh, hw, total_steps=1000), batch, hw)
+  analytic = flops.analytic_step_flops(config, ts, hw, batch)
+  print(f"config {config.get('model_name')}: global batch {batch} at {hw[0]}x{hw[1]}, grad_accum "
+        f"{config.get('grad_accum', 1)}")
+  print(f"  jaxpr count (model FLOPs): {counted.flops / 1e12:.4f} TFLOP per step, "
+        f"{counted.flops / batch / 1e12:.4f} per row (traced in {trace_s:.1f} s"
+        f"{f'; {counted.unknown_loops} loops of unknown trip count' if counted.unknown_loops else ''})")
+  print(f"  as executed, remat's recomputation included: {executed.flops / 1e12:.4f} TFLOP "
+        f"({executed.flops / counted.flops:.3f}x)")
+  print(f"  from the model's dimensions: {analytic['total'] / 1e12:.4f} TFLOP "
+        f"({100 * (analytic['total'] / counted.flops - 1):+.2f}% of the jaxpr count)")
+  for part, v in analytic.items():
+    if part != "total":
+      print(f"    {part:18s} {v / 1e12:10.4f} TFLOP ({100 * v / analytic['total']:.1f}%)")
+  print(json.dumps({"flops_per_step": counted.flops, "executed_flops_per_step": executed.flops,
+                    "analytic_flops_per_step": analytic, "global_batch": batch,
+                    "image_shape": list(hw), "grad_accum": int(config.get("grad_accum", 1))}))
 
 
 def time_steps(config, batch, hw, steps):
@@ -461,6 +318,8 @@ def main():
   ap.add_argument("--aot", action="store_true", help="compile only: memory, collectives, JSON")
   ap.add_argument("--hlo_out", default=None, help="with --aot: write compiled.as_text() here")
   ap.add_argument("--estimate_only", action="store_true", help="abstract trace, no compile")
+  ap.add_argument("--flops", action="store_true",
+                  help="the step's FLOPs on its jaxpr beside the count from the model's dimensions")
   ap.add_argument("--fsdp_gather", choices=("layer", "step"), default=None,
                   help="config.fsdp_gather: scanned blocks gathered per layer, or all at the start")
   ap.add_argument("--grad_accum", type=int, default=None,
@@ -476,7 +335,11 @@ def main():
                    "starting from the per-chip batch")
   tpu.add_argument("--max_probes", type=int, default=6)
   tpu.add_argument("--mfu", type=float, default=0.4,
-                   help="assumed model FLOPs utilisation for the step time (0: no FLOP count)")
+                   help="assumed model FLOPs utilisation for the step time (uncalibrated; 0: no "
+                   "step time)")
+  tpu.add_argument("--host_ms_per_row", type=float, default=None,
+                   help="host CPU ms per training row for the host feed (default: "
+                   "ufm_jax.planning.HOST_MS_PER_ROW, measured by benchmarks/data_pipeline.py)")
   tpu.add_argument("--time_only", action="store_true",
                    help="no compile: step time and days for each of --topology A,B,... (GPU "
                    "nodes too: h100-8, h200-8, a100-8) from the FLOP count")
@@ -494,15 +357,21 @@ def main():
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
   config, batch, hw = load(args)
   if args.topology and args.time_only:
-    time_only(config, args)
+    time_only(config, hw, args)
   elif args.topology:
-    plan(config, args)
+    plan(config, hw, args)
   elif args.aot:
-    aot(config, batch, hw, args.hlo_out)
-  elif args.estimate_only:
-    estimate(config, batch, hw)
+    aot(config, batch, hw, args)
   else:
-    time_steps(config, batch, hw, args.steps)
+    from ufm_jax import planning
+    batch = batch or int(config.input.batch_size)
+    hw = hw or planning.largest_shape(config)
+    if args.flops:
+      count_flops(config, batch, hw)
+    elif args.estimate_only:
+      estimate(config, batch, hw)
+    else:
+      time_steps(config, batch, hw, args.steps)
 
 
 if __name__ == "__main__":

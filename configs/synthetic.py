@@ -80,12 +80,16 @@ def get_config(arg=None):
   if arg.cov:
     config_lib.add_flow_covariance(c, pixels="robust_epe", head=arg.cov_head)
   c.model_init = config_lib.unset(str)  # e.g. ckpt:WORKDIR
+  c.model_init_flow_adaptor = "check"   # a source must match the config (model_init.py)
   # One learning rate for every group, 5% linear warmup, cosine to 0 (no epochs to count in).
   c.optim = ml_collections.ConfigDict({
       "lr": {g: arg.lr for g in optim.PARAM_GROUPS}, "groups": dict(optim.PARAM_GROUPS),
       "b1": 0.9, "b2": 0.95, "eps": 1e-8, "weight_decay": 0.05, "no_decay": config_lib.unset(str),
       "grad_clip_norm": 1.0, "warmup_epochs": config_lib.unset(float), "warmup_frac": 0.05,
-      "min_lr_rate": 0.0, "frozen": config_lib.unset(str), "trainable": config_lib.unset(str)})
+      "min_lr_rate": 0.0, "skip_advances_schedule": True, "frozen": config_lib.unset(str),
+      "trainable": config_lib.unset(str)})
+  # Replicated on every device: a 0.4M-parameter model's state is small, and FSDP's per-step
+  # gathers would cost more than the memory they save.
   c.mesh = "data:-1,fsdp:1"
   c.ckpt_steps = 100
   c.keep_ckpt = 2

@@ -37,12 +37,12 @@ def get_config(arg=None):
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.seed = 42
   c.num_epochs = 48
-  # The official shapes and augmentation (ufm_jax.data.augment, docs/recipe.md); the one
-  # deviation, fast_image_ops (OpenCV's bicubic and HSV for PIL's), keeps the host CPU per row
-  # within budget (docs/host_input.md).
+  # The official shapes and augmentation with the official image operations (ufm_jax.data.augment,
+  # docs/recipe.md). fast_image_ops=True (a deviation: OpenCV's bicubic and HSV for PIL's) saves
+  # host CPU per row (docs/host_input.md).
   c.input = pipeline.input_config(mixture.recipe("ufm560", names[arg.data]), batch_size=96,
                                   longest_side=560, shapes=augment.SHAPES_560,
-                                  augment={"fast_image_ops": True})
+                                  augment={"fast_image_ops": False})
 
   c.model_name = arg.model
   c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
@@ -55,6 +55,9 @@ def get_config(arg=None):
   # dinov2:PATH (facebook/dinov2-large), snapshot:DIR or ckpt:WORKDIR; typed so that
   # `--config.model_init=...` parses (a plain None field cannot be overridden from the flags).
   c.model_init = config_lib.unset(str)
+  # A snapshot or run given as model_init lends its flow normalisation buffers, as the official
+  # resume_model (train_pl.py:496-518); DINOv2 weights have none.
+  c.model_init_flow_adaptor = "buffers"
 
   c.optim = ml_collections.ConfigDict({
       "lr": {"encoder": 5e-6, "info_sharing": 1e-4, "output_head": 1e-4,
@@ -64,6 +67,8 @@ def get_config(arg=None):
       "grad_clip_norm": 1.0,
       "warmup_epochs": 4.8, "fractional_warmup": True, "warmup_frac": config_lib.unset(float),
       "min_lr_rate": 0.01,
+      # Official: a skipped non-finite step still steps the scheduler (train_pl.py:79-81).
+      "skip_advances_schedule": True,
       "frozen": config_lib.unset(str), "trainable": config_lib.unset(str)})
 
   # configs/loss/robust_epe_covisibility.yaml, terms summed in this order.

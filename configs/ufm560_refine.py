@@ -3,7 +3,7 @@ of the UFM `train` branch; every setting and its source: docs/recipe.md): the cl
 refiner trained on a frozen UFM-560 base.
 
   python train.py --config=configs/ufm560_refine.py --workdir=DIRREF \
-      --config.model_init=ckpt:DIR560 --config.input.data_root=/data/ufm
+      --config.model_init=snapshot:infinity1096/UFM-Base --config.input.data_root=/data/ufm
 
 The base (encoder, fusion transformer, DPT heads) has lr 0, so it is frozen: no gradient, no
 optimizer state. Only the U-Net, classification head, combiners and the classification bias
@@ -24,8 +24,11 @@ encoder taps [6, 23], no uncertainty head (so no covisibility output: evaluators
 covisibility metrics). This is NOT the released UFM-Refine; `:model=ufm_refine` trains the
 released structure (conv combination, no BatchNorm, a covisibility head kept frozen).
 
-model_init must match the model config in everything that changes outputs (the flow adaptor's
-normalisation above all); a difference stops the run before training, naming the --config
+model_init: UFM-Base, as the official script (`resume_model=infinity1096/UFM-Base`,
+megatraining_refinement_560.sh:46; a Hub ID or snapshot folder, or `ckpt:DIR560` for a 560 run of ours). As the
+official resume_model, the source's flow normalisation buffers (flow_mean, flow_std) replace the
+config's and base_shape / scale_strategy stay the config's (`model_init_flow_adaptor="buffers"`);
+any other difference that changes outputs stops the run before training, naming the --config
 override (`ufm_jax.model_init.check_structure`).
 
 Smoke run on a fresh machine (tiny recipe model, embedded synthetic pairs, random base):
@@ -54,7 +57,7 @@ def get_config(arg=None):
         mixture.recipe("refine560"), batch_size=48, longest_side=560,
         shapes=augment.SHAPES_560_SQUARE,
         augment={"no_crop_datasets": (), "low_light_datasets": ("flyingchairs", "habitat"),
-                 "fast_image_ops": True})
+                 "fast_image_ops": False})   # official image operations (True: a deviation)
   elif arg.data == "synthetic":
     c.input = pipeline.input_config(mixture.synthetic_mixture(num_pairs=10_000, size=(56, 56)),
                                     batch_size=2, longest_side=56, aspect_ratios=(1.0,),
@@ -72,12 +75,18 @@ def get_config(arg=None):
   else:
     c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
   c.model.param_init = "official"      # the refiner starts as the official modules do
-  # As the 560 base was trained (it must match the checkpoint in model_init).
+  # adaptor_map/flow_scale_both.yaml; model_init's flow_mean / flow_std buffers replace these
+  # two (model_init_flow_adaptor below), base_shape and scale_strategy stay.
   c.model.flow_adaptor = ml_collections.ConfigDict({
       "flow_mean": (0.0, 0.0), "flow_std": (25.0, 25.0), "base_shape": (224, 224),
       "scale_strategy": "scale_both"})
   c.model.refinement_range = 7
-  c.model_init = config_lib.unset(str)  # the UFM-560 base
+  # Official: plain DDP (train_pl.py:531-533), so the U-Net's BatchNorm takes its statistics
+  # over each GPU's rows: 24 pairs over the paper's 8 GPUs, symmetrized = 6 rows
+  # (models/refine.py BatchNorm.group_rows; unset: over the whole global batch).
+  c.model.unet_batchnorm_group_rows = (6 if arg.data == "refine" else config_lib.unset(int))
+  c.model_init = config_lib.unset(str)  # UFM-Base (snapshot:ID) or a 560 run (ckpt:DIR)
+  c.model_init_flow_adaptor = "buffers"   # official resume_model (train_pl.py:496-518)
 
   c.optim = ml_collections.ConfigDict({
       # uncertainty_head: official 0 as well. The recipe model has no such group, so the key is
@@ -89,6 +98,8 @@ def get_config(arg=None):
       "grad_clip_norm": 1.0,
       "warmup_epochs": 3.0, "fractional_warmup": True, "warmup_frac": config_lib.unset(float),
       "min_lr_rate": 0.01,
+      # Official: a skipped non-finite step still steps the scheduler (train_pl.py:79-81).
+      "skip_advances_schedule": True,
       "frozen": config_lib.unset(str), "trainable": config_lib.unset(str)})
   if arg.data == "synthetic":   # a smoke run: warm up over its first 10% of steps, not 3 epochs
     c.optim.warmup_epochs, c.optim.warmup_frac = None, 0.1

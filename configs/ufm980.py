@@ -2,11 +2,13 @@ r"""UFM-980: the official high-resolution recipe (`bash_scripts/training/megatra
 the UFM `train` branch; every setting and its source: docs/recipe.md), bootstrapped from UFM-560.
 
   python train.py --config=configs/ufm980.py --workdir=DIR980 \
-      --config.model_init=ckpt:DIR560 --config.input.data_root=/data/ufm
+      --config.model_init=snapshot:infinity1096/UFM-Base --config.input.data_root=/data/ufm
 
-Parameters from a 560 checkpoint (`model_init`: a training workdir, a converted checkpoint or the
-official UFM-Base snapshot; the flow adaptor normalisation below must be the one it was trained
-with), a fresh optimizer. The optical-flow datasets only, with the official recipe's samples per
+Parameters from UFM-Base, as the official script (`resume_model=infinity1096/UFM-Base`,
+megatraining_980.sh:41; `model_init`: a Hub ID or snapshot folder, or `ckpt:DIR560` for a 560
+run of ours), a fresh optimizer. As the official resume_model, the source's flow normalisation
+buffers (flow_mean, flow_std) replace the config's and its base_shape / scale_strategy stay the
+config's (`model_init_flow_adaptor="buffers"`, ufm_jax/model_init.py). The optical-flow datasets only, with the official recipe's samples per
 epoch (`mixture.RECIPES['ufm980']`), the official shapes (H in {644, 560, 490, 308} x 980) and
 augmentation. 16 unique pairs per step (32 symmetrized rows), 15 epochs. Peak lr 5e-7 (encoder)
 and 1e-5 (fusion transformer, flow head) with 2 warmup epochs, cosine to 1%; the covisibility head
@@ -33,18 +35,24 @@ def get_config(arg=None):
   c.seed = 42
   c.num_epochs = 15
   # The official shapes (980_many_opticalflow_ar) and augmentation, as ufm560.py.
-  c.input = pipeline.input_config(mixture.recipe("ufm980"), batch_size=32,
+  # FlyingChairs' second view carries the official zero flow, which the "all" range below
+  # supervises on every pixel (quirk: docs/recipe.md; False drops those rows' supervision).
+  chairs = {"flyingchairs": {"backward_zero_flow": True}}
+  c.input = pipeline.input_config(mixture.recipe("ufm980", options=chairs), batch_size=32,
                                   longest_side=980, shapes=augment.SHAPES_980,
-                                  augment={"fast_image_ops": True})
+                                  augment={"fast_image_ops": False})
 
   c.model_name = arg.model
   c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
   c.model.detach_uncertainty_head = False
   c.model.param_init = "official"
+  # adaptor_map/flow_scale_both.yaml; model_init's flow_mean / flow_std buffers replace these
+  # two (model_init_flow_adaptor below), base_shape and scale_strategy stay.
   c.model.flow_adaptor = ml_collections.ConfigDict({
       "flow_mean": (0.0, 0.0), "flow_std": (25.0, 25.0), "base_shape": (224, 224),
       "scale_strategy": "scale_both"})
-  c.model_init = config_lib.unset(str)  # required: the 560 run
+  c.model_init = config_lib.unset(str)  # required: UFM-Base (snapshot:ID) or a 560 run (ckpt:DIR)
+  c.model_init_flow_adaptor = "buffers"   # official resume_model (train_pl.py:496-518)
 
   c.optim = ml_collections.ConfigDict({
       "lr": {"encoder": 5e-7, "info_sharing": 1e-5, "output_head": 1e-5, "uncertainty_head": 0.0},
@@ -53,6 +61,8 @@ def get_config(arg=None):
       "grad_clip_norm": 1.0,
       "warmup_epochs": 2.0, "fractional_warmup": True, "warmup_frac": config_lib.unset(float),
       "min_lr_rate": 0.01,
+      # Official: a skipped non-finite step still steps the scheduler (train_pl.py:79-81).
+      "skip_advances_schedule": True,
       "frozen": config_lib.unset(str), "trainable": config_lib.unset(str)})
 
   # configs/loss/robust_epe_all_pixels.yaml: no covisibility term.

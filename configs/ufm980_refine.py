@@ -3,7 +3,7 @@ r"""UFM-Refine-980: the official high-resolution refinement recipe
 its source: docs/recipe.md): the whole refinement model trained at 980 from UFM-560.
 
   python train.py --config=configs/ufm980_refine.py --workdir=DIRREF980 \
-      --config.model_init=ckpt:DIR560 --config.input.data_root=/data/ufm
+      --config.model_init=snapshot:infinity1096/UFM-Base --config.input.data_root=/data/ufm
 
 As the official script, it starts from the 560 base (`resume_model=infinity1096/UFM-Base`), not
 from the 560 refiner: the refiner (5 x 5 window) starts fresh and trains at lr 1e-4 while the base
@@ -18,8 +18,12 @@ Model: the official recipe's refinement structure (`ufm_refine_recipe`) with a 5
 U-Net with BatchNorm (running statistics in the train state), `modulate` combination, encoder
 taps [6, 23], no uncertainty head (no covisibility output). `:model=ufm_refine` trains the
 released UFM-Refine structure instead (its covisibility head stays frozen, see optim.lr).
-model_init must match the model config in everything that changes outputs (the flow adaptor's
-normalisation above all; `ufm_jax.model_init.check_structure` stops the run otherwise).
+model_init: UFM-Base, as the official script (`resume_model=infinity1096/UFM-Base`,
+megatraining_refinement_980.sh:47; a Hub ID or snapshot folder, or `ckpt:DIR560` for a 560 run of ours). As the
+official resume_model, the source's flow normalisation buffers (flow_mean, flow_std) replace the
+config's and base_shape / scale_strategy stay the config's (`model_init_flow_adaptor="buffers"`);
+any other difference that changes outputs stops the run before training, naming the --config
+override (`ufm_jax.model_init.check_structure`).
 
 Smoke run (tiny recipe model, embedded synthetic pairs, random base):
   python train.py --config=configs/ufm980_refine.py:model=tiny_refine_recipe,data=synthetic,steps=20 \
@@ -39,10 +43,12 @@ def get_config(arg=None):
   c.num_epochs = 20
   refine_datasets = ("blendedmvs", "flyingthings", "hypersim")
   if arg.data == "of":
-    # dataset=ufm_980_highres, as ufm980.py: its samples per epoch, shapes and augmentation.
-    c.input = pipeline.input_config(mixture.recipe("refine980"), batch_size=32,
+    # dataset=ufm_980_highres, as ufm980.py: its samples per epoch, shapes and augmentation;
+    # FlyingChairs' second view with the official zero flow (the "all" range supervises it).
+    chairs = {"flyingchairs": {"backward_zero_flow": True}}
+    c.input = pipeline.input_config(mixture.recipe("refine980", options=chairs), batch_size=32,
                                     longest_side=980, shapes=augment.SHAPES_980,
-                                    augment={"fast_image_ops": True})
+                                    augment={"fast_image_ops": False})
   elif arg.data == "synthetic":
     c.input = pipeline.input_config(mixture.synthetic_mixture(num_pairs=10_000, size=(56, 56)),
                                     batch_size=2, longest_side=56, aspect_ratios=(1.0,),
@@ -61,11 +67,18 @@ def get_config(arg=None):
     c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
   c.model.param_init = "official"
   c.model.detach_uncertainty_head = False
+  # adaptor_map/flow_scale_both.yaml; model_init's flow_mean / flow_std buffers replace these
+  # two (model_init_flow_adaptor below), base_shape and scale_strategy stay.
   c.model.flow_adaptor = ml_collections.ConfigDict({
       "flow_mean": (0.0, 0.0), "flow_std": (25.0, 25.0), "base_shape": (224, 224),
       "scale_strategy": "scale_both"})
   c.model.refinement_range = 5
-  c.model_init = config_lib.unset(str)  # the UFM-560 base
+  # Official: plain DDP (train_pl.py:531-533), so the U-Net's BatchNorm takes its statistics
+  # over each GPU's rows: 16 pairs over the paper's 8 GPUs, symmetrized = 4 rows
+  # (models/refine.py BatchNorm.group_rows; unset: over the whole global batch).
+  c.model.unet_batchnorm_group_rows = (4 if arg.data == "of" else config_lib.unset(int))
+  c.model_init = config_lib.unset(str)  # UFM-Base (snapshot:ID) or a 560 run (ckpt:DIR)
+  c.model_init_flow_adaptor = "buffers"   # official resume_model (train_pl.py:496-518)
 
   c.optim = ml_collections.ConfigDict({
       # uncertainty_head: official 1e-5, ignored there: its refinement model has no uncertainty
@@ -79,6 +92,8 @@ def get_config(arg=None):
       "grad_clip_norm": 1.0,
       "warmup_epochs": 2.0, "fractional_warmup": True, "warmup_frac": config_lib.unset(float),
       "min_lr_rate": 0.01,
+      # Official: a skipped non-finite step still steps the scheduler (train_pl.py:79-81).
+      "skip_advances_schedule": True,
       "frozen": config_lib.unset(str), "trainable": config_lib.unset(str)})
   if arg.data == "synthetic":   # a smoke run: warm up over its first 10% of steps, not 2 epochs
     c.optim.warmup_epochs, c.optim.warmup_frac = None, 0.1

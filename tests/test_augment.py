@@ -493,3 +493,89 @@ def test_no_crop_static_views_are_resized_to_cover_and_centre_cropped():
                                  depth=np.ascontiguousarray(v0.depth[:, :40]))
   turned = official_ops.resize_cover_center_crop(portrait, (28, 42))
   assert turned.image.shape == (28, 42, 3)
+
+
+def test_float_hue_step_is_mod_one_on_the_hue_plane():
+  """Kubric's float jitter takes the hue mod 1 as x - floor(x) on the contiguous hue plane:
+  equal to the strided np.mod formulation for every hue factor, negative sums included."""
+  rng = np.random.default_rng(7)
+  img = rng.integers(0, 256, (31, 45, 3)).astype(np.uint8)
+  img[:4] = 0
+  img[4:8] = 255
+  x = np.clip(img.astype(np.float32) / np.float32(255), 0, 1)
+  for h in (-0.1, -0.0999, -1e-7, 0.0, 1e-7, 0.05, 0.0999, 0.1):
+    hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
+    hue = hsv[..., 0]
+    hue *= np.float32(1 / 360)
+    hue += np.float32(h)
+    np.mod(hue, 1, out=hue)
+    hue *= np.float32(360)
+    want = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+    np.clip(want, 0, 1, out=want)
+    want = (want * np.float32(255)).astype(np.uint8)
+    np.testing.assert_array_equal(augment.color_jitter_float(img, ((3,), 1.0, 1.0, 1.0, h)),
+                                  want, err_msg=str(h))
+  vals = np.float32(rng.uniform(-1.5, 1.5, 100000))
+  vals[:3] = (-0.0, -1.0, np.nextafter(np.float32(-1), np.float32(0)))
+  np.testing.assert_array_equal(vals - np.floor(vals), np.mod(vals, 1))
+
+
+def test_kubric_float_jitter_is_torchvisions_tensor_path():
+  """Kubric's jitter (on the float image, kubric4d.py:171-178) against torchvision's tensor
+  formulas (`color_reference.torchvision_tensor_jitter`): brightness, contrast and saturation
+  exact; the hue through OpenCV's float HSV within one grey level on a few pixels (measured
+  2.7% of them)."""
+  pytest.importorskip("torch")
+  from ufm_jax.testing import color_reference
+  rng = np.random.default_rng(8)
+  img = cv2.GaussianBlur(rng.integers(0, 256, (60, 80, 3)).astype(np.uint8), (0, 0), 1.5)
+  cfg = augment.AugmentConfig()
+  for k in range(10):
+    params = augment.draw_color(rng, cfg)
+    if k < 3:
+      params = ((k,),) + params[1:]
+    d = np.abs(augment.color_jitter_float(img, params).astype(int)
+               - color_reference.torchvision_tensor_jitter(img, params))
+    if 3 not in params[0]:
+      assert d.max() == 0, params
+    assert d.max() <= 1 and (d > 0).mean() <= 0.05, (params, d.max(), (d > 0).mean())
+
+
+def test_static_crop_warp_is_pils_bicubic_transform():
+  """The static crop's image: the bytes of PIL's bicubic `Image.transform` (the official warp),
+  computed by data/pil_warp.py, for zooms in and out, integer positions, crops reaching past the
+  image (filled with 0), flat patches (exact integers) and PIL's half-pixel frame or not."""
+  from ufm_jax.data import pil_warp
+  rng = np.random.default_rng(12)
+  img = cv2.GaussianBlur(rng.integers(0, 256, (70, 90, 3)).astype(np.uint8), (0, 0), 1.2)
+  img[10:30, 20:50] = 77
+  img[40:50] = 255
+  for trial in range(40):
+    a0, a4 = rng.uniform(0.25, 2.5, 2)
+    a2, a5 = rng.uniform(-20, 60), rng.uniform(-20, 40)
+    if trial % 4 == 0:
+      a0, a2 = 1.0, float(rng.integers(-3, 30))     # integer positions: fraction 0
+    if trial % 5 == 0:
+      a4, a5 = 0.5, 0.25
+    data = (a0, 0.0, a2, 0.0, a4, a5, 0.0, 0.0)
+    size = (int(rng.integers(20, 80)), int(rng.integers(14, 60)))
+    want = np.asarray(Image.fromarray(img).transform(size, Image.PERSPECTIVE, data,
+                                                     resample=Image.BICUBIC))
+    np.testing.assert_array_equal(pil_warp.bicubic_transform(img, data, size), want,
+                                  err_msg=str((data, size)))
+  with pytest.raises(ValueError, match="not a scale"):
+    pil_warp.bicubic_transform(img, (1.0, 0.1, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0), (10, 10))
+  # Through the static crop, with PIL's frame and without: the same bytes as PIL's own call.
+  v = augment.StaticView(img, np.ones(img.shape[:2], np.float32),
+                         np.array([[60.0, 0, 45], [0, 60.0, 35], [0, 0, 1]]), np.eye(4))
+  calls = []
+  pil = lambda im, data, size: calls.append(data) or np.asarray(  # noqa: E731
+      Image.fromarray(im).transform(size, Image.PERSPECTIVE, data, resample=Image.BICUBIC))
+  for pil_sampling in (True, False):
+    for box in ((5.3, 4.1, 61.7, 46.9), (-8.0, -3.0, 100.0, 80.0), (20.0, 10.0, 40.0, 25.0)):
+      got = augment.crop_view_affine(v, box, (42, 56), pil_sampling).image
+      with pytest.MonkeyPatch.context() as m:
+        m.setattr(pil_warp, "bicubic_transform", pil)
+        want = augment.crop_view_affine(v, box, (42, 56), pil_sampling).image
+      np.testing.assert_array_equal(got, want, err_msg=str((box, pil_sampling)))
+  assert len(calls) == 6   # every crop took the scale + shift path

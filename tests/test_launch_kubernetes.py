@@ -5,6 +5,7 @@ train.py with the config and the workdir, JAX's coordinator being pod 0 behind t
 service."""
 
 import json
+import math
 import pathlib
 import re
 import shlex
@@ -97,6 +98,32 @@ def test_jobset_is_valid_and_runs_train_py(path):
   limits = container["resources"]["limits"]
   assert ("google.com/tpu" in limits) == ("tpu" in path.name)
   assert ("nvidia.com/gpu" in limits) == ("gpu" in path.name)
+
+
+@pytest.mark.parametrize("path", MANIFESTS, ids=lambda p: p.name)
+def test_the_plans_overrides_reach_train_py(path):
+  """MESH, GLOBAL_BATCH and GRAD_ACCUM (what `benchmarks/train_step.py --fit` prints) arrive as
+  train.py's --config overrides, and the example's values make a run train.py accepts on the
+  example's chips: the mesh covers them, the batch splits into the microbatches on every chip."""
+  from ufm_jax import accumulation, config_lib, sharding
+  jobset, params = _render(path)
+  (container,) = jobset["spec"]["replicatedJobs"][0]["template"]["spec"]["template"]["spec"][
+      "containers"]
+  argv = container["command"] + container.get("args", [])
+  assert f"--config.mesh={params['MESH']}" in argv
+  assert f"--config.input.batch_size={params['GLOBAL_BATCH']}" in argv
+  assert f"--config.grad_accum={params['GRAD_ACCUM']}" in argv
+  per_host = int(params.get("CHIPS_PER_HOST") or params["GPUS_PER_HOST"])
+  chips = int(params["HOSTS"]) * per_host
+  if "TPU_TOPOLOGY" in params:
+    assert chips == math.prod(int(d) for d in params["TPU_TOPOLOGY"].split("x"))
+  sizes = dict(sharding.parse_mesh(params["MESH"]))
+  known = math.prod(s for s in sizes.values() if s != -1)
+  assert chips % known == 0 and (-1 in sizes.values() or known == chips)
+  config = config_lib.load_config(str(REPO / params["CONFIG"]))   # PATH:ARG, as train.py reads it
+  batch, k = int(params["GLOBAL_BATCH"]), int(params["GRAD_ACCUM"])
+  assert batch % chips == 0
+  accumulation.check_divisible(batch, k, chips, accumulation.pair_rows(config.apply_kwargs))
 
 
 def test_validation_refuses_a_misspelt_field():

@@ -142,3 +142,106 @@ def test_loss_matches_official(kind, case):
     assert err <= 1e-4 * scale + (0.0 if scale else 1e-12), \
         f"{kind}/{case} d/d{name}: max error {err:.3g} vs max |grad| {scale:.3g}"
   assert checked == len([k for k in z.files if k.startswith(pre + "grad_")]), "gradient not compared"
+
+
+def _all_range_cases():
+  """The cases whose every term is an 'all'-range regression (robust_epe_all_pixels, the 980
+  recipe's total)."""
+  path = testing.training_fixtures_root() / "losses" / "cases.json"
+  try:
+    spec = json.loads(path.read_text())
+  except OSError:
+    return [pytest.param(None, None, id="fixtures-missing")]
+  out = []
+  for kind, v in spec.items():
+    if kind in NON_CASE_KEYS:
+      continue
+    if v["config"]["kwargs"].get("supervision_range") == "all":
+      out += [pytest.param(kind, c, id=f"{kind}-{c}") for c in v["cases"]]
+  for r, e in spec.get("recipe_totals", {}).items():
+    if all(c["kwargs"].get("supervision_range") == "all" for c in e["term_configs"].values()):
+      out.append(pytest.param("recipe_totals", r, id=f"recipe_totals-{r}"))
+  return out
+
+
+@pytest.mark.parametrize("kind,case", _all_range_cases())
+def test_all_range_reads_no_mask(kind, case):
+  """The 'all' range on a row whose masks are all False, as the official FlyingChairs second
+  view (zero flow, every mask False: `backward_zero_flow`): the official test reads the flow
+  alone (loss/epe.py:63-69), so the official loss and gradient come out with covisibility and
+  covis_valid all False, and the pixels our term supervises are the official mask
+  (`all_pixels_fov_mask`, what the official loss used)."""
+  folder = testing.training_fixtures("losses")
+  spec = json.loads((folder / "cases.json").read_text())
+  z = np.load(folder / f"{kind}.npz")
+  pre = f"{case}_"
+  configs = (spec["recipe_totals"][case]["term_configs"] if kind == "recipe_totals" else
+             {k[len(pre) + 5:]: spec[kind]["config"] for k in z.files
+              if k.startswith(pre + "loss_") and k != pre + "loss_total"})
+  recipe = losses.Recipe(tuple(
+      (n, losses.make_term(losses.from_official(c["class"], c["kwargs"]), n))
+      for n, c in configs.items()))
+  outputs, batch, _ = _inputs(z, pre)
+  off = jnp.zeros(batch["flow"].shape[:3], bool)
+  batch = dict(batch, covisibility=off, covis_valid=off, flow_valid=~off)
+  (loss, _), grads = jax.value_and_grad(lambda o: recipe(o, batch), has_aux=True)(outputs)
+  _close(loss, z[pre + "loss_total"], f"{kind}/{case} total with every mask False")
+  ref = z[pre + "grad_pred_flow"]
+  err = float(np.abs(np.moveaxis(np.asarray(grads["flow"]), -1, 1) - ref).max())
+  assert err <= 1e-4 * float(np.abs(ref).max()), err
+  if pre + "all_pixels_fov_mask" in z.files:
+    mask, _ = recipe.terms[0][1].mask(batch, batch["flow"])
+    np.testing.assert_array_equal(np.asarray(mask), z[pre + "all_pixels_fov_mask"])
+
+
+def _refinement_cases():
+  """The cases with the efficient refinement loss (its own file and the refine recipes' totals)."""
+  path = testing.training_fixtures_root() / "losses" / "cases.json"
+  try:
+    spec = json.loads(path.read_text())
+  except OSError:
+    return [pytest.param(None, None, id="fixtures-missing")]
+  cls = "RefinementCrossEntropyLossEfficient"
+  out = [pytest.param(k, c, id=f"{k}-{c}") for k, v in spec.items() if k not in NON_CASE_KEYS
+         and v["config"]["class"] == cls for c in v["cases"]]
+  out += [pytest.param("recipe_totals", r, id=f"recipe_totals-{r}")
+          for r, e in spec.get("recipe_totals", {}).items()
+          if any(c["class"] == cls for c in e["term_configs"].values())]
+  return out
+
+
+@pytest.mark.parametrize("kind,case", _refinement_cases())
+def test_refinement_gradient_in_the_jitted_step(kind, case):
+  """The bfloat16 taps' gradient as the train step computes it (jitted: XLA may keep a fused sum
+  of bfloat16 terms in float32, which the official autograd rounds after every term): the
+  official value everywhere but at bfloat16 rounding ties (`refine_training._bf16_window_blend`):
+  at most 0.1% of the nonzero entries beyond 1e-4 of the max, none beyond one bfloat16 ulp of it
+  (2^-8). Summing the four terms in another order, or without the roundings, puts thousands of
+  entries 1.7e-3 to 6.9e-3 of the max off."""
+  folder = testing.training_fixtures("losses")
+  spec = json.loads((folder / "cases.json").read_text())
+  z = np.load(folder / f"{kind}.npz")
+  pre = f"{case}_"
+  if kind == "recipe_totals":
+    configs = spec["recipe_totals"][case]["term_configs"]
+    names = spec["recipe_totals"][case]["terms_in_order"]
+  else:
+    names = [k[len(pre) + 5:] for k in z.files
+             if k.startswith(pre + "loss_") and k != pre + "loss_total"]
+    configs = {names[0]: spec[kind]["config"]}
+  recipe = losses.Recipe(
+      tuple((n, losses.make_term(losses.from_official(configs[n]["class"], configs[n]["kwargs"]),
+                                 n)) for n in names), temperature=float(z[pre + "temperature"]))
+  outputs, batch, rows = _inputs(z, pre)
+  step = jax.jit(jax.value_and_grad(lambda o: recipe(o, batch, suitable_rows=rows)[0]))
+  loss, grads = step(outputs)
+  _close(loss, z[pre + "loss_total"], f"{kind}/{case} total (jitted)")
+  for name in ("feature_map_0", "feature_map_1"):
+    ref = z[pre + "grad_" + name]
+    scale = float(np.abs(ref).max())
+    if not scale:
+      continue
+    err = np.abs(np.moveaxis(np.asarray(grads[name]), -1, 1) - ref)
+    beyond = int((err > 1e-4 * scale).sum())
+    assert beyond <= 0.001 * np.count_nonzero(ref), (name, beyond, float(err.max()) / scale)
+    assert float(err.max()) <= 2.0 ** -8 * scale, (name, float(err.max()) / scale)

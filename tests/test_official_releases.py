@@ -4,7 +4,6 @@ ee7fa0b) against their official outputs, every case folder found; their exact ro
 save_official; refused unknown keys; the random view-embedding rule; Hub IDs from an offline
 cache in the standard Hugging Face layout."""
 
-import hashlib
 import json
 import os
 import pathlib
@@ -156,22 +155,6 @@ def test_random_view_rows_warn_and_use_row_one(tmp_path):
 # --------------------------------------------------------------------------- Hub IDs
 
 
-def _hub_cache(root: pathlib.Path, repo_id: str, snapshot: pathlib.Path, commit: str):
-  """A Hugging Face cache in the standard layout (models--owner--name/{blobs, refs, snapshots})
-  holding `snapshot`'s two files at `commit`, with `main` pointing there."""
-  repo = root / ("models--" + repo_id.replace("/", "--"))
-  (repo / "refs").mkdir(parents=True)
-  (repo / "refs" / "main").write_text(commit)
-  snap = repo / "snapshots" / commit
-  snap.mkdir(parents=True)
-  (repo / "blobs").mkdir()
-  for name in ("config.json", "model.safetensors"):
-    data = (snapshot / name).read_bytes()
-    blob = repo / "blobs" / hashlib.sha256(data).hexdigest()
-    blob.write_bytes(data)
-    os.symlink(os.path.relpath(blob, snap), snap / name)
-
-
 def test_hub_ids_resolve_offline_from_the_standard_cache(tmp_path, reference_dir):
   """load_official("owner/name") (and revision=), `infer --checkpoint ID --snapshot`,
   `evaluate.py --checkpoint ID --snapshot --revision C` (results.json records the ID, the revision
@@ -179,7 +162,7 @@ def test_hub_ids_resolve_offline_from_the_standard_cache(tmp_path, reference_dir
   HF_HUB_OFFLINE=1; an ID that is not cached fails naming the ID and the cache. In a fresh
   process: huggingface_hub reads its environment once, at import."""
   commit = "0123456789abcdef0123456789abcdef01234567"
-  _hub_cache(tmp_path / "hub", "infinity1096/UFM-Fixture", reference_dir / "base", commit)
+  testing.hub_cache(tmp_path / "hub", "infinity1096/UFM-Fixture", reference_dir / "base", commit)
   io = dict(np.load(reference_dir / "base" / "io.npz"))
   from ufm_jax.data.io import write_image
   write_image(tmp_path / "src.png", io["hl1_src_uint8"])

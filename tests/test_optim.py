@@ -155,7 +155,8 @@ def test_non_finite_skips_update_and_counts():
   step = jax.jit(lambda s, g, l: optim.apply_gradients(s, g, l, tx))
   s1, ok = step(state, bad, jnp.float32(1.0))
   assert not bool(ok) and int(s1.skipped) == 1 and int(s1.step) == 1
-  for a, b in zip(jax.tree.leaves((s1.params, s1.opt_state)),
+  # Params and Adam's state are kept; the schedules advance (skip_advances_schedule, official).
+  for a, b in zip(jax.tree.leaves((s1.params, optim.advance_schedules(s1.opt_state, -1))),
                   jax.tree.leaves((state.params, state.opt_state))):
     np.testing.assert_array_equal(a, b)
   s2, ok = step(s1, grads, jnp.float32(np.inf))
@@ -176,3 +177,27 @@ def test_global_norm_clipping():
   np.testing.assert_allclose(u["w"], [0.6, 0.8, 0, 0], rtol=1e-6)
   state = optim.TrainState.create(params, tx)
   assert len(state.opt_state) == 2  # (clip state, multi_transform state)
+
+
+@pytest.mark.parametrize("advance", [True, False])
+def test_a_skipped_step_advances_the_schedule_as_the_official_trainer(advance):
+  """Step 1 skipped (non-finite loss): with skip_advances_schedule (official, train_pl.py:79-81
+  then the scheduler's step) the update of step 2 uses the learning rate of step 2 and Adam's
+  first bias-corrected step; without it, the rate of step 1 (the skip delays the schedule)."""
+  params = {"w": jnp.zeros(3)}
+  cfg = ml_collections.ConfigDict({"lr": {"default": 1e-2}, "warmup_frac": 0.5,
+                                   "weight_decay": 0.0, "min_lr_rate": 0.0})
+  tx, _, sched = optim.make_optimizer(cfg, params, total_steps=6)
+  state = optim.TrainState.create(params, tx)
+  grads = {"w": jnp.ones(3)}
+  step = jax.jit(lambda s, g, l: optim.apply_gradients(s, g, l, tx, advance))
+  state, ok = step(state, grads, jnp.float32(1.0))                  # step 0: lr 0
+  assert bool(ok)
+  state, ok = step(state, grads, jnp.float32(np.nan))               # step 1: skipped
+  assert not bool(ok) and int(state.skipped) == 1
+  before = np.asarray(state.params["w"])
+  state, ok = step(state, grads, jnp.float32(1.0))                  # step 2
+  lr = sched["default"](2 if advance else 1)
+  # Adam's second applied update: m_hat = v_hat = 1 (constant gradient): the step is -lr.
+  np.testing.assert_allclose(np.asarray(state.params["w"]) - before, -lr, rtol=1e-5)
+  assert lr > 0 and sched["default"](1) != sched["default"](2)

@@ -20,9 +20,12 @@ class FakeSource:
   has_backward = False
   static_scene = False
 
-  def __init__(self, root, n=10, code=1, corrupt=(), nan=(), reversible=True, split=None):
+  def __init__(self, root, n=10, code=1, corrupt=(), nan=(), reversible=True, split=None,
+               variants=None):
     self.root, self.n, self.code = root, n, code
     self.corrupt, self.nan, self.reversible = set(corrupt), set(nan), reversible
+    if variants is not None:   # consecutive indices rendering one official sample
+      self.variants = variants
 
   def __len__(self):
     return self.n
@@ -459,3 +462,26 @@ def test_keep_heap_serves_samples_from_memory_already_touched():
                                   capture_output=True).stdout) for k in "01"}
   assert faults["0"] > 5000, faults
   assert faults["1"] * 10 < faults["0"], faults
+
+
+@pytest.mark.parametrize("draw", [True, False])
+def test_variants_are_drawn_per_official_sample(tmp_path, draw):
+  """A source with 4 renderings (camera x pass) of each of 6 official samples, quota 12 per
+  epoch. draw_variants (official: the dataset class draws the rendering per sample): every
+  official sample exactly twice per epoch (floor(12 / 6)), each time a random rendering;
+  without it, 12 of the 24 renderings without replacement (a sample 0..4 times)."""
+  cfg = make_config(tmp_path, [(12, {"n": 24, "variants": 4})], draw_variants=draw)
+  pipe = pipeline.create(cfg, seed=3, num_epochs=8, process_index=0, process_count=1)
+  assert pipe.sizes == ((6,) if draw else (24,))
+  per_epoch = [collections.Counter() for _ in range(8)]
+  renderings = collections.Counter()
+  for e, b in enumerate(batches(pipe, 8 * 12 // 4)):
+    for _, i in decode(b, True):
+      per_epoch[e * 4 // 12][i // 4] += 1
+      renderings[i] += 1
+  spreads = {tuple(sorted(c.values())) for c in per_epoch}
+  if draw:
+    assert spreads == {(2,) * 6}
+    assert set(renderings) == set(range(24))   # every rendering drawn at some point
+  else:
+    assert all(sum(s) == 12 for s in spreads) and any(s != (2,) * 6 for s in spreads)

@@ -47,6 +47,71 @@ def test_batch_norm_follows_torch_batchnorm2d():
       atol=1e-5)
 
 
+def test_batch_norm_group_rows_takes_each_gpus_statistics():
+  """group_rows: the statistics of each group of consecutive rows on its own (DDP without
+  sync_batchnorm, each GPU its rows), the running ones from the first group's (rank 0's)."""
+  rng = np.random.default_rng(1)
+  x = rng.normal(1.0, 2.0, (6, 5, 4, 3)).astype(np.float32)
+  x[2:4] *= 3.0   # groups with different statistics
+  v = refine.BatchNorm().init(jax.random.PRNGKey(0), x)
+  y, upd = refine.BatchNorm(group_rows=2).apply(v, x, True, mutable=["batch_stats"])
+  for g in range(3):
+    want, ref = refine.BatchNorm().apply(v, x[2 * g:2 * g + 2], True, mutable=["batch_stats"])
+    np.testing.assert_allclose(np.asarray(y[2 * g:2 * g + 2]), np.asarray(want), atol=1e-5)
+    if g == 0:
+      jax.tree.map(lambda a, b: np.testing.assert_allclose(np.asarray(a), np.asarray(b),
+                                                           rtol=1e-6),
+                   upd["batch_stats"], ref["batch_stats"])
+  whole, _ = refine.BatchNorm().apply(v, x, True, mutable=["batch_stats"])
+  assert not np.allclose(np.asarray(whole), np.asarray(y), atol=1e-3)
+  with pytest.raises(ValueError, match=r"per 4 rows \(model.unet_batchnorm_group_rows\) do not "
+                                       r"divide a batch of 6 rows"):
+    refine.BatchNorm(group_rows=4).apply(v, x, True, mutable=["batch_stats"])
+
+
+_PER_DEVICE = r"""
+import jax, jax.numpy as jnp, numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from ufm_jax import hlo_stats
+from ufm_jax.models import refine
+assert jax.device_count() == 8
+mesh = Mesh(np.array(jax.devices()), ("data",))
+x = np.random.default_rng(0).normal(0.0, 1.0, (16, 12, 10, 4)).astype(np.float32)
+x *= np.arange(1, 17, dtype=np.float32)[:, None, None, None]
+v = refine.BatchNorm().init(jax.random.PRNGKey(0), x[:1])
+xs = jax.device_put(x, NamedSharding(mesh, P("data")))
+step = jax.jit(lambda v, x: refine.BatchNorm(group_rows=2).apply(v, x, True,
+                                                               mutable=["batch_stats"]))
+y, upd = step(v, xs)
+# Each device on its own rows, as each GPU of the official DDP run.
+per_device = jax.jit(jax.shard_map(
+    lambda x: refine.BatchNorm().apply(v, x, True, mutable=["batch_stats"])[0], mesh=mesh,
+    in_specs=P("data"), out_specs=P("data")))(xs)
+np.testing.assert_allclose(np.asarray(y), np.asarray(per_device), atol=1e-5)
+_, rank0 = refine.BatchNorm().apply(v, x[:2], True, mutable=["batch_stats"])
+for k in ("running_mean", "running_var"):
+  np.testing.assert_allclose(np.asarray(upd["batch_stats"][k]), np.asarray(rank0["batch_stats"][k]),
+                             rtol=1e-6)
+assert y.sharding.spec == P("data"), y.sharding
+# Statistics stay on their device: no collective moves the activations, only a C-sized
+# broadcast of the first group's statistics for the running ones.
+colls = hlo_stats.collectives(step.lower(v, xs).compile().as_text())
+assert hlo_stats.total_bytes(colls) <= 1024, colls
+print("ok", len(colls))
+"""
+
+
+def test_batch_norm_groups_are_per_device_statistics_on_8_fake_devices():
+  """On a mesh of 8 fake CPU devices, the jitted BatchNorm with group_rows = rows per device
+  equals each device normalising its own rows (shard_map), keeps the output batch-sharded and
+  moves no activations between devices."""
+  import subprocess
+  import sys
+  r = subprocess.run([sys.executable, "-c", _PER_DEVICE], env=testing.fake_devices_env(8),
+                     capture_output=True, text=True, timeout=600)
+  assert r.returncode == 0 and "ok" in r.stdout, r.stderr[-3000:]
+
+
 def _variables(model, seed):
   """Random params (shapes by eval_shape: no init compile) and the initial batch statistics."""
   stats = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype),

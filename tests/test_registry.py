@@ -21,7 +21,7 @@ STATIC = {"blendedmvs", "megadepth", "tartanair_v2", "scannetpp", "habitat", "st
           "scannetpp_official", "habitat_official", "staticthings_official"}
 WITH_BACKWARD = {"flyingthings", "monkaa", "spring", "kubric4d", "pairs_folder", "synthetic",
                  "flyingthings_official", "monkaa_official", "spring_official", "hd1k_official",
-                 "tartanair_assembled", "kubric4d_official"}
+                 "tartanair_assembled", "kubric4d_official", "flyingchairs"}
 
 
 def test_every_source_class_declares_backward_labels_and_static_scenes():

@@ -10,11 +10,13 @@ import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 _SKIP = {".venv", "build", "dist", ".git"}
+# Any other virtualenv in the checkout (e.g. the libtpu one docs/scale.md suggests, .venv-tpu).
+_VENVS = {p.parent.name for p in REPO.glob("*/pyvenv.cfg")}
 
 
 def _python_files():
   return sorted(p for p in REPO.rglob("*.py")
-                if not _SKIP & set(p.relative_to(REPO).parts))
+                if not (_SKIP | _VENVS) & set(p.relative_to(REPO).parts))
 
 
 def test_no_sys_path_edits():

@@ -1,5 +1,6 @@
 """Two CPU processes on localhost (jax.distributed + gloo), each with 2 fake devices, run the same
-train.py job on a 4-device mesh: both must see the same losses, and equal the 1-process run."""
+train.py job on a 4-device mesh: both must see the same losses, and equal the 1-process run. On
+the recipes' default mesh (data:1,fsdp:-1) the train state is sharded across the two processes."""
 
 import json
 import pathlib
@@ -30,7 +31,8 @@ def _losses(stderr):
 
 
 @pytest.mark.multiprocess
-def test_two_processes_same_loss(tmp_path):
+@pytest.mark.parametrize("mesh", ["data:-1,fsdp:2", "data:1,fsdp:-1"])
+def test_two_processes_same_loss(tmp_path, mesh):
   port = _free_port()
   procs = []
   for pid in range(2):
@@ -40,7 +42,7 @@ def test_two_processes_same_loss(tmp_path):
         "JAX_PROCESS_ID": str(pid), "JAX_CPU_COLLECTIVES_IMPLEMENTATION": "gloo"})
     cmd = [sys.executable, str(REPO / "train.py"), f"--config={REPO}/ufm_jax/testing/train_support.py",
            f"--workdir={tmp_path / 'mp'}", "--config.total_steps=2", "--config.ckpt_steps=2",
-           "--config.mesh=data:-1,fsdp:2", "--verbosity=0"]  # per-process metrics logs
+           f"--config.mesh={mesh}", "--verbosity=0"]  # per-process metrics logs
     procs.append(subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                   text=True, cwd=REPO))
   outs = []
@@ -61,7 +63,7 @@ def test_two_processes_same_loss(tmp_path):
   r = subprocess.run([sys.executable, str(REPO / "train.py"),
                       f"--config={REPO}/ufm_jax/testing/train_support.py",
                       f"--workdir={tmp_path / 'sp'}", "--config.total_steps=2",
-                      "--config.ckpt_steps=2", "--config.mesh=data:-1,fsdp:2", "--verbosity=0"],
+                      "--config.ckpt_steps=2", f"--config.mesh={mesh}", "--verbosity=0"],
                      env=env, capture_output=True, text=True, timeout=240, cwd=REPO)
   assert r.returncode == 0, r.stderr[-3000:]
   ls = _losses(r.stderr)

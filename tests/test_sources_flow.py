@@ -6,6 +6,8 @@ spec in test_io_formats.py; the expected labels below are worked out by hand.
 
 import os
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -71,7 +73,16 @@ def test_flyingchairs_split_and_labels(tmp_path):
   np.testing.assert_array_equal(s["covisibility"], expected)
   assert not s["covis_valid"].any()  # FlyingChairs never supervises covisibility
   assert s["meta"]["gt_relpath"] == "00001_flow.flo"
-  assert not train.has_backward and not train.static_scene
+  assert train.has_backward and not train.static_scene
+  fwd, bwd = train.both(0)
+  assert set(fwd) == set(bwd) == set(data.SAMPLE_KEYS) | {"fov_mask"}
+  np.testing.assert_array_equal(bwd["image0"], images[1, 2])
+  np.testing.assert_array_equal(bwd["image1"], images[1, 1])
+  assert not bwd["flow"].any() and bwd["flow_valid"].all()   # the official zero flow, read
+  for k in ("covisibility", "covis_valid", "fov_mask"):      # by the "all" range only
+    assert not bwd[k].any(), k
+  off = data.get_source("flyingchairs", tmp_path, split="train", backward_zero_flow=False)
+  assert not off.both(0)[1]["flow_valid"].any()
 
 
 def test_flyingchairs_errors(tmp_path):
@@ -467,13 +478,70 @@ def test_pipeline_interface(tmp_path):
           "spring": data.get_source("spring", tmp_path / "spring", cameras=("left",)),
           "sintel_clean": data.get_source("sintel_clean", tmp_path / "sintel")}
   modes = {n: backward_labels.backward_mode(s, n) for n, s in srcs.items()}
-  assert modes == {"flyingchairs": "unsupervised", "flyingthings": "source", "spring": "source",
+  assert modes == {"flyingchairs": "source", "flyingthings": "source", "spring": "source",
                    "sintel_clean": "unsupervised"}
   for name, src in srcs.items():
     load_pair.check_sample(src[0], name)
     if modes[name] == "source":
       for s in src.both(0):
         load_pair.check_sample(s, name)
+
+
+def _hd1k_tree(root, h, w):
+  flow = np.zeros((h, w, 2), np.float32)
+  flow[..., 0] = -2.25
+  valid = np.ones((h, w), bool)
+  valid[3, 3] = False
+  for fr in (0, 1, 2):
+    io.write_image(_mk(f"{root}/hd1k_input/image_2/000000_{fr:04d}.png"), _img(h, w, fr))
+    io.write_kitti_flow(_mk(f"{root}/hd1k_flow_gt/flow_occ/000000_{fr:04d}.png"), flow, valid)
+
+
+@pytest.mark.parametrize("zero_flow", [True, False])
+def test_flyingchairs_backward_rows_in_the_980_all_range(tmp_path, zero_flow):
+  """The official FlyingChairs second view (zero flow, every mask False) in symmetrized 980
+  batches: the "all" range (loss/epe.py:63-69 reads no mask) supervises every pixel of those
+  rows towards zero flow; `backward_zero_flow=False` drops them. HD1K's backward rows (official:
+  4000 px flow, outside the range) supervise nothing either way."""
+  from ufm_jax import config_lib, losses
+  from ufm_jax.data import pipeline
+  h, w = 28, 42
+  _chairs_tree(tmp_path / "chairs", n=4, h=h, w=w)
+  (tmp_path / "chairs" / "chairs_split.txt").write_text("1\n1\n1\n1\n")
+  _hd1k_tree(tmp_path / "hd1k", h, w)
+  recipe = config_lib.load_config("configs/ufm980.py")
+  assert recipe.input.datasets.flyingchairs.options.backward_zero_flow   # the official quirk
+  term = dict(losses.recipe_from_config(recipe.loss).terms)["epe_all"]
+  cfg = pipeline.input_config(
+      {"flyingchairs": {"quota": 4, "root": str(tmp_path / "chairs"),
+                        "options": {"split": "train", "backward_zero_flow": zero_flow}},
+       "hd1k": {"quota": 2, "root": str(tmp_path / "hd1k"), "options": {}}},
+      batch_size=12, shapes=((14, 28),), num_workers=0, augment=dict(recipe.input.augment))
+  batch = next(iter(pipeline.create(cfg, seed=0, num_epochs=1, process_index=0,
+                                    process_count=1)))
+  names = ("flyingchairs", "hd1k")
+  mask, _ = term.mask({k: np.asarray(v) for k, v in batch.items()}, np.asarray(batch["flow"]))
+  mask = np.asarray(mask)
+  seen = set()
+  for r in range(12):
+    name, backward = names[batch["dataset_id"][r]], r % 2 == 1
+    seen.add((name, backward))
+    assert not batch["covisibility"][r].any() or not backward
+    if name == "flyingchairs" and backward:
+      assert not batch["flow"][r].any() and not batch["covis_valid"][r].any()
+      assert mask[r].sum() == (14 * 28 if zero_flow else 0), r
+    elif backward:
+      assert mask[r].sum() == 0, r
+    else:
+      assert mask[r].sum() > 0, r
+  assert seen == {(n, b) for n in names for b in (False, True)}
+  # The rows pull a prediction towards zero flow on every pixel (the official gradient).
+  pred = jnp.ones(batch["flow"].shape, jnp.float32)
+  grads = jax.grad(lambda p: losses.Recipe((("epe_all", term),))(
+      {"flow": p}, {k: jnp.asarray(v) for k, v in batch.items()})[0])(pred)
+  rows = [r for r in range(12) if names[batch["dataset_id"][r]] == "flyingchairs" and r % 2]
+  g = np.asarray(grads)[rows]
+  assert (g > 0).all() if zero_flow else not g.any()
 
 
 # -- Non-finite ground truth ----------------------------------------------------------------------

@@ -140,15 +140,21 @@ def test_sceneflow_processed_variants_and_both_directions(tmp_path, dataset, flo
   root = ot.write_sceneflow(str(tmp_path), dataset, flow_index=flow_index, flow_layout=layout)
   c = ot.FLOW_CONTENT[dataset]
   src = data.get_source(f"{dataset}_official", root)
-  assert src.has_backward and len(src) == 2 * 2 * 2   # 2 pairs x (left, right) x (clean, final)
+  # The official draws per sample: the camera, and the pass (FlyingThings3D: one for both
+  # frames, flyingthings3d.py:66-71; Monkaa: each frame's own, monkaa.py:61-64).
+  passes = ([("clean", "clean"), ("final", "final")] if dataset == "flyingthings" else
+            [(p0, p1) for p0 in ("clean", "final") for p1 in ("clean", "final")])
+  assert src.has_backward and src.variants == 2 * len(passes)
+  assert len(src) == 2 * src.variants   # 2 pairs x (left, right) x passes
   for index in range(len(src)):
-    pair, r = divmod(index, 4)
-    cam, dpass = ("left", "right")[r // 2], ("clean", "final")[r % 2]
+    pair, r = divmod(index, src.variants)
+    cam, (p0, p1) = ("left", "right")[r // len(passes)], passes[r % len(passes)]
     fwd, bwd = src.both(index)
-    im = c["images"][(cam, dpass)]
-    _check_labels(fwd, c["labels"][(cam, 0)][pair], im[pair], im[pair + 1])
-    _check_labels(bwd, c["labels"][(cam, 1)][pair], im[pair + 1], im[pair])
-    assert fwd["meta"]["camera"] == cam and fwd["meta"]["dstype"] == dpass
+    im0, im1 = c["images"][(cam, p0)], c["images"][(cam, p1)]
+    _check_labels(fwd, c["labels"][(cam, 0)][pair], im0[pair], im1[pair + 1])
+    _check_labels(bwd, c["labels"][(cam, 1)][pair], im1[pair + 1], im0[pair])
+    assert fwd["meta"]["camera"] == cam
+    assert fwd["meta"]["dstype"] == (p0 if p0 == p1 else f"{p0}/{p1}")
     assert fwd["meta"]["suitable_for_refinement"] is (dataset == "flyingthings")
   no_aug = data.get_source(f"{dataset}_official", root, cameras=("left",), passes=("clean",))
   assert len(no_aug) == 2

@@ -49,7 +49,11 @@ def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
   the recipe itself (optim, loss, model, input) is written out in each config file."""
   c.seed = 0
   c.total_steps = unset(int)    # None: num_epochs * (pairs per epoch // batch size)
-  c.mesh = "data:-1,fsdp:1"     # e.g. "data:2,fsdp:4" to shard params/opt state over 4 devices
+  # FSDP over every device: the train state (params, AdamW moments) sharded, the batch split over
+  # all of them; the sharding the planner sizes (docs/scale.md). "data:-1,fsdp:1" replicates the
+  # state on every device; "data:2,fsdp:-1" shards it within each half (e.g. within the nodes of
+  # a multi-node GPU run, where gathers over the slower inter-node network would cost more).
+  c.mesh = "data:1,fsdp:-1"
   # FSDP over the largest divisible dimension; tensors under `sharding_min_size` entries (biases,
   # norms, layer scales) stay replicated.
   c.sharding_rules = [(r".*", "fsdp")]

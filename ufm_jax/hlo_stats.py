@@ -1,5 +1,6 @@
-"""Collectives of a compiled XLA program, read from its HLO text (`compiled.as_text()`), and the
-FLOPs of a train step (`train_step_flops`).
+"""Collectives of a compiled XLA program, read from its HLO text (`compiled.as_text()`), and
+XLA's own FLOP count of a program (`flops`; it counts a loop body once: the FLOPs of a train step
+are counted on its jaxpr, `ufm_jax.flops`).
 
 What a step moves between devices decides whether it scales, and none of it shows on one device:
 an FSDP step should gather each weight for the forward and backward pass and reduce-scatter its
@@ -182,23 +183,3 @@ def flops(lowered) -> float | None:
     return float(ca.get("flops")) if ca and ca.get("flops") else None
   except Exception:  # noqa: BLE001 - not every backend reports a cost analysis
     return None
-
-
-def train_step_flops(config, hw, batch: int) -> float | None:
-  """FLOPs of one train step of `config` at global `batch` and (H, W) `hw`, counted by XLA on
-  the step as traced (remat's recomputation included), lowered for one host CPU device.
-
-  Blocks unrolled and XLA's attention: XLA counts a loop body once, so a scanned model (or the
-  CPU attention's loop) would count one block; a compiled TPU/GPU program is no better (a loop
-  body once, and on GPU no cuBLAS/cuDNN calls). Lowered, not compiled: seconds, not minutes.
-  """
-  import copy
-
-  import jax
-  from ufm_jax import sharding, trainer
-  config = copy.deepcopy(config)
-  config.model.attention_impl = "xla"
-  config.model.scan_blocks = False
-  mesh = sharding.make_mesh("data:-1,fsdp:1", jax.devices("cpu")[:1])
-  ts = trainer.setup(config, mesh, hw, total_steps=1000)
-  return flops(ts.train_step.lower(ts.sharded_abstract_state(), ts.abstract_batch(batch, hw)))

@@ -80,7 +80,10 @@ class FlowRegression:
   GT target (integer pixel index + flow) inside [-margin W, (1+margin) W) x [-margin H,
   (1+margin) H) (official 'all' with fov_threshold = margin, loss/epe.py:75-105), and only where
   the batch has ground truth (flow_valid: the official datasets encode missing flow as 4000 px,
-  which that range test excludes).
+  which that range test excludes). The official test reads no mask (every pixel counts as valid,
+  epe.py:63-69), so a row whose official label is zero flow with all masks False (FlyingChairs'
+  second view) is supervised towards zero flow everywhere: its reader marks that flow valid
+  (source option `backward_zero_flow`, ufm_jax/data/sources/flyingchairs.py).
   """
   kind: str = "robust"              # "robust" | "epe"
   range: str = "covisible"          # "covisible" | "all"

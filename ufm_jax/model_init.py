@@ -3,7 +3,10 @@
 Sources (a string, optionally prefixed with a kind; without one, `model_io.what_is` tells):
   ckpt:DIR       a training workdir or its checkpoints/ folder (latest step), or a
                  `python -m ufm_jax convert` output (read through `ufm_jax.load`)
-  snapshot:DIR   a Hugging Face snapshot of the official PyTorch release (`ufm_jax.load_official`)
+  snapshot:DIR   a Hugging Face snapshot of the official PyTorch release (`ufm_jax.load_official`):
+                 its folder, or a Hub ID (`snapshot:infinity1096/UFM-Base`), optionally at a
+                 revision (`snapshot:infinity1096/UFM-Base@REVISION`: a branch, tag or commit);
+                 the report names the commit the Hub ID resolved to
   dinov2:PATH    DINOv2 weights for the encoder: HF `facebook/dinov2-*` model.safetensors (or its
                  folder), transformers naming, no torch needed; or the original `dinov2_vit*14*.pth`
                  (needs the optional torch extra)
@@ -25,6 +28,13 @@ A head may have adaptors the source's lacks (a flow covariance added to a releas
 channels for the adaptors both have and keeps its fresh ones for the new adaptor
 (`head_channel_maps`; listed under "resized" in the report). An adaptor the source has and the
 model lacks is dropped the same way.
+
+`config.model_init_flow_adaptor` = "buffers" does what the official `resume_model` does
+(train_pl.py:496-518: `load_state_dict` of the source's weights and buffers into the model the
+YAML builds): before the run writes its config.json, `adopt_flow_adaptor` sets the config's
+flow_mean / flow_std to the source's (its buffers), while base_shape and scale_strategy (YAML
+values, not in a state dict) stay the config's, differences logged instead of refused. "check"
+(and configs without the key): every difference is refused.
 """
 
 from __future__ import annotations
@@ -151,6 +161,27 @@ def source_kind(spec: str) -> tuple[str, str]:
   return {model_io.WORKDIR: "ckpt", model_io.CONVERTED: "ckpt"}.get(kind, kind), spec
 
 
+def snapshot_ref(path: str) -> tuple[str, str | None]:
+  """(folder or Hub ID, revision) of a `snapshot:` source: `ID@REVISION` asks for a revision of a
+  Hub ID; a folder that exists is taken whole, "@" and all."""
+  if "@" in path and not pathlib.Path(path).exists():
+    name, revision = path.rsplit("@", 1)
+    if not revision:
+      raise ValueError(f"model_init snapshot:{path}: empty revision after '@'")
+    return name, revision
+  return path, None
+
+
+def _snapshot_source(path: str) -> tuple[str, str | None, str]:
+  """(folder or Hub ID, revision, the report's name: with the resolved Hub commit)."""
+  from ufm_jax.official import snapshot
+  name, revision = snapshot_ref(path)
+  folder = snapshot.snapshot_folder(name, revision)
+  commit = snapshot.hub_commit(folder)
+  shown = f"snapshot:{path}" + (f" (commit {commit})" if commit and commit != revision else "")
+  return name, revision, shown
+
+
 def load_init_params(spec: str, template, config=None) -> tuple[Any, InitReport]:
   """Parameters for `template` (the freshly initialised parameter tree) from the `model_init`
   source: `load_init_variables` on {"params": template}."""
@@ -165,10 +196,11 @@ def _read_source(kind: str, path: str, want_config: bool):
   if kind == "dinov2":
     from ufm_jax.official import dinov2_weights
     return {"params": dinov2_weights.load(path)}, None, f"{kind}:{path}"
-  model = None
+  model, shown = None, None
   if kind == "snapshot":
     from ufm_jax.official import snapshot
-    model, variables = snapshot.load_official(path)
+    name, revision, shown = _snapshot_source(path)
+    model, variables = snapshot.load_official(name, revision)
   elif model_io.what_is(path) == model_io.WORKDIR:
     from ufm_jax import checkpoint
     state, step = checkpoint.read_state_numpy(path)
@@ -186,7 +218,7 @@ def _read_source(kind: str, path: str, want_config: bool):
     model, variables = model_io.load_converted(path)
   out = {c: {k: np.asarray(v) for k, v in flatten(tree).items()}
          for c, tree in variables.items() if c in ("params", "batch_stats")}
-  return out, getattr(model, "config", None), f"{kind}:{path}"
+  return out, getattr(model, "config", None), shown or f"{kind}:{path}"
 
 
 def _workdir_root(path):
@@ -195,8 +227,62 @@ def _workdir_root(path):
   return p.parent if p.name == "checkpoints" and not (p / "config.json").exists() else p
 
 
-def load_init_variables(spec: str, template: dict, config=None,
-                        model_block=None) -> tuple[dict, InitReport]:
+# The flow adaptor's fields a state dict carries (buffers: the official resume_model loads them
+# from the source) and the ones only a config states (they stay the run's).
+FLOW_ADAPTOR_BUFFERS = ("flow_adaptor.flow_mean", "flow_adaptor.flow_std")
+FLOW_ADAPTOR_CONFIG = ("flow_adaptor.base_shape", "flow_adaptor.scale_strategy")
+FLOW_ADAPTOR_MODES = ("check", "buffers")
+
+
+def source_model_config(spec: str):
+  """The model config of a `model_init` source without reading its weights where it can (a
+  snapshot's config.json and tensor shapes, a workdir's config.json); None for DINOv2 weights or
+  a workdir without config.json."""
+  kind, path = source_kind(spec)
+  if kind == "dinov2":
+    return None
+  if kind == "snapshot":
+    from ufm_jax.official import snapshot
+    return snapshot.snapshot_model(*snapshot_ref(path)).config
+  if model_io.what_is(path) == model_io.WORKDIR:
+    root = _workdir_root(path)
+    return model_io.workdir_model(root).config if (root / "config.json").is_file() else None
+  model, _ = model_io.load_converted(path)
+  return getattr(model, "config", None)
+
+
+def adopt_flow_adaptor(config) -> list[str]:
+  """With `config.model_init_flow_adaptor` = "buffers" and a `model_init` source: the config's
+  model.flow_adaptor.flow_mean / flow_std set to the source's (what the official resume_model
+  loads with the weights). Returns a line per value changed (nothing for a source without a
+  model config). Run before the config is written to the workdir, so config.json states them."""
+  mode = config.get("model_init_flow_adaptor") or "check"
+  if mode not in FLOW_ADAPTOR_MODES:
+    raise ValueError(f"model_init_flow_adaptor={mode!r}; expected one of {FLOW_ADAPTOR_MODES}")
+  if mode != "buffers" or not config.get("model_init"):
+    return []
+  source = source_model_config(config.model_init)
+  if source is None:
+    return []
+  block = config.model.get("flow_adaptor")
+  if block is None:
+    raise ValueError("model_init_flow_adaptor='buffers' needs a config.model.flow_adaptor block "
+                     "(flow_mean, flow_std, base_shape, scale_strategy) to write the source's "
+                     "buffers into")
+  changed = []
+  for field in FLOW_ADAPTOR_BUFFERS:
+    key = field.split(".")[1]
+    value = tuple(float(x) for x in getattr(source.flow_adaptor, key))
+    old = block.get(key)
+    if old is None or tuple(float(x) for x in old) != value:
+      block[key] = value
+      changed.append(f"model.{field}: {_show(old)} -> {_show(value)} (the buffers of "
+                     f"{config.model_init}, as the official resume_model loads them)")
+  return changed
+
+
+def load_init_variables(spec: str, template: dict, config=None, model_block=None,
+                        flow_adaptor: str = "check") -> tuple[dict, InitReport]:
   """Variables for `template` ({"params"[, "batch_stats"]}, freshly initialised) from the
   `model_init` source.
 
@@ -207,12 +293,24 @@ def load_init_variables(spec: str, template: dict, config=None,
   `model_block`, the training config's `model` block, makes the error name --config overrides
   that exist). Without it the layouts must already agree and nothing is checked. BatchNorm
   statistics the source lacks stay as initialised; the report lists them under "left at init"
-  with a "batch_stats/" prefix.
+  with a "batch_stats/" prefix. `flow_adaptor` (`config.model_init_flow_adaptor`): "buffers"
+  leaves the flow adaptor's base_shape and scale_strategy out of the check (the run keeps its
+  config's, as the official resume_model does; a difference is logged), after
+  `adopt_flow_adaptor` put the source's flow_mean / flow_std into the config.
   """
   kind, path = source_kind(spec)
   loaded, source_config, source = _read_source(kind, path, want_config=config is not None)
   if config is not None and source_config is not None:
-    check_structure(source_config, config, source, model_block)
+    if flow_adaptor not in FLOW_ADAPTOR_MODES:
+      raise ValueError(f"model_init_flow_adaptor={flow_adaptor!r}; expected one of "
+                       f"{FLOW_ADAPTOR_MODES}")
+    keep = FLOW_ADAPTOR_CONFIG if flow_adaptor == "buffers" else ()
+    for k, va, vb in structure_differences(source_config, config):
+      if k in keep:
+        logging.warning("model_init %s: %s is %s there; this run keeps the config's %s (the "
+                        "official resume_model loads weights and buffers only)", source, k,
+                        _show(va), _show(vb))
+    check_structure(source_config, config, source, model_block, skip=keep)
   params = loaded["params"]
   maps = {}
   if config is not None:
@@ -242,7 +340,8 @@ def load_init_variables(spec: str, template: dict, config=None,
 # compute options and initialisers (they change no output of trained weights), where `predict`
 # resizes to, a training-only gradient switch, and the position table (resized on load).
 INIT_FREE_FIELDS = ("dtype", "remat", "attention_impl", "scan_blocks", "head_dtype", "param_init",
-                    "official_kwargs", "refine_chunk", "inference_resolution",
+                    "official_kwargs", "refine_chunk", "unet_batchnorm_group_rows",
+                    "inference_resolution",
                     "detach_uncertainty_head", "encoder.pos_embed_init", "encoder.init_values",
                     "encoder.pos_grid", "info_sharing.tied_qk_init")
 
@@ -278,10 +377,11 @@ def _norm(v):
   return tuple(_norm(x) for x in v) if isinstance(v, (list, tuple)) else v
 
 
-def check_structure(source_config, config, source: str, model_block=None) -> None:
+def check_structure(source_config, config, source: str, model_block=None, skip=()) -> None:
   """ValueError when the source's model differs from `config` in a field that changes outputs
-  (`structure_differences`), naming each field's two values and how to adopt the source's."""
-  diffs = structure_differences(source_config, config)
+  (`structure_differences`, less the fields in `skip`), naming each field's two values and how
+  to adopt the source's."""
+  diffs = [d for d in structure_differences(source_config, config) if d[0] not in skip]
   if not diffs:
     return
   lines = []

@@ -236,10 +236,17 @@ class TrainStateWithStats(TrainState):
   batch_stats: Any
 
 
-def apply_gradients(state: TrainState, grads, loss, tx) -> tuple[TrainState, jnp.ndarray]:
+def apply_gradients(state: TrainState, grads, loss, tx,
+                    skip_advances_schedule: bool = True) -> tuple[TrainState, jnp.ndarray]:
   """One optimizer update through `optax.apply_if_finite`: when loss or any gradient is
-  non-finite the params and optimizer state are kept as they were (step still advances, so the
-  schedule and data stay aligned) and `skipped` (its total_notfinite) is incremented.
+  non-finite the params and Adam's moments and step count are kept as they were, `step`
+  advances (the data stay aligned) and `skipped` (its total_notfinite) is incremented.
+
+  skip_advances_schedule (config.optim.skip_advances_schedule): True (official) moves every
+  group's learning-rate schedule on by the skipped step, as the official trainer steps its
+  scheduler after an update whose zero loss carried no gradient (train_pl.py:79-81; torch's
+  AdamW leaves parameters without a gradient and their step count alone); False: the schedules
+  count applied updates only, so each skip delays the rest of the schedule by one step.
 
   The wrapper's state is rebuilt around `state.opt_state` on each call, so the TrainState and its
   checkpoints keep the plain optimizer's layout. It never gives up and applies a non-finite
@@ -253,9 +260,20 @@ def apply_gradients(state: TrainState, grads, loss, tx) -> tuple[TrainState, jnp
       notfinite_count=jnp.zeros([], jnp.int32), last_finite=jnp.array(True),
       total_notfinite=state.skipped, inner_state=state.opt_state)
   updates, wrapped = guarded.update(grads, wrapped, state.params)
+  opt_state, ok = wrapped.inner_state, wrapped.last_finite
+  if skip_advances_schedule:
+    opt_state = advance_schedules(opt_state, jnp.where(ok, 0, 1))
   return state.replace(step=state.step + 1, params=optax.apply_updates(state.params, updates),
-                       opt_state=wrapped.inner_state,
-                       skipped=wrapped.total_notfinite), wrapped.last_finite
+                       opt_state=opt_state, skipped=wrapped.total_notfinite), ok
+
+
+def advance_schedules(opt_state, by):
+  """opt_state with the step count of every learning-rate schedule (optax's
+  ScaleByScheduleState) moved on by `by`; Adam's own count (its bias correction) unchanged."""
+  is_schedule = lambda x: isinstance(x, optax.ScaleByScheduleState)  # noqa: E731
+  return jax.tree.map(
+      lambda x: x._replace(count=x.count + jnp.asarray(by, x.count.dtype)) if is_schedule(x)
+      else x, opt_state, is_leaf=is_schedule)
 
 
 def current_lrs(schedules, step) -> dict[str, float]:

@@ -87,7 +87,8 @@ class RefinementCE:
   # position in (-1, 0) reads row/column 0 instead of the zero padding); "floor" rounds down.
   taps: str = "truncate"
   # Quirk (efficient.py:46, 64): the gathered target features are cast to this dtype before the
-  # bilinear blend (their gradients pass through the cast); "float32" keeps them exact.
+  # bilinear blend (their gradients pass through the cast; `_bf16_window_blend`); "float32"
+  # keeps them exact.
   gather_dtype: str = "bfloat16"
   # Quirk (efficient.py:292): the mean divides by count + eps; None divides by max(count, 1).
   eps: Optional[float] = 1e-4
@@ -160,13 +161,65 @@ class RefinementCE:
     qx, qy = jnp.broadcast_arrays(rnd(pos_x), rnd(pos_y))                  # [K, P+1, P+1]
     valid = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h)
     taps = f1[bi[:, None, None], jnp.clip(qy, 0, h - 1), jnp.clip(qx, 0, w - 1)]
-    taps = jnp.where(valid[..., None], taps, 0.0).astype(_DTYPES[self.gather_dtype])
+    taps = jnp.where(valid[..., None], taps, 0.0)
     frac = (t - 0.5) - jnp.floor(t - 0.5)                                  # [K, 2]
     rx, ry = frac[:, 0, None, None, None], frac[:, 1, None, None, None]
-    rx1, ry1 = 1 - rx, 1 - ry
-    # float32 weights times the (bfloat16) taps, summed in the official order.
-    return (rx1 * ry1 * taps[:, :-1, :-1] + rx1 * ry * taps[:, 1:, :-1]
-            + rx * ry1 * taps[:, :-1, 1:] + rx * ry * taps[:, 1:, 1:])
+    if self.gather_dtype == "bfloat16":
+      return _bf16_window_blend(taps, rx, ry)
+    return _blend(taps, rx, ry)
+
+
+def _blend(taps, rx, ry):
+  """The official bilinear blend of the (P+1)^2 taps into the P x P window (efficient.py:74-80):
+  float32 weights times the taps, summed in the official order."""
+  rx1, ry1 = 1 - rx, 1 - ry
+  return (rx1 * ry1 * taps[:, :-1, :-1] + rx1 * ry * taps[:, 1:, :-1]
+          + rx * ry1 * taps[:, :-1, 1:] + rx * ry * taps[:, 1:, 1:])
+
+
+def _round_bf16(x):
+  """float32 rounded to bfloat16's precision, kept float32: an explicit rounding that XLA may
+  not drop (a bfloat16 round trip may be elided, `xla_allow_excess_precision`)."""
+  return jax.lax.reduce_precision(x, exponent_bits=8, mantissa_bits=7)
+
+
+@jax.custom_vjp
+def _bf16_window_blend(taps, rx, ry):
+  """`_blend` of the taps cast to bfloat16 (the official `features_output`, a bfloat16 tensor,
+  efficient.py:46, 64), with the official gradient: torch's autograd gives the bfloat16 taps the
+  four terms' gradients (each float32 product rounded to bfloat16) summed in bfloat16 in the
+  reverse order of their use, the [1:, 1:] slice's first, then [:-1, 1:], [1:, :-1], [:-1, :-1],
+  rounding after every sum. Written out here because XLA keeps a fused sum of bfloat16 terms in
+  float32 (the jitted step then missed the official gradient by up to 3.1e-3 of its largest
+  value on the fixtures' cases, 4.8e-5 op by op). No other order is the official one: summed in
+  use order, or without the roundings, the gradient misses by 1.7e-3 to 6.9e-3 of its max
+  (tests/test_official_losses.py, `test_refinement_gradient_in_the_jitted_step`).
+
+  What stays is rounding ties: of c0's 342k rounded contributions, 11 lie within one float32
+  ulp of a bfloat16 tie, so the last bits of the float32 gradient above (the log-softmax and
+  matmul backward, summed in another order than torch's) decide them; one that rounds the other
+  way moves the gradient by one bfloat16 ulp of that contribution (up to 2^-8 of the max: c0
+  measures 4.8e-5 op by op, 7.6e-4 jitted)."""
+  return _blend(_round_bf16(taps), rx, ry)
+
+
+def _bf16_window_blend_fwd(taps, rx, ry):
+  return _bf16_window_blend(taps, rx, ry), (rx, ry)
+
+
+def _bf16_window_blend_bwd(res, g):
+  rx, ry = res
+  rx1, ry1 = 1 - rx, 1 - ry
+  # (weight, (row, column) offset of its slice of the (P+1)^2 taps), in torch's backward order.
+  terms = ((rx * ry, (1, 1)), (rx * ry1, (0, 1)), (rx1 * ry, (1, 0)), (rx1 * ry1, (0, 0)))
+  acc = None
+  for w, (dy, dx) in terms:
+    gi = jnp.pad(_round_bf16(g * w), ((0, 0), (dy, 1 - dy), (dx, 1 - dx), (0, 0)))
+    acc = gi if acc is None else _round_bf16(acc + gi)
+  return acc, None, None
+
+
+_bf16_window_blend.defvjp(_bf16_window_blend_fwd, _bf16_window_blend_bwd)
 
 
 @dataclasses.dataclass(frozen=True)

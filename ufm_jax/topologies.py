@@ -29,17 +29,21 @@ class Chip:
   device_kind: str         # jax's Device.device_kind
   hbm_bytes: int           # memory one device may use
   peak_bf16_flops: float   # dense bf16 FLOP/s (vendor datasheet, no sparsity)
+  host_vcpus_per_chip: float | None = None   # the host VM's vCPUs over its chips (None: unknown)
 
 
 # TPU HBM: the limit XLA:TPU compiles against (libtpu 0.0.42 names it when a program does not
 # fit: "exceeds available HBM (15.75G)"), a little under the datasheet's 16/32/95 GB.
 # GPU HBM: the datasheet's. Peaks: Cloud TPU and NVIDIA datasheets.
+# Host vCPUs (what feeds the chips, ufm_jax.planning): Cloud TPU's VM tables, v5e 112 per 4-chip
+# VM (ct5lp-hightpu-4t; 224 per 8-chip VM), v5p 208 per 4-chip VM (half of them within one NUMA
+# node); Google Cloud's a3-highgpu-8g, 208 for 8 H100s.
 CHIPS = {
     "v4": Chip("TPU v4", int(30.75 * GIB), 275e12),
-    "v5e": Chip("TPU v5 lite", int(15.75 * GIB), 197e12),
-    "v5p": Chip("TPU v5", int(95.74 * GIB), 459e12),
+    "v5e": Chip("TPU v5 lite", int(15.75 * GIB), 197e12, 28),
+    "v5p": Chip("TPU v5", int(95.74 * GIB), 459e12, 52),
     "v6e": Chip("TPU v6 lite", int(31.25 * GIB), 918e12),
-    "h100": Chip("NVIDIA H100", 80 * 10 ** 9, 989e12),
+    "h100": Chip("NVIDIA H100", 80 * 10 ** 9, 989e12, 26),
     "h200": Chip("NVIDIA H200", 141 * 10 ** 9, 989e12),
     "a100": Chip("NVIDIA A100", 80 * 10 ** 9, 312e12),
     "l4": Chip("NVIDIA L4", 24 * 10 ** 9, 121e12),

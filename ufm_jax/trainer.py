@@ -94,6 +94,19 @@ def build_input(config, process_batch: int, seed: int):
   return pipeline.make_train_iterator(config.input, process_batch=process_batch, seed=seed)
 
 
+def schedule_steps(config, pairs_per_epoch):
+  """(total optimizer steps, steps per epoch or None) of a run: config.total_steps, or
+  config.num_epochs whole batches of the epoch's `pairs_per_epoch` rows (drop_last, as the
+  official loaders; epochs and warmup count these)."""
+  steps_per_epoch = int(pairs_per_epoch or 0) // int(config.input.batch_size) or None
+  if config.total_steps:
+    return int(config.total_steps), steps_per_epoch
+  if config.get("num_epochs") and steps_per_epoch:
+    return int(config.num_epochs * steps_per_epoch), steps_per_epoch
+  raise ValueError("config needs total_steps, or num_epochs with a pipeline that knows its "
+                   "pairs per epoch")
+
+
 def build_loss(config, model=None, dataset_names=None):
   """loss(model outputs, batch, rng) -> (loss, aux dict of scalars): the recipe of config.loss
   (`ufm_jax.losses.recipe_from_config`). `model` supplies the refinement temperature,
@@ -111,7 +124,8 @@ def build_loss(config, model=None, dataset_names=None):
 
 
 def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None, seed: int = 0,
-                    grad_accum: int = 1, mesh=None, param_sh=None):
+                    grad_accum: int = 1, mesh=None, param_sh=None,
+                    skip_advances_schedule: bool = True):
   """train_step(state, batch) -> (state, metrics): one optimizer update.
 
   Gradients are taken w.r.t. the trainable params only (frozen ones enter through stop_gradient,
@@ -120,9 +134,9 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
   own per step (PRNGKey(seed) folded with the step: the refinement loss draws its pixel cap).
 
   A model with BatchNorm (`state.batch_stats`) runs with train=True: it normalises with the
-  batch's statistics (over the global batch: every device's rows) and the step stores the
-  running statistics it returns, unless the update is skipped as non-finite. Other models are
-  called exactly as before (no `train` argument).
+  batch's statistics (per group of `unet_batchnorm_group_rows` rows, else over the global batch)
+  and the step stores the running statistics it returns, unless the update is skipped as
+  non-finite. Other models are called exactly as before (no `train` argument).
 
   grad_accum=k > 1 runs the global batch as k microbatches in a loop (`accumulation.microbatches`)
   and applies one update with the mean of their gradients: the loss is the mean of k microbatch
@@ -132,7 +146,8 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
   microbatches' (for the running mean exactly the whole batch's step at k=1; the variance leaves
   out the spread between microbatches). Activation memory is that of one microbatch. `mesh`,
   `param_sh`: the batch's mesh and the params' shardings, which keep each microbatch on every
-  device and the summed gradients sharded like the params.
+  device and the summed gradients sharded like the params. `skip_advances_schedule`: whether a
+  skipped (non-finite) update moves the learning-rate schedules on (`optim.apply_gradients`).
   """
   import jax
   import jax.numpy as jnp
@@ -184,7 +199,7 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
     step_fn = grad_fn if grad_accum == 1 else accumulated
     (loss, (aux, new_stats)), g = step_fn(trainable, frozen, state.batch_stats, batch, rng)
     grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
-    new_state, ok = optim.apply_gradients(state, grads, loss, tx)
+    new_state, ok = optim.apply_gradients(state, grads, loss, tx, skip_advances_schedule)
     if new_stats is not None:   # a skipped (non-finite) step leaves the running statistics too
       new_state = new_state.replace(batch_stats=jax.tree.map(
           lambda new, old: jnp.where(ok, new, old), new_stats, state.batch_stats))
@@ -232,8 +247,10 @@ class TrainSetup:
   predict: Callable            # jitted (state.variables(), batch) -> {"flow"[, "covisibility"]}
   variables_sh: Any = None     # shardings of init_fn's output
 
-  def abstract_batch(self, batch_size: int, image_shape):
-    """ShapeDtypeStructs of a global training batch, sharded as the step expects (AOT)."""
+  def abstract_batch(self, batch_size: int, image_shape, row_ids: bool = False):
+    """ShapeDtypeStructs of a global training batch, sharded as the step expects (AOT).
+    `row_ids`: with the per-row dataset_id and epoch the training pipeline adds
+    (ufm_jax.data.pipeline; the refinement loss reads dataset_id)."""
     import jax
     import jax.numpy as jnp
     h, w = image_shape
@@ -243,6 +260,8 @@ class TrainSetup:
               "covisibility": ((batch_size, h, w), jnp.bool_),
               "flow_valid": ((batch_size, h, w), jnp.bool_),
               "covis_valid": ((batch_size, h, w), jnp.bool_)}
+    if row_ids:
+      shapes.update(dataset_id=((batch_size,), jnp.int32), epoch=((batch_size,), jnp.int32))
     return {k: jax.ShapeDtypeStruct(s, d, sharding=self.batch_sh) for k, (s, d) in shapes.items()}
 
   def init_state(self, seed: int = 0):
@@ -313,7 +332,8 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   loss_fn = build_loss(config, model, dataset_names)
   step = make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params,
                          seed=config.seed, grad_accum=config.grad_accum, mesh=mesh,
-                         param_sh=param_sh)
+                         param_sh=param_sh,
+                         skip_advances_schedule=config.optim.get("skip_advances_schedule", True))
   train_step = jax.jit(step, in_shardings=(state_sh, batch_sh), out_shardings=(state_sh, repl),
                        donate_argnums=(0,))
   predict = jax.jit(make_predict(model, apply_kwargs, gather_params),

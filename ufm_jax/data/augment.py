@@ -42,6 +42,7 @@ import numpy as np
 from PIL import Image, ImageEnhance
 
 from ufm_jax import geometry
+from ufm_jax.data import hsv_tables, pil_warp
 from ufm_jax.data.official_ops import (FlowCrop, StaticView, center_flow_crop, flow_crop_images,
                                        flow_crop_labels, nearest_index, portrait_resolution,
                                        resize_cover_center_crop, resize_short_axis_size,
@@ -135,10 +136,11 @@ class AugmentConfig:
     841-863). True: it stays in covis_valid, supervised as not covisible. The synthetic config
     sets it: its pairs' only non-covisible pixels are out of view, so the official rule would
     train the covisibility head on positives alone.
-  fast_image_ops: deviation. True: OpenCV instead of PIL for the static crops' bicubic warp
-    (kernel a = -0.75 instead of -0.5, positions in 1/32 px) and the hue jitter's HSV round trip
-    (rounding), and Kubric's colour jitter on uint8 like the other sets' instead of torch's
-    float one; labels are unchanged. Host CPU: docs/host_input.md.
+  fast_image_ops: deviation (every recipe: False). True: OpenCV instead of PIL for the static
+    crops' bicubic warp (cubic kernel a = -0.75 instead of PIL's transform kernel a = -1,
+    positions in 1/32 px) and the hue jitter's HSV round trip (rounding), and Kubric's colour
+    jitter on uint8 like the other sets' instead of torch's float one; labels are unchanged.
+    Host CPU: docs/host_input.md.
   """
   enabled: bool = True
   no_crop_datasets: tuple[str, ...] = ("habitat",)
@@ -351,7 +353,9 @@ def crop_view_affine(v: StaticView, box, crop_hw, pil_sampling: bool = True,
 
   The homography is a scale and shift per axis, so the depth is gathered per row and column
   where PIL's nearest sampling reads it; fast=True warps the image with OpenCV's bicubic
-  (a = -0.75, positions in 1/32 px) instead of PIL's (a = -0.5)."""
+  (a = -0.75, positions in 1/32 px) instead of PIL's transform (a = -1: libImaging/Geometry.c's
+  BICUBIC, each output pixel's 4 x 4 taps in double, truncated to uint8; its bytes computed by
+  `pil_warp.bicubic_transform`)."""
   sx, sy, ex, ey = np.round(np.asarray(box, np.float64))
   ch, cw = crop_hw
   ax, ay = cw / (ex - sx), ch / (ey - sy)
@@ -381,8 +385,11 @@ def crop_view_affine(v: StaticView, box, crop_hw, pil_sampling: bool = True,
     if not pil_sampling:   # shift PIL's frame so that it samples where K2 says
       data = (data[0], data[1], data[2] + 0.5 - 0.5 * data[0], data[3], data[4],
               data[5] + 0.5 - 0.5 * data[4], data[6], data[7])
-    image = np.asarray(Image.fromarray(np.asarray(v.image)).transform(
-        (cw, ch), Image.PERSPECTIVE, data, resample=Image.BICUBIC))
+    if data[1] == data[3] == data[6] == data[7] == 0.0:   # PIL's bytes, ~3x faster
+      image = pil_warp.bicubic_transform(v.image, data, (cw, ch))
+    else:
+      image = np.asarray(Image.fromarray(np.asarray(v.image)).transform(
+          (cw, ch), Image.PERSPECTIVE, data, resample=Image.BICUBIC))
   return StaticView(image, depth, K2.astype(np.float64), np.asarray(v.cam2world, np.float64))
 
 
@@ -432,7 +439,8 @@ def color_jitter(image: np.ndarray, params, fast: bool = False) -> np.ndarray:
   """torchvision ColorJitter on a PIL image: params = (order, brightness, contrast, saturation,
   hue), order a permutation of range(4) (0 brightness, 1 contrast, 2 saturation, 3 hue).
   PIL's ImageEnhance semantics (brightness and contrast as the equivalent lookup tables) and its
-  HSV conversion, as torchvision's PIL path (fast: OpenCV's HSV)."""
+  HSV conversion, as torchvision's PIL path: the hue shift through PIL's conversions tabulated
+  over every colour (`hsv_tables`, equal to PIL's; fast: OpenCV's HSV, which rounds otherwise)."""
   if params is None:
     return image
   order, b, c, s, h = params
@@ -450,9 +458,7 @@ def color_jitter(image: np.ndarray, params, fast: bool = False) -> np.ndarray:
       hsv[..., 0] += np.int32(h * 255).astype(np.uint8)   # wraps mod 256
       img = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB_FULL)
     else:
-      hh, ss, vv = Image.fromarray(img).convert("HSV").split()
-      hue = np.asarray(hh, np.uint8) + np.int32(h * 255).astype(np.uint8)   # wraps mod 256
-      img = np.asarray(Image.merge("HSV", (Image.fromarray(hue, "L"), ss, vv)).convert("RGB"))
+      img = hsv_tables.adjust_hue(img, int(np.int32(h * 255)))   # int8(hue * 255), mod 256
   return img
 
 
@@ -475,13 +481,14 @@ def color_jitter_float(image: np.ndarray, params) -> np.ndarray:
         x *= np.float32(s)
         x += grey[..., None]
       else:
-        hsv = cv2.cvtColor(x, cv2.COLOR_RGB2HSV)
-        hue = hsv[..., 0]
+        # On the contiguous hue plane; x - floor(x) is mod 1 to the last bit for finite x (the
+        # subtraction is exact where np.mod's "+ 1" of a negative fmod rounds to the same value).
+        hue, sat, val = cv2.split(cv2.cvtColor(x, cv2.COLOR_RGB2HSV))
         hue *= np.float32(1 / 360)
         hue += np.float32(h)
-        np.mod(hue, 1, out=hue)
+        np.subtract(hue, np.floor(hue), out=hue)
         hue *= np.float32(360)
-        x = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+        x = cv2.cvtColor(cv2.merge((hue, sat, val)), cv2.COLOR_HSV2RGB)
       np.clip(x, 0, 1, out=x)
   x *= np.float32(255)
   return x.astype(np.uint8)

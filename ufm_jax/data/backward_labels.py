@@ -3,10 +3,11 @@
 With symmetrize, rows (2i, 2i+1) of a batch are (a, b) and (b, a). `backward_mode` says where a
 dataset's backward labels come from: the source (its `both(i)`, when it declares `has_backward`),
 a `static_scene` source's depth + poses in meta (`geometry_backward`, by the official rule with
-`label_parameters`), else (backward_fallback='unsupervised', e.g. FlyingChairs, HD1K) a (b, a)
-row with all masks False (`unsupervised_backward`), so the loss must tolerate rows without
-supervised pixels. The static and Kubric pathways label both directions themselves
-(ufm_jax.data.augment).
+`label_parameters`), else (backward_fallback='unsupervised', e.g. HD1K's raw layout, whose
+official reader gives its second view 4000 px flow that no loss range reads) a (b, a) row with
+all masks False (`unsupervised_backward`), so the loss must tolerate rows without supervised
+pixels. FlyingChairs labels its own backward row (the official zero flow, see its reader). The
+static and Kubric pathways label both directions themselves (ufm_jax.data.augment).
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ def geometry_backward(sample: Mapping[str, Any], params=None) -> dict:
 
 def unsupervised_backward(sample: Mapping[str, Any]) -> dict:
   """The swapped pair with every supervision mask False: keeps the (a,b),(b,a) batch layout for
-  datasets without backward labels (FlyingChairs, HD1K) without training on made-up labels."""
+  datasets without backward labels (HD1K's raw layout) without training on made-up labels."""
   hw = np.shape(sample["image1"])[:2]
   off = np.zeros(hw, bool)
   return {"image0": sample["image1"], "image1": sample["image0"],

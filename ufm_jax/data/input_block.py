@@ -29,9 +29,21 @@ INPUT_DEFAULTS = {
     "max_skip_fraction": 0.01,
     "skip_check_min_samples": 100,
     "backward_fallback": "unsupervised",
+    "draw_variants": True,
     "max_retries": 8,
     "keep_heap": True,
 }
+
+
+def training_shapes(block) -> tuple[tuple[int, int], ...]:
+  """The (H, W) training shapes of an input block, one drawn per global batch: `shapes` when it
+  lists them (the recipes' official ones), else W = longest_side with H from aspect_ratios. The
+  one rule for the pipeline (`pipeline.create`) and the planner (`ufm_jax.planning`), which
+  compiles the step at the largest of them."""
+  cfg = {**INPUT_DEFAULTS, **dict(block)}
+  if cfg["shapes"]:
+    return augment_lib.check_shapes(cfg["shapes"])
+  return augment_lib.training_shapes(int(cfg["longest_side"]), tuple(cfg["aspect_ratios"]))
 
 
 # glibc mallopt parameters (malloc.h).
@@ -73,6 +85,12 @@ def input_config(datasets, **overrides):
   backward_fallback: what symmetrize does for datasets without backward labels ('unsupervised':
   the (b, a) row has all masks False; 'error': refuse to build).
   keep_heap: glibc malloc keeps freed memory in the processes that make samples (`keep_heap`).
+  draw_variants: a source whose consecutive indices are `variants` renderings of one official
+  sample (cameras, clean / final passes: the official FlyingThings3D, Monkaa and StaticThings
+  readers) is drawn as the official dataset class is: the epoch plan counts official samples
+  (quotas over len / variants) and each draw takes one rendering at random, from (seed,
+  position). False: every rendering is a pair of its own, which keeps the expected frequency of
+  each scene but not its spread (a scene drawn 0..4 times where the official draws it evenly).
   shapes: the (H, W) training shapes, one drawn uniformly per global batch (the recipes give
   the official ones, augment.SHAPES_560 / SHAPES_980); empty: W = longest_side and H from
   aspect_ratios.

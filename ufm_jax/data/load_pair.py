@@ -102,8 +102,12 @@ class LoadPair:
   """grain map: index record -> dict of augmented arrays with a leading axis of 1 or 2 pairs."""
 
   def __init__(self, sources, names, backward_modes, layout: MixtureLayout, shapes,
-               augment_cfg: augment_lib.AugmentConfig, symmetrize: bool, max_retries: int = 8):
+               augment_cfg: augment_lib.AugmentConfig, symmetrize: bool, max_retries: int = 8,
+               variants=None):
     self.sources, self.names, self.backward_modes = sources, names, backward_modes
+    # Renderings per plan index (`input.draw_variants`): plan index i is source indices
+    # [i * v, (i + 1) * v), one drawn per record.
+    self.variants = tuple(variants) if variants is not None else (1,) * len(sources)
     self.layout, self.shapes, self.cfg = layout, tuple(shapes), augment_cfg
     self.symmetrize, self.max_retries = symmetrize, max_retries
     self.pathways = tuple(pathway(s, n, augment_cfg) for s, n in zip(sources, names))
@@ -203,13 +207,16 @@ class LoadPair:
     d, i, g = rec["dataset_id"], rec["index"], rec["position"]
     out_hw = augment_lib.shape_for_step(self.shapes, self.layout.seed, rec["step"])
     skipped = []
+    v = self.variants[d]
     for attempt in range(self.max_retries + 1):
+      k = i if v == 1 else i * v + int(np.random.default_rng(
+          [self.layout.seed, g, attempt, 6]).integers(v))
       try:
-        pairs = self._augmented(d, i, out_hw, np.random.default_rng([self.layout.seed, g, 4]))
+        pairs = self._augmented(d, k, out_hw, np.random.default_rng([self.layout.seed, g, 4]))
         break
       except Exception as e:  # pylint: disable=broad-except  # any unreadable sample is skipped
         # Logged (with running counts) when the batch reaches the main process.
-        skipped.append(f"skipped {self.names[d]}[{i}]: {type(e).__name__}: {e}")
+        skipped.append(f"skipped {self.names[d]}[{k}]: {type(e).__name__}: {e}")
         i = int(np.random.default_rng([self.layout.seed, g, attempt, 3]).integers(
             self.layout.sizes[d]))
     else:

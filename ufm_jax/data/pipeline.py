@@ -29,7 +29,8 @@ import numpy as np
 from ufm_jax.data import augment as augment_lib
 from ufm_jax.data import mixture
 from ufm_jax.data.backward_labels import backward_mode
-from ufm_jax.data.input_block import INPUT_DEFAULTS, auto_num_workers, input_config, keep_heap
+from ufm_jax.data.input_block import (INPUT_DEFAULTS, auto_num_workers, input_config, keep_heap,
+                                      training_shapes)
 from ufm_jax.data.load_pair import LoadPair, SkipAccounting, SkipLimitExceeded, collate
 from ufm_jax.data.registry import get_source
 from ufm_jax.data.sampling_plan import MixtureIndex, MixtureLayout
@@ -45,7 +46,7 @@ class Pipeline:
   dataset: grain.IterDataset    # iter(dataset) -> checkpointable grain DatasetIterator of batches
   names: tuple[str, ...]        # dataset_id -> name
   quotas: tuple[int, ...]
-  sizes: tuple[int, ...]
+  sizes: tuple[int, ...]         # samples the epoch plan draws from (official samples)
   dropped: tuple[str, ...]      # configured but absent on disk
   epoch_size: int               # unique pairs per epoch
   steps_per_epoch: float        # global batches per epoch (batches may straddle epochs)
@@ -135,7 +136,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   batch_size (global pairs per step, counting both directions when symmetrized), symmetrize,
   longest_side, aspect_ratios, shapes, augment {...}, num_workers, worker_buffer_size, read_threads,
   prefetch_buffer_size, max_skip_fraction, skip_check_min_samples, backward_fallback, split,
-  keep_heap.
+  keep_heap, draw_variants.
   process_index/count default to jax's (grain ShardByJaxProcess).
   """
   cfg = dict(config.to_dict() if hasattr(config, "to_dict") else config)
@@ -161,7 +162,10 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   names = tuple(present)
   sources = [present[n][0] for n in names]
   quotas = tuple(present[n][1] for n in names)
-  sizes = tuple(len(s) for s in sources)
+  # Renderings of one official sample (`variants` consecutive indices) drawn as one sample.
+  variants = tuple(int(getattr(s, "variants", 1)) if cfg["draw_variants"] else 1
+                   for s in sources)
+  sizes = tuple(len(s) // v for s, v in zip(sources, variants))
   modes = ()
   if symmetrize:
     fallback = str(cfg["backward_fallback"])
@@ -172,8 +176,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
     if unsup:
       log.warning("no backward labels for %s: their (b, a) rows in symmetrized batches carry no "
                   "supervision (all masks False)", ", ".join(unsup))
-  shapes = (augment_lib.check_shapes(cfg["shapes"]) if cfg["shapes"] else
-            augment_lib.training_shapes(int(cfg["longest_side"]), tuple(cfg["aspect_ratios"])))
+  shapes = training_shapes(cfg)
   if jax_processes and process_count > 1:
     # Every host derives the same plans only if it sees the same datasets with the same sizes.
     from jax.experimental import multihost_utils  # pylint: disable=g-import-not-at-top
@@ -189,7 +192,7 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
                      f"{layout.unique_per_step} unique pairs")
   load = LoadPair(sources, names, backward_modes=modes, layout=layout, shapes=shapes,
                   augment_cfg=augment_lib.AugmentConfig.from_dict(cfg["augment"]),
-                  symmetrize=symmetrize, max_retries=int(cfg["max_retries"]))
+                  symmetrize=symmetrize, max_retries=int(cfg["max_retries"]), variants=variants)
   ds = MixtureIndex(layout).map(load).batch(unique_per_host, drop_remainder=True, batch_fn=collate)
   ds = ds.to_iter_dataset(grain.ReadOptions(
       num_threads=int(cfg["read_threads"]),

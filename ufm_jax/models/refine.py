@@ -33,9 +33,16 @@ class BatchNorm(nn.Module):
   train=True normalises with the batch's statistics (biased variance) and updates the running
   ones in the "batch_stats" collection: momentum 0.1, the unbiased variance, num_batches_tracked
   + 1 (call `apply` with mutable=["batch_stats"]). train=False normalises with the running ones.
+
+  group_rows: train=True takes the statistics over each group of that many consecutive rows
+  separately, as DDP without sync_batchnorm takes them over each GPU's rows (the official
+  trainer, train_pl.py:531-533), and the running statistics follow the first group's, as DDP's
+  broadcast of rank 0's buffers before every forward keeps rank 0's (the ones its checkpoint
+  saves). None: one set over the whole batch (what sync_batchnorm gives).
   """
   momentum: float = 0.1
   epsilon: float = 1e-5
+  group_rows: Optional[int] = None
 
   @nn.compact
   def __call__(self, x, train: bool = False):
@@ -46,19 +53,27 @@ class BatchNorm(nn.Module):
     var = self.variable("batch_stats", "running_var", lambda: jnp.ones((c,), jnp.float32))
     count = self.variable("batch_stats", "num_batches_tracked", lambda: jnp.zeros((), jnp.int32))
     xf = x.astype(jnp.promote_types(x.dtype, jnp.float32))
-    if train:
-      axes = tuple(range(x.ndim - 1))
-      m = xf.mean(axes)
-      v = jnp.square(xf - m).mean(axes)
-      if not self.is_initializing():
-        n = x.size // c
-        mom = self.momentum
-        mean.value = (1 - mom) * mean.value + mom * jax.lax.stop_gradient(m)
-        var.value = (1 - mom) * var.value + mom * jax.lax.stop_gradient(v) * (n / max(n - 1, 1))
-        count.value = count.value + 1
-    else:
+    if not train:
       m, v = mean.value, var.value
-    return ((xf - m) * jax.lax.rsqrt(v + self.epsilon) * scale + bias).astype(x.dtype)
+      return ((xf - m) * jax.lax.rsqrt(v + self.epsilon) * scale + bias).astype(x.dtype)
+    rows = x.shape[0] if self.group_rows is None else int(self.group_rows)
+    if rows <= 0 or x.shape[0] % rows:
+      raise ValueError(f"BatchNorm statistics per {rows} rows (model.unet_batchnorm_group_rows) "
+                       f"do not divide a batch of {x.shape[0]} rows")
+    # [groups, rows, ...]: a group never straddles two devices' rows when it divides them.
+    xg = xf.reshape((x.shape[0] // rows, rows) + x.shape[1:])
+    axes = tuple(range(1, xg.ndim - 1))
+    m = xg.mean(axes, keepdims=True)
+    v = jnp.square(xg - m).mean(axes, keepdims=True)
+    if not self.is_initializing():
+      n = xg[0].size // c
+      mom = self.momentum
+      m0, v0 = (jax.lax.stop_gradient(a[0]).reshape(c) for a in (m, v))
+      mean.value = (1 - mom) * mean.value + mom * m0
+      var.value = (1 - mom) * var.value + mom * v0 * (n / max(n - 1, 1))
+      count.value = count.value + 1
+    y = (xg - m) * jax.lax.rsqrt(v + self.epsilon) * scale + bias
+    return y.reshape(x.shape).astype(x.dtype)
 
 
 class DoubleConv(nn.Module):
@@ -67,6 +82,7 @@ class DoubleConv(nn.Module):
   features: int
   dtype: Any = jnp.float32
   batch_norm: bool = False
+  batch_norm_group_rows: Optional[int] = None
 
   @nn.compact
   def __call__(self, x, train: bool = False):
@@ -74,7 +90,8 @@ class DoubleConv(nn.Module):
                                     dtype=self.dtype, name=name)
     x = nn.relu(conv("conv_0")(x))
     if self.batch_norm:
-      return nn.relu(conv("conv_3")(BatchNorm(name="conv_2")(x, train)))
+      bn = BatchNorm(group_rows=self.batch_norm_group_rows, name="conv_2")
+      return nn.relu(conv("conv_3")(bn(x, train)))
     return nn.relu(conv("conv_2")(x))
 
 
@@ -118,12 +135,14 @@ class UNet(nn.Module):
   out_channels: int = 16
   dtype: Any = jnp.float32
   batch_norm: bool = False  # official use_unet_batchnorm
+  batch_norm_group_rows: Optional[int] = None   # BatchNorm.group_rows
 
   @nn.compact
   def __call__(self, x, train: bool = False):
     def double(f, name):
-      return lambda y: DoubleConv(f, dtype=self.dtype, batch_norm=self.batch_norm, name=name)(
-          y, train)
+      return lambda y: DoubleConv(f, dtype=self.dtype, batch_norm=self.batch_norm,
+                                  batch_norm_group_rows=self.batch_norm_group_rows,
+                                  name=name)(y, train)
     skips = []
     for i, f in enumerate(self.features):
       x = double(f, f"downs_{i}")(x)
@@ -354,6 +373,7 @@ class Refiner(nn.Module):
   chunk: Any = None
   unet_dtype: Any = jnp.float32
   use_unet_batchnorm: bool = False
+  unet_batchnorm_group_rows: Optional[int] = None
   # Compute dtype of the classification head and the combining convolutions (None: float32).
   # The official code runs them with its DPT heads under autocast("cuda", float32), which a CPU
   # autocast does not undo: the model's head_dtype.
@@ -369,7 +389,8 @@ class Refiner(nn.Module):
                                           self.head_dtype)
     if self.use_unet_feature:
       self.unet_feature = UNet(tuple(self.unet_features), self.feature_dim, dtype=self.unet_dtype,
-                               batch_norm=self.use_unet_batchnorm)
+                               batch_norm=self.use_unet_batchnorm,
+                               batch_norm_group_rows=self.unet_batchnorm_group_rows)
       self.conv1 = layers.Conv(2 * self.feature_dim, (1, 1), dtype=self.head_dtype)
       self.conv2 = layers.Conv(self.feature_dim, (1, 1), dtype=self.head_dtype)
     p = self.refinement_range
@@ -441,6 +462,9 @@ class UFMRefineConfig(ufm.UFMConfig):
   use_unet_feature: bool = True
   feature_combine_method: str = "conv"  # or "modulate"
   use_unet_batchnorm: bool = False      # BatchNorm in the U-Net's DoubleConvs (batch_stats)
+  # Training only: BatchNorm statistics per group of this many consecutive rows (the official
+  # per-GPU statistics, BatchNorm.group_rows); None: over the whole batch.
+  unet_batchnorm_group_rows: Optional[int] = None
   refinement_range: int = 7             # P: the window is P x P
   temperature: float = 4.0
   # Source rows per refinement step (lax.map): bounds the refinement's memory at 980 px.
@@ -484,6 +508,7 @@ class UFMRefine(ufm.UFM):
         use_unet_feature=cfg.use_unet_feature, feature_combine_method=cfg.feature_combine_method,
         refinement_range=cfg.refinement_range, temperature=cfg.temperature,
         chunk=cfg.refine_chunk, unet_dtype=unet_dtype, use_unet_batchnorm=cfg.use_unet_batchnorm,
+        unet_batchnorm_group_rows=cfg.unet_batchnorm_group_rows,
         head_dtype=jnp.bfloat16 if cfg.head_dtype == "bfloat16" and cfg.dtype != "float64" else None)
     # The refiner's params sit at the root (unet_feature, classification_head, conv1, conv2,
     # classification_bias), like the attributes of the PyTorch module.

@@ -72,18 +72,42 @@ def hub_commit(folder) -> Optional[str]:
   return folder.name if folder.parent.name == "snapshots" else None
 
 
-def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
-  d = pathlib.Path(snapshot_dir)
+def _snapshot_files(d: pathlib.Path) -> Tuple[pathlib.Path, pathlib.Path]:
+  """(config.json, model.safetensors) of a snapshot folder; FileNotFoundError naming a missing one."""
   cfg_path, w_path = d / "config.json", d / "model.safetensors"
   for p in (cfg_path, w_path):
     if not p.is_file():
       raise FileNotFoundError(f"{p} not found (expected a Hugging Face snapshot folder with "
                               "config.json and model.safetensors)")
+  return cfg_path, w_path
+
+
+def read_snapshot(snapshot_dir) -> Tuple[dict, Dict[str, np.ndarray]]:
+  cfg_path, w_path = _snapshot_files(pathlib.Path(snapshot_dir))
   try:
     cj = json.loads(cfg_path.read_text())
   except json.JSONDecodeError as e:
     raise ValueError(f"{cfg_path}: invalid JSON ({e})") from e
   return cj, io.read_safetensors(w_path)
+
+
+def snapshot_model(snapshot, revision: Optional[str] = None):
+  """The model (no parameters) a snapshot describes: its config.json and the tensor shapes of
+  model.safetensors' header, without reading the weights."""
+  import types
+
+  from safetensors import safe_open
+  d = snapshot_folder(snapshot, revision)
+  cfg_path, w_path = _snapshot_files(d)
+  try:
+    cj = json.loads(cfg_path.read_text())
+    with safe_open(str(w_path), framework="numpy") as f:
+      shapes = {k: types.SimpleNamespace(shape=tuple(f.get_slice(k).get_shape()))
+                for k in f.keys()}
+  except Exception as e:  # noqa: BLE001 - JSON or safetensors header: one message naming the file
+    raise ValueError(f"{d}: cannot read the snapshot's config.json / model.safetensors header "
+                     f"({e})") from e
+  return official_config.official_spec(cj, shapes, f"{snapshot}/config.json").model
 
 
 def load_official(snapshot, revision: Optional[str] = None):
@@ -104,7 +128,8 @@ def load_official(snapshot, revision: Optional[str] = None):
 
 # UFMConfig fields a snapshot does not carry: compute options and initialisers (the encoder's
 # LayerScale initial value included; the loader sets the hub's 1.0).
-JAX_ONLY_FIELDS = ("dtype", "remat", "attention_impl", "refine_chunk", "encoder.pos_embed_init",
+JAX_ONLY_FIELDS = ("dtype", "remat", "attention_impl", "refine_chunk",
+                   "unet_batchnorm_group_rows", "encoder.pos_embed_init",
                    "encoder.init_values", "info_sharing.tied_qk_init", "param_init")
 
 

@@ -228,6 +228,35 @@ def write_snapshot(folder, config: dict, state: dict, metadata=None) -> pathlib.
   return d
 
 
+def random_snapshot(folder, config: ufm.UFMConfig, seed: int = 0) -> pathlib.Path:
+  """An official snapshot folder (`save_official`: config.json + model.safetensors) of the model
+  `config` describes with random parameters (`perturbed_params`)."""
+  from ufm_jax.official import snapshot
+  model = ufm.model_from_config(config)
+  snapshot.save_official(model, perturbed_params(model, seed), folder)
+  return pathlib.Path(folder)
+
+
+def hub_cache(root, repo_id: str, snapshot, commit: str) -> pathlib.Path:
+  """A Hugging Face cache in the standard layout (models--owner--name/{blobs, refs, snapshots})
+  under `root` holding `snapshot`'s config.json and model.safetensors at `commit`, with `main`
+  pointing there; read with HF_HUB_CACHE=root (and HF_HUB_OFFLINE=1)."""
+  import hashlib
+  import os
+  repo = pathlib.Path(root) / ("models--" + repo_id.replace("/", "--"))
+  (repo / "refs").mkdir(parents=True)
+  (repo / "refs" / "main").write_text(commit)
+  snap = repo / "snapshots" / commit
+  snap.mkdir(parents=True)
+  (repo / "blobs").mkdir()
+  for name in ("config.json", "model.safetensors"):
+    data = (pathlib.Path(snapshot) / name).read_bytes()
+    blob = repo / "blobs" / hashlib.sha256(data).hexdigest()
+    blob.write_bytes(data)
+    os.symlink(os.path.relpath(blob, snap), snap / name)
+  return pathlib.Path(root)
+
+
 def perturbed_params(model, seed: int):
   """Random values for every parameter of the model's tree (shapes via jax.eval_shape; compiling
   flax's initialisers for a many-module tree is slow on CPU and not what the tests check)."""
@@ -325,7 +354,8 @@ def official_small_config(**overrides) -> ufm.UFMConfig:
 
 def official_small_model(model_kw=None):
   """`model_fn` of a train.py workdir config (called with the config's `model` block)."""
-  return ufm.model_from_config(official_small_config(**dict(model_kw or {})))
+  kw = model_kw.to_dict() if hasattr(model_kw, "to_dict") else dict(model_kw or {})
+  return ufm.model_from_config(official_small_config(**kw))
 
 
 def official_small_refine_recipe_config(**overrides) -> refine.UFMRefineConfig:

@@ -6,8 +6,17 @@ Layout under `root` (the unpacked `FlyingChairs_release/`, see data/flyingchairs
 
 Labels (supplementary "Computing Covisibility Mask"): FlyingChairs has neither occlusion nor scene
 flow, so covisibility is the FoV mask (target location inside image1) used as a proxy for flow
-supervision, and the covisibility supervision mask is all zero. No backward flow. flow_valid =
-|u|, |v| < 1000 (RAFT); the flow is dense, so NaN/Inf in it makes the sample corrupt (ValueError).
+supervision, and the covisibility supervision mask is all zero. flow_valid = |u|, |v| < 1000
+(RAFT); the flow is dense, so NaN/Inf in it makes the sample corrupt (ValueError).
+
+Backward (`both(i)`): FlyingChairs has no backward flow, and the official reader's second view
+(uniflowmatch/datasets/flyingchairs.py:47-58 of the train branch) carries zero flow with every
+mask False. Its masks supervise nothing, but the 980 recipes' "all" range reads the flow alone
+(loss/epe.py:63-69: every pixel counts as valid), so the official (b, a) rows train the model
+towards zero flow on every pixel. `backward_zero_flow` (quirk, True = official) keeps that:
+flow_valid is True on the backward row (zero flow is its label), covisibility, covis_valid and
+fov_mask False. False: flow_valid False too, so the row supervises nothing in any recipe (what
+the symmetrization of other datasets without backward labels gives).
 """
 
 from __future__ import annotations
@@ -30,10 +39,10 @@ MAX_FLOW = 1000.0  # larger |u| or |v| is treated as undefined (RAFT convention)
 class FlyingChairs:
   """Random-access FlyingChairs source. split: 'train' (22232), 'val' (640) or 'all' (22872)."""
 
-  has_backward = False
+  has_backward = True
   static_scene = False
 
-  def __init__(self, root, split: str = "train"):
+  def __init__(self, root, split: str = "train", backward_zero_flow: bool = True):
     if root is None:
       raise ValueError(f"flyingchairs: root is required (folder with {LAYOUT})")
     self.root = os.fspath(root)
@@ -50,6 +59,7 @@ class FlyingChairs:
       ids = [i for i, lab in zip(ids, labels) if lab == want]
     self.split = split
     self.ids = ids
+    self.backward_zero_flow = bool(backward_zero_flow)
 
   def _read_split(self, n: int) -> list[int]:
     for name in SPLIT_FILES:
@@ -89,7 +99,23 @@ class FlyingChairs:
                           frame1=f"{pid:05d}_img2", pair_id=pid, split=self.split,
                           gt_relpath=f"{pid:05d}_flow.flo", direction="forward"))
 
+  def backward(self, index: int) -> dict:
+    return self.both(index)[1]
+
+  def both(self, index: int) -> tuple[dict, dict]:
+    """(forward, the official second view as the (image1 -> image0) pair): zero flow, every
+    mask False, flow_valid = `backward_zero_flow` (see the module docstring)."""
+    fwd = self[index]
+    hw = fwd["flow"].shape[:2]
+    off = np.zeros(hw, bool)
+    bwd = dict(image0=fwd["image1"], image1=fwd["image0"], flow=np.zeros(hw + (2,), np.float32),
+               covisibility=off, flow_valid=np.full(hw, self.backward_zero_flow),
+               covis_valid=off.copy(), fov_mask=off.copy(),
+               meta=dict(fwd["meta"], frame0=fwd["meta"]["frame1"], frame1=fwd["meta"]["frame0"],
+                         direction="backward"))
+    return fwd, bwd
+
 
 @register("flyingchairs")
-def make_flyingchairs(root, split: str = "train") -> FlyingChairs:
-  return FlyingChairs(root, split=split)
+def make_flyingchairs(root, split: str = "train", backward_zero_flow: bool = True) -> FlyingChairs:
+  return FlyingChairs(root, split=split, backward_zero_flow=backward_zero_flow)

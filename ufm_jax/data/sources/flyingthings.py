@@ -175,11 +175,13 @@ class SceneFlowProcessed(_official.PrecomputedPairs):
                                            occlusion_supervision_mask} (N, H, W) bool
   view0 = forward (frame pair0 -> pair1), view1 = backward; both are precomputed, so `both(i)`
   returns the pair and its reverse from one read. The official draws the camera (left / right)
-  and the rendering (clean / final, the same for both frames) at random per sample when its
-  aug_left_right / aug_clean_final are on (the 560 recipe); here every (camera, pass) is its own
-  pair, index = pair * len(cameras) * len(passes) + camera * len(passes) + pass, so a uniform draw
-  sees each with the official probability. The no-augmentation config: cameras=("left",),
-  passes=("clean",)."""
+  and the rendering at random per sample when its aug_left_right / aug_clean_final are on (the
+  recipes): FlyingThings3D one pass for both frames (flyingthings3d.py:66-71), Monkaa each
+  frame's pass on its own (monkaa.py:61-64). Here every (camera, pass) combination is its own
+  index, `variants` consecutive ones per official sample: index = pair * variants + camera *
+  (variants / len(cameras)) + pass (FlyingThings3D) or + pass0 * len(passes) + pass1 (Monkaa);
+  the training pipeline draws one of them per sample (`input.draw_variants`). The
+  no-augmentation config: cameras=("left",), passes=("clean",)."""
 
   def __init__(self, root, dataset: str, split="train", cameras=("left", "right"),
                passes=("clean", "final")):
@@ -249,21 +251,34 @@ class SceneFlowProcessed(_official.PrecomputedPairs):
     self.flow = _official.H5Index(self.flow_dir, entries)
     return sorted(rows.items())
 
+  @property
+  def _frame_passes(self):
+    """The (pass of frame 0, pass of frame 1) renderings of one camera."""
+    if self.dataset == "monkaa":
+      return [(p0, p1) for p0 in self.passes for p1 in self.passes]
+    return [(p, p) for p in self.passes]
+
+  @property
+  def variants(self) -> int:
+    """Consecutive indices that are renderings of one official sample."""
+    return len(self.cameras) * len(self._frame_passes)
+
   def __len__(self):
-    return len(self.pairs) * len(self.cameras) * len(self.passes)
+    return len(self.pairs) * self.variants
 
   def _variant(self, index):
-    k, r = divmod(int(index), len(self.cameras) * len(self.passes))
-    c, p = divmod(r, len(self.passes))
-    return k, self.cameras[c], self.passes[p]
+    k, r = divmod(int(index), self.variants)
+    c, p = divmod(r, len(self._frame_passes))
+    return k, self.cameras[c], self._frame_passes[p]
 
   def _views(self, index):
-    k, cam, dpass = self._variant(index)
+    k, cam, (pass0, pass1) = self._variant(index)
+    dpass = pass0 if pass0 == pass1 else f"{pass0}/{pass1}"
     i, a, b, label = self.pairs[k]
-    key = f"frame_{dpass}pass_{cam}"
+    key0, key1 = f"frame_{pass0}pass_{cam}", f"frame_{pass1}pass_{cam}"
     where = f"{self.dataset}:{self.flow.location(i)[0]}[{self.flow.location(i)[1]}]"
-    img0 = _official.rgb_u8(self.frames.read(a, (key,))[key], where)
-    img1 = _official.rgb_u8(self.frames.read(b, (key,))[key], where)
+    img0 = _official.rgb_u8(self.frames.read(a, (key0,))[key0], where)
+    img1 = _official.rgb_u8(self.frames.read(b, (key1,))[key1], where)
     f = self.flow.read(i, [f"{cam}_view{v}_{q}" for v in (0, 1) for q in _official.LABELS])
     return _official.two_directions(
         self.dataset, img0, img1, lambda q, v: f[f"{cam}_view{v}_{q}"], where, flow_layout="auto",

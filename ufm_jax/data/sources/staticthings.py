@@ -97,8 +97,10 @@ class StaticThingsProcessed(_official.OfficialPosed, posed.PosedPairSource):
     <root>/TRAIN/<A|B|C>/<seq %04d>/<left|right>/%04d_clean.jpg, %04d_final.jpg,
       %04d.exr (float32 z-depth), %04d.npz (intrinsics, cam2world)
   The official draws the clean or the final rendering at random for each view; here every
-  combination is its own pair (index = 4 * pair + 2 * pass0 + pass1 over `passes`), so a
-  uniform draw sees each with the official probability. `passes=("final",)` keeps one.
+  combination is its own pair (index = 4 * pair + 2 * pass0 + pass1 over `passes`), and
+  `variants` (4) tells the training pipeline that those consecutive indices are one official
+  sample, of which each draw takes one at random (`input.draw_variants`). `passes=("final",)`
+  keeps one.
   `max_depth` (the official mask_bg, off in the recipes) zeroes depth beyond it."""
 
   name = "staticthings"
@@ -113,6 +115,12 @@ class StaticThingsProcessed(_official.OfficialPosed, posed.PosedPairSource):
       raise ValueError(f"staticthings_official: passes must be a non-empty subset of {PASSES}, "
                        f"got {passes!r}")
     self.passes, self.max_depth = tuple(passes), max_depth
+
+  @property
+  def variants(self) -> int:
+    """Consecutive indices that are renderings of one official sample (a given `pairs` list
+    has none)."""
+    return 1 if isinstance(self._pairs_arg, (list, tuple)) else len(self.passes) ** 2
 
   def _official_pairs(self):
     path = posed.require_file(os.path.join(self.root, "staticthings_pairs.npy"),

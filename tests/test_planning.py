@@ -1,0 +1,164 @@
+"""One program from plan to pod (ufm_jax.planning): `train.py --compile_only` and the planner
+(`benchmarks/train_step.py`) compile the same step for the same config and devices, the recipes
+default to the sharding the planner sizes, a plan's overrides reproduce it, and train.py's
+command line says what it takes."""
+
+import json
+import pathlib
+import subprocess
+import sys
+
+import jax
+import pytest
+
+from ufm_jax import config_lib, planning, testing, topologies
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+TINY = REPO / "ufm_jax" / "testing" / "train_support.py"
+RECIPES = ("ufm560", "ufm980", "ufm560_refine", "ufm980_refine")
+
+
+def _last_json(out):
+  return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _train_py(*args, env=None, timeout=600):
+  return subprocess.run([sys.executable, str(REPO / "train.py"), *args], capture_output=True,
+                        text=True, timeout=timeout, cwd=REPO, env=env)
+
+
+def _planner(*args, env=None, timeout=600):
+  return subprocess.run([sys.executable, str(REPO / "benchmarks" / "train_step.py"), *args],
+                        capture_output=True, text=True, timeout=timeout, cwd=REPO, env=env)
+
+
+def _agree(a, b):
+  for key in ("chips", "device_kind", "mesh", "grad_accum", "global_batch", "image_shape",
+              "param_bytes", "state_bytes_per_device", "hbm_capacity_bytes", "fits"):
+    assert a[key] == b[key], key
+  assert a["hbm_bytes_per_chip"] == pytest.approx(b["hbm_bytes_per_chip"], rel=0.01)
+  assert a["collective_bytes"].keys() == b["collective_bytes"].keys()
+  for kind, n in a["collective_bytes"].items():
+    assert n == pytest.approx(b["collective_bytes"][kind], rel=0.01), kind
+  assert a["flops_per_step"] == pytest.approx(b["flops_per_step"], rel=0.01)
+
+
+def test_compile_only_and_the_planner_agree_on_8_devices():
+  """The same config and overrides through both programs on 8 fake CPU devices: the config's
+  default mesh (FSDP over all 8), grad_accum 2, the same HBM and collectives."""
+  env = testing.fake_devices_env(8)
+  a = _train_py(f"--config={TINY}", "--compile_only", "--config.grad_accum=2",
+                "--config.input.batch_size=16", env=env)
+  assert a.returncode == 0, a.stderr[-3000:]
+  b = _planner("--config", str(TINY), "--aot", "--devices", "8", "--grad_accum", "2",
+               "--batch", "16", env=env)
+  assert b.returncode == 0, b.stderr[-3000:]
+  ra, rb = _last_json(a), _last_json(b)
+  _agree(ra, rb)
+  assert ra["mesh"] == {"data": 1, "fsdp": 8} and ra["mesh_config"] == "data:1,fsdp:-1"
+  assert ra["grad_accum"] == 2 and ra["global_batch"] == 16 and ra["image_shape"] == [14, 14]
+  # The train state is sharded: a device holds an eighth of the kernels (and the few biases
+  # that do not split over 8).
+  assert ra["param_bytes_per_device"] < ra["param_bytes"] / 4
+  assert ra["hbm_capacity_bytes"] is None and ra["fits"] is True   # CPUs have no HBM limit
+  for key in ("chips", "device_kind", "hbm_bytes_per_chip", "flops_per_step",
+              "collective_bytes", "compile_s"):
+    assert key in ra, key
+
+
+def test_recipes_default_to_the_planned_sharding():
+  """Every recipe (and what train.py saves as its config) shards the train state over every chip,
+  the sharding docs/scale.md's figures were compiled with; the plan starts at the largest of the
+  recipe's own training shapes (the pipeline's rule)."""
+  for name in RECIPES:
+    config = config_lib.load_config(str(REPO / "configs" / f"{name}.py"))
+    assert config.mesh == "data:1,fsdp:-1", name
+    assert planning.largest_shape(config) in planning.training_shapes(config)
+  c560 = config_lib.load_config(str(REPO / "configs" / "ufm560.py"))
+  assert planning.largest_shape(c560) == (420, 560)      # 560_many_non_square_ar: no 560x560
+  c980 = config_lib.load_config(str(REPO / "configs" / "ufm980.py"))
+  assert planning.largest_shape(c980) == (644, 980)
+  assert planning.pairs_per_epoch(c560) == 2 * sum(d.quota for d in c560.input.datasets.values())
+
+
+def test_a_step_over_the_chips_hbm_does_not_fit():
+  config = config_lib.load_config(str(TINY))
+  tgt = planning.target()
+  small = planning.Target("tiny chip", tgt.devices[:1], 1, tgt.device_kind, 1024, None, 1,
+                          tgt.platform)
+  r = planning.plan(config, small, batch=2, flops=False, log=lambda *a, **k: None)
+  assert r["fits"] is False and r["hbm_bytes_per_chip"] > 1024
+
+
+def test_launch_lines_carry_the_overrides():
+  result = {"mesh_config": "data:1,fsdp:-1", "global_batch": 96, "grad_accum": 6, "hosts": 2}
+  lines = planning.launch_lines(result, "configs/ufm560.py")
+  flags = "--config.mesh=data:1,fsdp:-1 --config.input.batch_size=96 --config.grad_accum=6"
+  assert lines[0] == f"python train.py --config=configs/ufm560.py --workdir=DIR {flags}"
+  assert lines[1].startswith("sbatch --nodes=2 launch/slurm/train.sbatch configs/ufm560.py DIR")
+  assert lines[1].endswith(flags)
+  assert "MESH=data:1,fsdp:-1 GLOBAL_BATCH=96 GRAD_ACCUM=6" in lines[2]
+
+
+def test_host_feed():
+  """Rows per second per host from the step time, times the host's ms per row, as cores."""
+  config = config_lib.load_config(str(REPO / "configs" / "ufm560.py"))
+  tgt = planning.target("v5e-64", compile=False)
+  shapes = planning.training_shapes(config)
+  per_row = {s: 1e12 for s in shapes}
+  est = planning.estimate(config, tgt, per_row, shapes[0], 128, 0.5, 10.0)
+  step_s = 1e12 * 128 / (64 * 197e12 * 0.5)
+  assert est["step_s_estimate"] == pytest.approx(step_s)
+  assert est["hosts"] == 16
+  assert est["rows_per_s_per_host"] == pytest.approx(128 / step_s / 16)
+  assert est["host_cores_per_host"] == pytest.approx(128 / step_s / 16 * 0.010)
+  assert est["host_vcpus"] == 112        # a 4-chip v5e VM
+  assert est["hosts_feed_chips"] == (est["host_cores_per_host"] <= 112)
+  slow = planning.estimate(config, tgt, per_row, shapes[0], 128, 0.5, 1000.0)
+  assert slow["hosts_feed_chips"] is False   # a second per row cannot keep up
+  assert planning.default_host_ms_per_row(config) == planning.HOST_MS_PER_ROW[560]
+  c980 = config_lib.load_config(str(REPO / "configs" / "ufm980.py"))
+  assert planning.default_host_ms_per_row(c980) is None      # never measured at 980
+
+
+def test_train_py_help_lists_its_flags():
+  out = _train_py("--help", timeout=120)
+  assert out.returncode == 0, out.stderr
+  for flag in ("--config", "--workdir", "--compile_only", "--topology", "--config.KEY=VALUE"):
+    assert any(line.strip().startswith(flag) for line in out.stdout.splitlines()), flag
+
+
+def test_train_py_names_a_missing_config_file():
+  out = _train_py("--config=configs/nope.py", "--workdir=/tmp/unused", timeout=120)
+  assert out.returncode == 2
+  assert out.stderr.strip() == "error: --config: no such file configs/nope.py"
+  assert out.stdout == ""
+
+
+@pytest.mark.tpu
+@pytest.mark.slow
+def test_compile_only_and_the_planner_agree_on_a_tpu_slice():
+  """The tiny model's step compiled for a v5e-4 through both programs (libtpu): the same HBM and
+  collectives; a batch whose step exceeds the chip's HBM makes train.py exit 1."""
+  if not topologies.has_libtpu():
+    pytest.skip("libtpu is not installed: pip install 'ufm_jax[tpu]' (in its own virtualenv)")
+  spec = str(REPO / "configs" / "synthetic.py") + ":eval=false,model=tiny,batch=16"
+  common = ["--config.mesh=data:1,fsdp:-1", "--config.grad_accum=2"]
+  a = _train_py(f"--config={spec}", "--compile_only", "--topology=v5e-4", *common, timeout=1200)
+  assert a.returncode == 0, a.stderr[-3000:]
+  b = _planner("--config", spec, "--topology", "v5e-4", "--mesh", "data:1,fsdp:-1",
+               "--grad_accum", "2", timeout=1200)
+  assert b.returncode == 0, b.stderr[-3000:]
+  ra, rb = _last_json(a), _last_json(b)
+  _agree(ra, rb)
+  assert ra["chips"] == 4 and ra["device_kind"] == "TPU v5 lite" and ra["fits"]
+  assert ra["mesh"] == {"data": 1, "fsdp": 4} and ra["grad_accum"] == 2
+  big = _train_py(f"--config={spec},size=560,batch=4096", "--compile_only", "--topology=v5e-4",
+                  *common, timeout=1200)
+  assert big.returncode == 1, big.stderr[-3000:]
+  assert _last_json(big)["fits"] is False
+
+
+def test_target_of_the_devices_at_hand():
+  tgt = planning.target()
+  assert tgt.chips == len(jax.devices()) and tgt.hosts == jax.process_count()
