@@ -237,6 +237,29 @@ def test_synthetic_cov_config_trains_and_its_nll_reaches_the_head():
   assert all(np.abs(np.asarray(x)).max() == 0 for x in jax.tree.leaves(g_nll["head1_0_1"]))
 
 
+@pytest.mark.parametrize("recipe,pixels", [("ufm560", "robust_epe"), ("ufm980", "epe_all")])
+def test_full_size_recipes_with_cov_build(recipe, pixels):
+  """configs/ufm560.py:cov=True and configs/ufm980.py:cov=True build their full-size model
+  (traced by jax.eval_shape at 420x560: no compute) with the covariance in the uncertainty head,
+  the NLL term on the recipe's flow pixels, and the uncertainty head trained (the 980 recipe
+  freezes it without cov)."""
+  config = config_lib.load_config(f"configs/{recipe}.py:cov=True")
+  model = trainer.build_model(config)
+  assert model.config.uncertainty_head_adaptors == ("flow_cov", "non_occluded_mask")
+  assert model.config.flow_covariance.low_confidence_init
+  assert config.loss.terms[-1] == "flow_nll" and config.loss.flow_nll.pixels == pixels
+  recipe_fn = losses.recipe_from_config(config.loss)   # every term builds
+  assert recipe_fn is not None
+  x = jax.ShapeDtypeStruct((1, 420, 560, 3), jnp.uint8)
+  variables = jax.eval_shape(lambda a: trainer.init_variables(model, (420, 560), a),
+                             jax.random.PRNGKey(0))
+  out = jax.eval_shape(lambda v, a, b: model.apply(v, a, b), variables, x, x)
+  assert out["flow_covariance"].shape == (1, 420, 560, 3)
+  assert out["flow_covariance_params"].shape == (1, 420, 560, 3)
+  assert out["covisibility"].shape == (1, 420, 560)
+  assert config.optim.lr.uncertainty_head > 0   # the covariance trains
+
+
 # --------------------------------------------------------------------------- model_init
 
 
