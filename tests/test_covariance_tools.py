@@ -90,6 +90,25 @@ def test_match_returns_covariance_precision_and_ranks(snap, images):
   assert 0 < len(kept["sigma"]) < n and (kept["sigma"] <= cut).all()
 
 
+def test_match_cli_writes_covariance_and_precision(snap, images, tmp_path):
+  """`python -m ufm_jax match --out m.npz --max-sigma PX`: the file holds each kept match's
+  covariance, precision and sigma, most certain first, none above the cut."""
+  d = snap[0]
+  src_png, tgt_png, *_ = images
+  out = tmp_path / "m.npz"
+  assert cli.main(["match", str(src_png), str(tgt_png), "--checkpoint", str(d), "--out", str(out),
+                   "--num", "200", "--min-covisibility", "0", "--max-sigma", "1e9"]) == 0
+  m = np.load(out)
+  n = len(m["keypoints0"])
+  assert n > 0 and m["covariance"].shape == (n, 2, 2) and m["precision"].shape == (n, 2, 2)
+  assert m["sigma"].shape == (n,) and (np.diff(m["sigma"]) >= 0).all()
+  cut = float(np.median(m["sigma"]))
+  assert cli.main(["match", str(src_png), str(tgt_png), "--checkpoint", str(d), "--out", str(out),
+                   "--num", "200", "--min-covisibility", "0", "--max-sigma", str(cut)]) == 0
+  kept = np.load(out)
+  assert 0 < len(kept["sigma"]) < n and (kept["sigma"] <= cut).all()
+
+
 def test_models_without_the_head_are_unchanged(reference_dir, tmp_path):
   """The base fixture (no flow covariance): no covariance files, no fifth tile, no match
   covariance, exports flow + covisibility only; --max-sigma is refused naming why."""
