@@ -9,7 +9,8 @@ pixels), prints
   * AUSE (pooled over the bench, and per image as Ilg et al.) for the model's order and for
     other orders: the model's trace averaged per image (its image-level part alone), the true
     shift's length, the distance to the image border, and the image-level oracle (each image's
-    true mean EPE: the best any order that ranks images and not pixels can do).
+    true mean EPE: the best any order that ranks images and not pixels can do); sigma_max and
+    the determinant, other orders of the same covariance.
 
 Orders other than the trace are diagnostics only; `evaluate.py` reports the trace's.
 
@@ -23,6 +24,7 @@ import pathlib
 import numpy as np
 
 from ufm_jax import evaluators, metrics, model_io
+from ufm_jax.models import covariance
 
 
 def sparsification_area(epe, key, mask, per_image: bool) -> float:
@@ -53,7 +55,7 @@ def main():
   source = evaluators.open_source(bench, bench.splits[0], None, **task)
   model, variables = model_io.load_workdir(args.checkpoint)
   runner = evaluators.Runner(model, variables, "native")
-  epe, trace, mask, resid, gt = [], [], [], [], []
+  epe, covs, mask, resid, gt = [], [], [], [], []
   for i in range(len(source)):
     s = source[i]
     pred = runner(s["image0"], s["image1"])
@@ -61,12 +63,13 @@ def main():
       raise SystemExit(f"{args.checkpoint}: the model predicts no flow covariance")
     cov = np.asarray(pred["flow_covariance"], np.float64)
     epe.append(metrics.endpoint_error(pred["flow"], s["flow"]))
-    trace.append(cov[..., 0] + cov[..., 1])
+    covs.append(cov)
     mask.append(np.asarray(s["flow_valid"], bool) & np.asarray(s["covisibility"], bool)
                 & np.asarray(s["covis_valid"], bool))
     resid.append(np.asarray(pred["flow"], np.float64) - s["flow"])
     gt.append(np.asarray(s["flow"], np.float64))
-  epe, trace, mask, resid, gt = map(np.stack, (epe, trace, mask, resid, gt))
+  epe, covs, mask, resid, gt = map(np.stack, (epe, covs, mask, resid, gt))
+  trace = covs[..., 0] + covs[..., 1]
   n, h, w = epe.shape
   per_image = [r[m] for r, m in zip(resid, mask)]
   total = sum(float((r ** 2).sum()) for r in per_image)
@@ -74,6 +77,13 @@ def main():
   print(f"{args.checkpoint}: {n} held-out pairs ({task}), {int(mask.sum())} covisible pixels, "
         f"mean EPE {epe[mask].mean():.3f} px")
   print(f"  squared residual that is a per-image constant: {100 * (1 - within / total):.1f}%")
+  shift = np.array([np.linalg.norm(g[m], axis=-1).mean() for g, m in zip(gt, mask)])
+  mean_epe = np.array([e[m].mean() for e, m in zip(epe, mask)])
+  bins = [(lo, lo + 3) for lo in range(0, int(shift.max()) + 1, 3)]
+  print("  mean EPE by shift length: " + ", ".join(
+      f"{lo}-{hi} px {mean_epe[(shift >= lo) & (shift < hi)].mean():.2f} "
+      f"({int(((shift >= lo) & (shift < hi)).sum())} pairs)"
+      for lo, hi in bins if ((shift >= lo) & (shift < hi)).any()))
   print(f"  rank correlation of trace and EPE: pooled {rank_corr(trace[mask], epe[mask]):.3f}, "
         f"within images (mean) "
         f"{np.mean([rank_corr(t[m], e[m]) for t, e, m in zip(trace, epe, mask)]):.3f}")
@@ -82,6 +92,8 @@ def main():
   border = np.minimum(np.minimum(yy, h - 1 - yy), np.minimum(xx, w - 1 - xx))
   orders = {
       "trace of Sigma (the model's)": trace,
+      "sigma_max of Sigma": covariance.sigma_max(covs),
+      "determinant of Sigma": covariance.determinant(covs),
       "image mean of the trace": image([t[m].mean() for t, m in zip(trace, mask)]),
       "true shift length": np.linalg.norm(gt, axis=-1),
       "closeness to the border": -np.broadcast_to(border, epe.shape).astype(float),

@@ -197,8 +197,10 @@ class FlowCovarianceNLL:
   `detach_flow` decides where the gradient goes: True stops it at r, so the NLL trains only the
   covariance and the flow is trained by the flow term alone; False lets it reach the flow (and the
   trunk), an extra regression loss weighted by the predicted precision. The recipes use True:
-  on the synthetic run (docs/uncertainty.md) both calibrate alike, and False cost EPE (the
-  precision-weighted pull favours the pixels the model already fits and lets the hard ones go).
+  at the trained synthetic run that pull would be ~2% of the flow term's gradient on the flow
+  head and the trunk (benchmarks/nll_flow_gradient.py, docs/uncertainty.md), the flow term's own
+  direction reweighted towards the pixels the model is already sure of; True keeps the flow
+  trained by the recipe's flow term alone, as in the same run without the head.
   """
   pixels: str = "robust_epe"
   multiplier: float = 1.0
