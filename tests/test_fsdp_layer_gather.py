@@ -1,7 +1,9 @@
 """Per-layer FSDP gathers (config.fsdp_gather="layer", ufm_jax.sharding.layer_gather): on 8 fake
 CPU devices (data 2 x fsdp 4) the tiny scanned model trains exactly as with every parameter
-gathered at the start of the step ("step"), while its compiled step gathers the scanned blocks
-one layer at a time inside the loop and never gathers a whole stack."""
+gathered at the start of the step ("step"), and as with its gradients reduced in two stages (the
+path of 64+ chips, `sharding.TWO_STAGE_MIN_DEVICES`), while its compiled step gathers the scanned
+blocks one layer at a time inside the loop and never gathers a whole stack, with remat and
+without it."""
 
 import json
 import pathlib
@@ -23,11 +25,14 @@ from ufm_jax.models import scan
 
 remat = sys.argv[1] == "true"
 out = {}
-for mode in ("layer", "step"):
+for mode in ("layer", "step", "two_stage") if remat else ("layer", "step"):
   c = config_lib.load_config("configs/synthetic.py:eval=false")
   c.unlock()
   c.model_name, c.model.scan_blocks, c.model.remat = "tiny", True, remat
-  c.mesh, c.fsdp_gather = "data:2,fsdp:4", mode
+  c.mesh, c.fsdp_gather = "data:2,fsdp:4", "step" if mode == "step" else "layer"
+  # "two_stage": the gradients reduced over fsdp_outer (2) first, then fsdp (4), as on 64+ chips.
+  sharding.TWO_STAGE_MIN_DEVICES = 4 if mode == "two_stage" else 64
+  c.sharding_min_size = 2 ** 10   # more of the tiny model sharded
   c.optim.warmup_frac = 0.0   # every step updates the params
   # Adam divides by sqrt(v) + eps: with eps 1e-8 a gradient that is zero up to rounding (the
   # attention keys' bias) turns the order of a sum into a whole update. With eps 1 the update is
@@ -72,26 +77,27 @@ def test_layer_gathers_train_as_step_gathers(remat):
   assert r.returncode == 0, r.stderr[-3000:]
   res = json.loads(r.stdout.strip().splitlines()[-1])
   layer, step = res["layer"], res["step"]
-  np.testing.assert_allclose(layer["losses"], step["losses"], rtol=1e-6)
-  np.testing.assert_allclose(layer["grad_norms"], step["grad_norms"], rtol=1e-5)
-  assert layer["params"].keys() == step["params"].keys()
-  # Equal up to rounding: XLA sums the gradients in another order (a layer at a time inside the
-  # loop). A wrong shard or layer would be off by lr x a gradient, 1e-5 and more here.
-  for k in layer["params"]:
-    np.testing.assert_allclose(layer["params"][k], step["params"][k], rtol=1e-5, atol=1e-7,
-                               err_msg=k)
+  for other in (step, res.get("two_stage", step)):
+    np.testing.assert_allclose(layer["losses"], other["losses"], rtol=1e-6)
+    np.testing.assert_allclose(layer["grad_norms"], other["grad_norms"], rtol=1e-5)
+    assert layer["params"].keys() == other["params"].keys()
+    # Equal up to rounding: XLA sums the gradients in another order (a layer at a time inside
+    # the loop, or in two stages). A wrong shard or layer would be off by lr x a gradient, 1e-5
+    # and more here.
+    for k in layer["params"]:
+      np.testing.assert_allclose(layer["params"][k], other["params"][k], rtol=1e-5, atol=1e-7,
+                                 err_msg=k)
 
   # Collectives: every all-gather of a whole stacked parameter ([depth, ...], as stored) is
-  # gone from the per-layer step (with remat; without it the stack is gathered up front, as the
-  # docstring of scan.run says), and the traffic stays within the suite's guard.
+  # gone from the per-layer step, with remat and without it (scan.run), and the traffic stays
+  # within the suite's guard.
   stacked = {tuple(s) for s in layer["stack_shapes"] if len(s) > 1}
   def whole_stack_gathers(colls):
     return [c for c in colls if c[0] == "all-gather" and any(tuple(s) in stacked for s in c[1])]
   assert whole_stack_gathers(step["collectives"])   # the check sees them where they are
-  if remat == "true":
-    assert not whole_stack_gathers(layer["collectives"])
-    depths = {s[0] for s in stacked}
-    in_loop = [c for c in layer["collectives"] if c[0] == "all-gather" and c[2] in depths]
-    assert in_loop, "no all-gather runs once per layer"
+  assert not whole_stack_gathers(layer["collectives"])
+  depths = {s[0] for s in stacked}
+  in_loop = [c for c in layer["collectives"] if c[0] == "all-gather" and c[2] in depths]
+  assert in_loop, "no all-gather runs once per layer"
   total = sum(n * b for _, _, n, b in layer["collectives"])
   assert total <= 3 * layer["param_bytes"], (total, layer["param_bytes"])

@@ -442,7 +442,10 @@ def test_source_without_declarations_is_refused_when_symmetrizing(tmp_path):
 
 def test_keep_heap_serves_samples_from_memory_already_touched():
   """keep_heap (in every process that makes samples) stops glibc from mapping and trimming a
-  sample's 1-40 MB temporaries anew each time: far fewer page faults per repeated allocation."""
+  sample's 1-24 MB temporaries anew each time: far fewer page faults per repeated allocation.
+  (All below glibc's 32 MiB mmap ceiling: a larger one is mapped afresh either way, and its
+  faults then depend on whether the kernel finds huge pages, i.e. on the machine's memory
+  pressure: 210 faults idle, 5320 beside a 10 GB compile, for a 40 MB array.)"""
   code = """if True:
     import resource, sys
     import numpy as np
@@ -450,7 +453,7 @@ def test_keep_heap_serves_samples_from_memory_already_touched():
     if sys.argv[1] == "1":
       assert input_block.keep_heap()
     def sample():  # temporaries alive together, as in one sample's labelling
-      arrays = [np.ones(n << 20, np.uint8) for n in (1, 3, 8, 2, 40, 5)]
+      arrays = [np.ones(n << 20, np.uint8) for n in (1, 3, 8, 2, 24, 5)]
       return sum(int(a[::4096].sum()) for a in arrays)
     sample()
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -460,7 +463,7 @@ def test_keep_heap_serves_samples_from_memory_already_touched():
   """
   faults = {k: int(subprocess.run([sys.executable, "-c", code, k], check=True, text=True,
                                   capture_output=True).stdout) for k in "01"}
-  assert faults["0"] > 5000, faults
+  assert faults["0"] > 1000, faults
   assert faults["1"] * 10 < faults["0"], faults
 
 

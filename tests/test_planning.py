@@ -116,7 +116,11 @@ def test_host_feed():
   assert est["hosts_feed_chips"] == (est["host_cores_per_host"] <= 112)
   slow = planning.estimate(config, tgt, per_row, shapes[0], 128, 0.5, 1000.0)
   assert slow["hosts_feed_chips"] is False   # a second per row cannot keep up
-  assert planning.default_host_ms_per_row(config) == planning.HOST_MS_PER_ROW[560]
+  # The recipe's image operations pick the figure: official by default, OpenCV's when asked.
+  assert planning.default_host_ms_per_row(config) == planning.HOST_MS_PER_ROW[(560, False)]
+  config.input.augment = {**dict(config.input.augment), "fast_image_ops": True}
+  assert planning.default_host_ms_per_row(config) == planning.HOST_MS_PER_ROW[(560, True)]
+  assert planning.HOST_MS_PER_ROW[(560, False)] > planning.HOST_MS_PER_ROW[(560, True)]
   c980 = config_lib.load_config(str(REPO / "configs" / "ufm980.py"))
   assert planning.default_host_ms_per_row(c980) is None      # never measured at 980
 

@@ -8,13 +8,15 @@ step benchmark (which sets the device count before jax starts), never run.
 """
 
 import json
+import os
 import pathlib
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
-from ufm_jax import hlo_stats
+from ufm_jax import hlo_stats, testing
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 BATCH = 48  # 6 rows (3 symmetrized pairs) per device; 48 and 96 are no parameter dimension
@@ -109,12 +111,163 @@ ENTRY %main (a: f32[64,48]) -> f32[64,48] {
   %w = (s32[], f32[64,48]) while(%init), condition=%cond, body=%body
   %async-collective-start.1 = (bf16[16,8], bf16[64,8]) fusion(%b), kind=kCustom, calls=%fused_computation.1
   %async-collective-done.1 = bf16[64,8] fusion(%s), kind=kCustom, calls=%fused_computation.2
+  %collective-permute-start.4 = (bf16[256,1024]{1,0:T(8,128)(2,1)S(1)}, bf16[256,1024]{1,0:T(8,128)(2,1)S(1)}, u32[]{:S(2)}, u32[]{:S(2)}) collective-permute-start(%x), channel_id=13, source_target_pairs={{0,1},{1,0}}
+  %collective-permute-done.4 = bf16[256,1024]{1,0} collective-permute-done(%collective-permute-start.4)
   ROOT %r = f32[64,48] get-tuple-element(%w), index=1
 }
 """
   s = hlo_stats.summary(hlo_stats.collectives(text))
-  assert set(s) == {"all-gather", "reduce-scatter"}
+  assert set(s) == {"all-gather", "reduce-scatter", "collective-permute"}
+  # a collective-permute-start's (operand, result, u32 context, u32 context): the result
+  assert s["collective-permute"]["count"] == 1
+  assert s["collective-permute"]["bytes"] == 256 * 1024 * 2
   # 24 in the loop, and the asynchronous one once (its start, not its done).
   assert s["all-gather"]["count"] == 25
   assert s["all-gather"]["bytes"] == 24 * 64 * 192 * 4 + 64 * 8 * 2
   assert s["reduce-scatter"]["count"] == 24 and s["reduce-scatter"]["bytes"] == 24 * 64 * 48 * 4
+
+
+def test_collectives_parser_counts_an_async_chain_once():
+  # XLA:TPU splits one asynchronous collective into a start fusion in the entry and continuation
+  # fusions (each a copy of the op under the same channel_id) inside the loop whose compute they
+  # overlap: one gather per step, not one per loop trip. Another collective in the loop (its own
+  # channel) runs every trip.
+  text = """
+%fused_computation.1 (p0: bf16[4,8]) -> (bf16[4,8], bf16[64,8]) {
+  %all-gather.1 = bf16[64,8]{1,0} all-gather(%p0), channel_id=7, dimensions={0}
+  ROOT %t = (bf16[4,8], bf16[64,8]) tuple(%p0, %all-gather.1)
+}
+
+%async_collective_fusion.2 (p0: bf16[4,8], p1: f32[16]) -> (f32[16], bf16[64,8]) {
+  %all-gather.2 = bf16[64,8]{1,0} all-gather(%p0), channel_id=7, dimensions={0}
+  ROOT %t = (f32[16], bf16[64,8]) tuple(%p1, %all-gather.2)
+}
+
+%body (p: (s32[], f32[16])) -> (s32[], f32[16]) {
+  %f = (f32[16], bf16[64,8]) fusion(%a, %b), kind=kCustom, calls=%async_collective_fusion.2
+  %ar = f32[16]{0} all-reduce(%x), channel_id=8, to_apply=%add
+  ROOT %t = (s32[], f32[16]) tuple(%i, %ar)
+}
+
+%cond (p: (s32[], f32[16])) -> pred[] {
+  ROOT %lt = pred[] compare(%a, %b), direction=LT
+}
+
+ENTRY %main (a: bf16[4,8]) -> f32[16] {
+  %async-collective-start = (bf16[4,8], bf16[64,8]) fusion(%a), kind=kCustom, calls=%fused_computation.1
+  %w = (s32[], f32[16]) while(%init), condition=%cond, body=%body, backend_config={"known_trip_count":{"n":"24"}}
+  ROOT %r = f32[16] get-tuple-element(%w), index=1
+}
+"""
+  s = hlo_stats.summary(hlo_stats.collectives(text))
+  assert s["all-gather"]["count"] == 1 and s["all-gather"]["bytes"] == 64 * 8 * 2
+  assert s["all-reduce"]["count"] == 24 and s["all-reduce"]["bytes"] == 24 * 16 * 4
+
+
+_TWO_STAGE = r"""
+import json
+import os
+import jax, jax.numpy as jnp, numpy as np
+from ufm_jax import hlo_stats, sharding
+
+mesh = sharding.make_mesh("data:1,fsdp:8")
+rules = [(r".*", "fsdp")]
+params = {"head": jnp.ones((32, 64)) / 8,
+          "encoder": {"blocks": {"w": jnp.arange(3 * 32 * 32.0).reshape(3, 32, 32) / 5e3}}}
+param_sh = sharding.tree_shardings(params, mesh, rules)
+batch_sh = sharding.batch_sharding(mesh)
+x = jax.device_put(jnp.linspace(-1, 1, 16 * 32).reshape(16, 32), batch_sh)
+out = {}
+for stages in (1, 2):
+  sharding.TWO_STAGE_MIN_DEVICES = 8 if stages == 2 else 64
+  gather_params = sharding.gathered(mesh, rules, except_stacks=True)
+  layer = sharding.layer_gather(mesh, rules)
+
+  def loss(p, x):
+    p = gather_params(p)
+    stack = p["encoder"]["blocks"]
+    gather = layer("encoder/blocks", stack)
+    def body(h, w):
+      return jnp.tanh(h @ gather(w)["w"]), None
+    h, _ = jax.lax.scan(jax.checkpoint(body), x, stack)
+    return jnp.mean((h @ p["head"]) ** 2)
+
+  step = jax.jit(jax.grad(loss), in_shardings=(param_sh, batch_sh), out_shardings=param_sh)
+  compiled = step.lower(params, x).compile()
+  grads = compiled(jax.device_put(params, param_sh), x)
+  by_group = {}
+  for c in hlo_stats.collectives(compiled.as_text()):
+    if c.kind == "all-reduce":
+      by_group[c.group] = by_group.get(c.group, 0) + c.bytes * c.count
+  out[stages] = {"grads": [np.asarray(g).tolist() for g in jax.tree.leaves(grads)],
+                 "all_reduce_bytes_by_group": by_group}
+print(json.dumps(out))
+"""
+
+
+def test_gradients_reduce_in_two_stages_on_large_fsdp_axes():
+  # XLA:TPU all-reduces a gradient over a 64-way FSDP axis whole instead of reduce-scattering it,
+  # so from sharding.TWO_STAGE_MIN_DEVICES on each gradient is reduced over fsdp_outer first, then
+  # within its shards (tests/test_sharding_collectives.py's tpu test sees the reduce-scatters).
+  # XLA:CPU has no reduce-scatter (every one is an all-reduce and a slice), but it shows the
+  # stages: here at 8 devices (2 x 4), no gradient is all-reduced over the whole axis, and the
+  # gradients are the same up to the order of the sums.
+  r = subprocess.run([sys.executable, "-c", _TWO_STAGE], capture_output=True, text=True,
+                     env=testing.fake_devices_env(8), cwd=REPO, timeout=600)
+  assert r.returncode == 0, r.stderr[-3000:]
+  res = json.loads(r.stdout.strip().splitlines()[-1])
+  one, two = res["1"], res["2"]
+  grad_bytes = 4 * (32 * 64 + 3 * 32 * 32)
+  assert one["all_reduce_bytes_by_group"].get("8", 0) >= grad_bytes   # the check sees them
+  assert two["all_reduce_bytes_by_group"].get("8", 0) < 2 ** 10, two
+  assert two["all_reduce_bytes_by_group"].get("2", 0) >= grad_bytes, two
+  for a, b in zip(one["grads"], two["grads"]):
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-8)
+
+
+_WIDE_ON_V5E_64 = r"""
+import json, sys
+import jax
+from ufm_jax import hlo_stats, optim, sharding, testing, topologies, trainer
+from ufm_jax.models import scan
+
+accum = int(sys.argv[1])
+c = testing.wide_scanned_config(grad_accum=accum)
+mesh = sharding.make_mesh(c.mesh, topologies.devices("v5e-64"))
+hw = (56, 56)
+ts = trainer.setup(c, mesh, hw, total_steps=100)
+compiled = ts.train_step.lower(ts.sharded_abstract_state(),
+                               ts.abstract_batch(2 * accum * mesh.size, hw)).compile()
+colls = hlo_stats.collectives(compiled.as_text())
+leaves = jax.tree_util.tree_flatten_with_path(ts.abstract_params)[0]
+print(json.dumps({
+    "param_bytes": sum(x.size * 4 for _, x in leaves),
+    "stacked_bytes": sum(x.size * 4 for p, x in leaves
+                         if scan.STACKED_PATH.search(optim.path_str(p))),
+    "total": hlo_stats.total_bytes(colls),
+    # run more often than once per microbatch: inside the scans over layers
+    "per_layer": sum(c.bytes * c.count for c in colls if c.count > accum),
+    "reduce_scatter": sum(c.bytes * c.count for c in colls if c.kind == "reduce-scatter")}))
+"""
+
+
+@pytest.mark.tpu
+@pytest.mark.slow
+@pytest.mark.parametrize("grad_accum", [1, 2])
+def test_v5e_64_step_reduce_scatters_gradients(grad_accum):
+  """The suite's guard where XLA:CPU cannot see it: compiled for 64 v5e chips (libtpu), the step
+  moves at most 3x the parameter bytes per microbatch, and the scanned layers' gradients are
+  reduce-scattered: per microbatch each layer is gathered twice in bf16 (forward and remat: 1.0x
+  its float32 bytes) and its gradient reduce-scattered (1/8 of its bf16 bytes and less); a
+  gradient all-reduced whole, as XLA:TPU does on one 64-way stage, would add 0.5x."""
+  from ufm_jax import topologies
+  if not topologies.has_libtpu():
+    pytest.skip("libtpu is not installed: pip install 'ufm_jax[tpu]' (in its own virtualenv)")
+  r = subprocess.run([sys.executable, "-c", _WIDE_ON_V5E_64, str(grad_accum)],
+                     capture_output=True, text=True, cwd=REPO, timeout=1800,
+                     env={**os.environ, "JAX_PLATFORMS": "cpu"})
+  assert r.returncode == 0, r.stderr[-3000:]
+  res = json.loads(r.stdout.strip().splitlines()[-1])
+  assert res["total"] <= 3 * res["param_bytes"] * grad_accum, res
+  assert res["reduce_scatter"] > 0, res
+  assert res["per_layer"] <= 1.25 * res["stacked_bytes"] * grad_accum, res

@@ -10,13 +10,17 @@ result shape and bytes per device, counted as often as it runs: ops inside a `wh
 over layers) are multiplied by the loop's trip count (XLA's known_trip_count, or the bound of the
 loop condition in XLA:TPU's programs, which carry none). XLA:TPU's reduce-scatter, a custom fusion
 around an all-reduce, counts as a reduce-scatter of its results, and its asynchronous collectives
-(a start and a done fusion, each holding a copy of the op) once.
+once: XLA:TPU splits one into a start fusion, continuation fusions and a done fusion, each holding
+a copy of the op under the one channel_id, and may place the continuations inside the loops whose
+compute they overlap (a DPT weight's gather started before the encoder's loop, progressed in its 24
+iterations); the collective runs as often as its least-run copy, the start.
 """
 
 from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 import re
 
 KINDS = ("all-gather", "all-reduce", "reduce-scatter", "all-to-all", "collective-permute")
@@ -35,6 +39,10 @@ _TRIP = re.compile(r'"known_trip_count":\{"n":"(\d+)"\}')
 _CONST = re.compile(r"%([\w.\-]+)\s+=\s+s32\[\]\S*\s+constant\((\d+)\)")
 _LT = re.compile(r"^\s*ROOT\s.*\scompare\(%?[\w.\-]+,\s*%?([\w.\-]+)\),\s*direction=LT")
 _COND = re.compile(r"\bcondition=%?([\w.\-]+)")
+_CHANNEL = re.compile(r"\bchannel_id=(\d+)")
+_GROUPS_MESH = re.compile(r"replica_groups=mesh\[([^\]]*)\]\s*\{([^}]*)\}")
+_GROUPS_IOTA = re.compile(r"replica_groups=\[\d+,(\d+)\]<=")
+_GROUPS_LIST = re.compile(r"replica_groups=\{\{([^}]*)\}")
 # XLA:TPU's asynchronous collectives: a start fusion and a done fusion, each calling a copy of the
 # collective. The start's copy is counted, the done's is not.
 _ASYNC_DONE = re.compile(r"^\s*(?:ROOT\s+)?%?async-collective-done[\w.\-]*\s+=")
@@ -51,6 +59,8 @@ class Collective:
   bytes: int             # result bytes on one device, per execution
   count: int             # executions per program run (trip counts of enclosing loops)
   computation: str
+  channel: int | None = None   # channel_id: copies of one asynchronous collective share it
+  group: int | None = None     # devices per replica group (None: not stated, or all)
 
   def shape_str(self) -> str:
     return ", ".join(f"{d}[{','.join(map(str, s))}]" for d, s in self.shapes)
@@ -143,9 +153,44 @@ def collectives(hlo_text: str) -> list[Collective]:
         continue
       shapes = _shapes(m.group(1))
       if m.group(3) == "-start" and len(shapes) > 1:
-        shapes = shapes[len(shapes) // 2:]  # (operands..., results...): keep the results
-      out.append(Collective(m.group(2), shapes, _nbytes(shapes), runs[name], name))
-  return out
+        # (operands..., results...[, u32[] contexts]): keep the results. XLA:TPU's
+        # collective-permute-start ends in two u32[] synchronisation contexts.
+        shapes = [s for s in shapes if s != ("u32", ())] or shapes
+        shapes = shapes[len(shapes) // 2:]
+      channel = _CHANNEL.search(line)
+      out.append(Collective(m.group(2), shapes, _nbytes(shapes), runs[name], name,
+                            int(channel.group(1)) if channel else None, group_size(line)))
+  return _one_per_channel(out)
+
+
+def group_size(line: str) -> int | None:
+  """Devices per replica group of a collective's HLO line: `replica_groups={{0,1},{2,3}}`, the
+  iota form `[groups,size]<=[...]`, or `mesh['axis_0'=2,'axis_1'=4] {'axis_1'}` (the product of
+  the listed axes' sizes). None where the line states none (every device)."""
+  m = _GROUPS_MESH.search(line)
+  if m:
+    sizes = {k: int(v) for k, v in re.findall(r"'([\w]+)'=(\d+)", m.group(1))}
+    return math.prod(sizes[a] for a in re.findall(r"'([\w]+)'", m.group(2)))
+  m = _GROUPS_IOTA.search(line)
+  if m:
+    return int(m.group(1))
+  m = _GROUPS_LIST.search(line)
+  if m and m.group(1).strip():
+    return len(m.group(1).split(","))
+  return None
+
+
+def _one_per_channel(colls: list[Collective]) -> list[Collective]:
+  """One entry per asynchronous collective: of the copies sharing a kind and a channel_id, the
+  least-run one (its start; the continuations may sit in loops)."""
+  first: dict = {}
+  for c in colls:
+    if c.channel is None:
+      continue
+    key = (c.kind, c.channel)
+    if key not in first or c.count < first[key].count:
+      first[key] = c
+  return [c for c in colls if c.channel is None or first[(c.kind, c.channel)] is c]
 
 
 def summary(colls: list[Collective], top: int = 5) -> dict:

@@ -17,10 +17,12 @@ batch that fits and the plan that trains the recipe's own batch.
 Planning inputs that are assumptions, not compiler output (each a flag of the planner):
 - `MFU`: the model FLOPs utilisation the step time assumes. Not calibrated on any accelerator
   (docs/gpu.md).
-- `HOST_MS_PER_ROW`: host CPU milliseconds per training row, by the recipe's longest side, as
-  `benchmarks/data_pipeline.py` measured the recipes' mixture (docs/host_input.md: 13.4 ms with
-  the raw layouts weighted by Table 1, 13.5 with the official layouts weighted by the 560
-  recipe's samples per epoch; the larger is taken). No other size has been measured.
+- `HOST_MS_PER_ROW`: host CPU milliseconds per training row, by the recipe's longest side and
+  its image operations (`input.augment.fast_image_ops`: False, the official PIL / torchvision
+  operations, every recipe's default; True, OpenCV's, the named deviation), as
+  `benchmarks/data_pipeline.py --table1` measured the recipes' mixture (docs/host_input.md; the
+  larger of the raw layouts weighted by Table 1 and the official layouts weighted by the 560
+  recipe's samples per epoch). No other size has been measured.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ import os
 import time
 
 MFU = 0.4
-HOST_MS_PER_ROW = {560: 13.5}
+HOST_MS_PER_ROW = {(560, False): 22.1, (560, True): 13.5}
 
 GIB = 2 ** 30
 
@@ -259,10 +261,12 @@ def estimate(config, tgt: Target, per_row: dict, hw, batch: int, mfu: float,
 
 
 def default_host_ms_per_row(config) -> float | None:
-  """HOST_MS_PER_ROW of the recipe's longest side (None where none was measured)."""
+  """HOST_MS_PER_ROW of the recipe's longest side and image operations (None where none was
+  measured)."""
   if config.input.get("data_fn"):
     return None
-  return HOST_MS_PER_ROW.get(max(w for _, w in training_shapes(config)))
+  fast = bool(dict(config.input.get("augment") or {}).get("fast_image_ops", False))
+  return HOST_MS_PER_ROW.get((max(w for _, w in training_shapes(config)), fast))
 
 
 # ----------------------------------------------------------------------------- the plan

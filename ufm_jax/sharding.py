@@ -16,13 +16,15 @@ Config:
 
 FSDP gathers: the scanned blocks' stacked params (models/scan.py) are gathered one layer at a time
 inside the scan (`layer_gather`), and their gradients reduce-scattered there; every other param is
-gathered whole at the start of the step (`gathered`). The layer axis of a stack is never sharded.
+gathered whole at the start of the step (`gathered`) and its gradient reduce-scattered too. The
+layer axis of a stack is never sharded.
 """
 
 from __future__ import annotations
 
 import collections
 import json
+import math
 import os
 import re
 from typing import Any
@@ -175,45 +177,113 @@ def fsdp_gathers(mesh: Mesh, config):
   mode = config.fsdp_gather
   if mode not in FSDP_GATHERS:
     raise ValueError(f"config.fsdp_gather={mode!r}; expected one of {FSDP_GATHERS}")
+  rules, min_size = config.sharding_rules, config.sharding_min_size
   if mode == "step":
-    return gathered(mesh), None
-  min_size = config.sharding_min_size
-  return (gathered(mesh, except_stacks=True),
-          layer_gather(mesh, config.sharding_rules, min_size))
+    return gathered(mesh, rules, min_size), None
+  return (gathered(mesh, rules, min_size, except_stacks=True),
+          layer_gather(mesh, rules, min_size))
 
 
-def gathered(mesh: Mesh, except_stacks: bool = False):
-  """params -> params constrained to a full copy per device, at the start of the forward pass:
-  FSDP's weight all-gather (the stored params and optimizer state stay sharded; gradients are
-  reduce-scattered back). Left free, XLA may instead move a batch-sharded activation to the
+# XLA:TPU reduces a gradient over a large FSDP group as an all-reduce of the whole gradient
+# followed by a slice, not as a reduce-scatter: a 64-way reduce-scatter over a v5e-64's 8 x 8
+# chips compiled to an all-reduce (libtpu 0.0.42.1), where 8 chips get a reduce-scatter. Constrained
+# to a shard over fewer devices first, it reduce-scatters twice. Groups from this size on are
+# reduced in two stages (`_two_stage`).
+TWO_STAGE_MIN_DEVICES = 64
+
+
+def _two_stage(mesh):
+  """(a view of `mesh` with its fsdp axis split into fsdp_outer x fsdp_inner, fsdp_outer taking
+  the largest divisor of the size up to its square root), or None below TWO_STAGE_MIN_DEVICES.
+  A block of an fsdp_outer shard is a block of the fsdp shard, so the second stage reduces
+  within the first stage's shards: no data crosses between them."""
+  n = mesh.shape["fsdp"]
+  outer = max((d for d in range(1, math.isqrt(n) + 1) if n % d == 0), default=1)
+  if n < TWO_STAGE_MIN_DEVICES or outer == 1:
+    return None
+  names, sizes = list(mesh.axis_names), [mesh.shape[a] for a in mesh.axis_names]
+  i = names.index("fsdp")
+  names[i:i + 1], sizes[i:i + 1] = ["fsdp_outer", "fsdp_inner"], [outer, n // outer]
+  if isinstance(mesh, Mesh):
+    return Mesh(mesh.devices.reshape(sizes), tuple(names))
+  return jax.sharding.AbstractMesh(tuple(sizes), tuple(names))
+
+
+def _outer_stage(sharding: NamedSharding, view) -> NamedSharding:
+  """`sharding` with its fsdp axis replaced by the view's fsdp_outer (the first stage)."""
+  def entry(e):
+    if e == "fsdp":
+      return "fsdp_outer"
+    if isinstance(e, tuple):
+      return tuple("fsdp_outer" if a == "fsdp" else a for a in e)
+    return e
+  return NamedSharding(view, P(*(entry(e) for e in sharding.spec)))
+
+
+def _gather_whole(shards):
+  """A tree of arrays -> the same tree gathered whole on every device, as FSDP's forward pass
+  uses it; `shards`: their stored shardings (NamedShardings, a tree of the same structure).
+
+  Each array is first constrained to its shard, then to a full copy: an all-gather. Its
+  gradient is constrained to the shard, so it goes from the devices' partial sums straight to
+  the shard (a reduce-scatter); the transpose of the two constraints would all-reduce a whole
+  copy of the gradient first and keep a slice of it. On a large fsdp axis the gradient goes to a
+  shard over fsdp_outer first (`_two_stage`).
+  """
+  @jax.custom_vjp
+  def gather(tree):
+    tree = jax.lax.with_sharding_constraint(tree, shards)
+    return jax.lax.with_sharding_constraint(
+        tree, jax.tree.map(lambda s: NamedSharding(s.mesh, P()), shards))
+
+  def backward(_, grad):
+    view = _two_stage(jax.tree.leaves(shards)[0].mesh) if jax.tree.leaves(shards) else None
+    if view is not None:
+      grad = jax.lax.with_sharding_constraint(
+          grad, jax.tree.map(lambda s: _outer_stage(s, view), shards))
+    return (jax.lax.with_sharding_constraint(grad, shards),)
+
+  gather.defvjp(lambda tree: (gather(tree), None), backward)
+  return gather
+
+
+def gathered(mesh: Mesh, rules=None, min_size: int = 0, except_stacks: bool = False):
+  """params -> params gathered whole on every device, at the start of the forward pass: FSDP's
+  weight all-gather (the stored params and optimizer state stay sharded, by `rules` and
+  `min_size` as `tree_shardings` shards them; the gradients are reduce-scattered back to those
+  shards, `_gather_whole`). Left free, XLA may instead move a batch-sharded activation to the
   layout of a feature-sharded weight. `except_stacks` leaves the scanned blocks' stacks as they
   are, for the model to gather a layer at a time (`layer_gather`). None on a one-device mesh."""
   if mesh.size == 1:
     return None
-  full = replicated(mesh)
+  rules = [tuple(r) for r in (rules or [])]
 
-  def gather(path, x):
-    if except_stacks and scan.STACKED_PATH.search(optim.path_str(path)):
-      return x
-    return jax.lax.with_sharding_constraint(x, full)
+  def gather_params(tree):
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(tree)
+    shards = jax.tree.leaves(tree_shardings(tree, mesh, rules, min_size))
+    picked = [i for i, (path, _) in enumerate(leaves)
+              if not (except_stacks and scan.STACKED_PATH.search(optim.path_str(path)))]
+    whole = _gather_whole([shards[i] for i in picked])([leaves[i][1] for i in picked])
+    out = [x for _, x in leaves]
+    for i, x in zip(picked, whole):
+      out[i] = x
+    return jax.tree_util.tree_unflatten(treedef, out)
 
-  return lambda tree: jax.tree_util.tree_map_with_path(gather, tree)
+  return gather_params
 
 
 def layer_gather(mesh: Mesh, rules, min_size: int = 0):
   """The model's per-layer FSDP hook (`scan.run`): (param path of a scanned stack, its stacked
   params) -> a function that gathers one layer's params inside the scan body.
 
-  The layer's params are first constrained to their own shard of the stored sharding (the
-  stack's `rules` spec without the layer axis), then to a full copy: the forward pass all-gathers
-  one layer, and its gradient is constrained to that shard inside the backward scan (a
-  reduce-scatter), so neither the whole model nor its whole gradient is ever materialised on one
-  device. None on a one-device mesh.
+  The layer's params are gathered from their own shard of the stored sharding (the stack's
+  `rules` spec without the layer axis) and their gradient reduce-scattered back to it inside the
+  backward scan (`_gather_whole`), so neither the whole model nor its whole gradient is ever
+  materialised on one device. None on a one-device mesh.
   """
   if mesh.size == 1:
     return None
   rules = [tuple(r) for r in (rules or [])]
-  full = replicated(mesh)
 
   def for_stack(path: str, stack):
     def layer_sharding(leaf_path, a):
@@ -224,20 +294,7 @@ def layer_gather(mesh: Mesh, rules, min_size: int = 0):
                          "scanned stack; shard another dimension (scan gathers one layer a step)")
       return NamedSharding(mesh, P(*spec[1:]))
 
-    shards = jax.tree_util.tree_map_with_path(layer_sharding, stack)
-
-    @jax.custom_vjp
-    def gather(layer):
-      layer = jax.lax.with_sharding_constraint(layer, shards)
-      return jax.lax.with_sharding_constraint(layer, jax.tree.map(lambda _: full, layer))
-
-    # The gradient goes from the devices' partial sums straight to the shard (a reduce-scatter);
-    # the transpose of the constraints above would all-reduce a full copy first.
-    def backward(_, grad):
-      return (jax.lax.with_sharding_constraint(grad, shards),)
-
-    gather.defvjp(lambda layer: (gather(layer), None), backward)
-    return gather
+    return _gather_whole(jax.tree_util.tree_map_with_path(layer_sharding, stack))
 
   return for_stack
 

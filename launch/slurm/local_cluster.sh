@@ -48,6 +48,9 @@ ClusterName=local
 SlurmctldHost=$host
 AuthType=auth/munge
 CredType=cred/munge
+# A requeued job waits cred_expire seconds (default 120) before it may start again; a local
+# cluster needs no more than a few seconds for a step's credential.
+AuthInfo=cred_expire=10
 SlurmUser=slurm
 SlurmctldPidFile=/run/slurmctld.pid
 SlurmdPidFile=/run/slurmd.pid

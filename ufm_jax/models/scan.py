@@ -14,9 +14,11 @@ parity tests), each segment also returns its per-block outputs as scan ys and th
 
 FSDP: with a `layer_gather` hook (`ufm_jax.sharding.layer_gather`) the stacked params stay sharded
 and each block's weights are all-gathered inside the scan body, and its gradient reduce-scattered
-there, so a device holds one or two gathered layers at a time instead of the whole model.
+there, so a device holds one or two gathered layers at a time instead of the whole model, with
+remat or without it.
 """
 
+import functools
 import re
 from typing import Callable, Dict, Optional, Sequence, Tuple
 
@@ -64,13 +66,13 @@ def run(block: nn.Module, stack, x: jax.Array, lo: int, hi: int, remat: bool,
   (prevent_cse=False: the scan already keeps XLA from merging the recomputation away).
   `gather` (FSDP's `layer_gather` hook, `path` the stacked tree's param path) gathers each
   block's weights inside the body; remat then gathers them again for the backward pass instead
-  of keeping them. Without remat the backward pass would keep every layer's gathered weights
-  anyway, so the segment's stack is gathered once before the scan, as unscanned params are.
+  of keeping them. Without remat the body is checkpointed too, but it saves every value computed
+  from the activations (`_computed_from_activations`): only what comes from the weights alone
+  (the gather, the casts to the compute dtype) is recomputed, so the backward pass gathers each
+  layer again instead of keeping every layer's gathered weights.
   """
   part = jax.tree.map(lambda a: a[lo:hi], stack)
   gather_layer = gather(path, stack) if gather is not None else None
-  if gather_layer is not None and not remat:
-    part, gather_layer = jax.vmap(gather_layer)(part), None
 
   def body(h, p):
     if gather_layer is not None:
@@ -80,7 +82,18 @@ def run(block: nn.Module, stack, x: jax.Array, lo: int, hi: int, remat: bool,
 
   if remat:
     body = jax.checkpoint(body, prevent_cse=False)
+  elif gather_layer is not None:
+    body = jax.checkpoint(body, prevent_cse=False,
+                          policy=functools.partial(_computed_from_activations, jnp.ndim(x)))
   return jax.lax.scan(body, x, part)
+
+
+def _computed_from_activations(rank: int, prim, *avals, **params) -> bool:
+  """Remat policy: save the outputs of an operation with an input of the activations' rank (a
+  block's activations are [batch, tokens, channels] and more; its weights have fewer dimensions),
+  recompute the others: the layer's weights as gathered and cast."""
+  del prim, params
+  return any(getattr(a, "ndim", 0) >= rank for a in avals)
 
 
 # ----------------------------------------------------------------------------- param layout

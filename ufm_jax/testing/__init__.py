@@ -397,3 +397,27 @@ def hf_dinov2(depth=2, dim=8, grid=3, seed=0):
     sd[p + "mlp.fc1.weight"], sd[p + "mlp.fc1.bias"] = r(4 * dim, dim), r(4 * dim)
     sd[p + "mlp.fc2.weight"], sd[p + "mlp.fc2.bias"] = r(dim, 4 * dim), r(dim)
   return sd
+
+
+def wide_scanned_config(grad_accum: int = 1):
+  """configs/synthetic.py with a model whose scanned blocks are as wide as a small production
+  model's (512 wide, MLP 2048: 4 encoder blocks, 6 fusion blocks in three scans of 2), small DPT
+  heads, bf16, remat and FSDP over every device: for compiling a train step for a TPU slice
+  (tests/test_sharding_collectives.py). Its 64-way shards are large enough for XLA:TPU to reduce
+  them as it reduces UFM-Base's (the tiny model's 64-wide blocks are all-reduced whatever is
+  asked)."""
+  from ufm_jax import config_lib
+  c = config_lib.load_config(str(pathlib.Path(__file__).resolve().parents[2] / "configs" /
+                                 "synthetic.py") + ":eval=false")
+  c.unlock()
+  c.model_name = "tiny"
+  c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
+  c.model.encoder = dinov2.DinoV2Config(embed_dim=512, depth=4, num_heads=8, pos_grid=4,
+                                        indices=(3,))
+  c.model.info_sharing = info_sharing.InfoSharingConfig(input_embed_dim=512, dim=512, depth=6,
+                                                        num_heads=8, indices=(1, 3))
+  c.model.flow_head = _small_dpt(512, 512, 2)
+  c.model.covisibility_head = _small_dpt(512, 512, 1)
+  c.mesh = "data:1,fsdp:-1"
+  c.grad_accum = grad_accum
+  return c
