@@ -14,7 +14,11 @@ images, a multiple of 14), eval (the held-out evaluation on/off), model (a ufm_j
 variant, e.g. tiny_synth or synth), lr (peak learning rate of every parameter group), loss
 (paper: alpha 0.5, c 0.24; l1: alpha 1, c 0.01, i.e. ~100 x EPE), and for pairs=shift: max_shift
 (px) and aligned (fraction of patch-aligned shifts in training, default 0; the held-out pairs have
-none).
+none), cov (a flow covariance in the uncertainty head, trained by the Gaussian NLL on the pixels the
+flow term supervises: `config_lib.add_flow_covariance`, docs/uncertainty.md; cov_head=main puts it
+in the flow head instead):
+
+  python train.py --config=configs/synthetic.py:cov=True --workdir=workdirs/synthetic_cov
 
 Training curves and how the task, model and loss were chosen: docs/synthetic_training.md.
 
@@ -40,7 +44,8 @@ _NO_AUGMENT = {"enabled": False, "supervise_out_of_view": True}
 
 def get_config(arg=None):
   arg = config_lib.parse_arg(arg, pairs="shift", steps=2000, batch=8, size=56, eval=True,
-                             model="synth", lr=1e-3, loss="l1", aligned=0.0, max_shift=10)
+                             model="synth", lr=1e-3, loss="l1", aligned=0.0, max_shift=10,
+                             cov=False, cov_head="uncertainty")
   hw = (arg.size, arg.size)
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.seed = 0
@@ -71,6 +76,9 @@ def get_config(arg=None):
   # Unrolled: segments of 1-2 blocks gain nothing from scan, and the measured figures of
   # docs/synthetic_training.md are of this layout.
   c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
+  c.model.detach_uncertainty_head = True   # the variant's; a key so that flags can change it
+  if arg.cov:
+    config_lib.add_flow_covariance(c, pixels="robust_epe", head=arg.cov_head)
   c.model_init = config_lib.unset(str)  # e.g. ckpt:WORKDIR
   c.model_init_flow_adaptor = "check"   # a source must match the config (model_init.py)
   # One learning rate for every group, 5% linear warmup, cosine to 0 (no epochs to count in).

@@ -14,7 +14,9 @@ dinov2_vitl14_pretrain.pth with the torch extra), the rest initialised as the of
 1e-4 (the rest); warmup 4.8 epochs, then cosine to 1% of the peak; gradients clipped to global
 norm 1.0. Loss: robust EPE on covisible pixels + 10 x covisibility BCE, whose gradient reaches
 the trunk (`detach_uncertainty_head=False`). Arg `data=of|wb|both` selects the Table 4 data
-ablation (same number of epochs).
+ablation (same number of epochs). Arg `cov=True` adds a flow covariance to the uncertainty head
+(before its covisibility channel, low_confidence_init) and the Gaussian NLL on the pixels the robust
+EPE supervises (`config_lib.add_flow_covariance`, docs/uncertainty.md): not in the official recipe.
 
 Each official quirk is one key below (`loss.*`, `optim.fractional_warmup`); the comment at its
 definition (ufm_jax/losses.py, ufm_jax/optim.py) says what switching it changes, e.g.
@@ -28,7 +30,7 @@ from ufm_jax.data import augment, mixture, pipeline
 
 
 def get_config(arg=None):
-  arg = config_lib.parse_arg(arg, data="both", model="ufm_base")
+  arg = config_lib.parse_arg(arg, data="both", model="ufm_base", cov=False)
   names = {"both": mixture.ALL, "of": mixture.OPTICAL_FLOW, "wb": mixture.WIDE_BASELINE}
   if arg.data not in names:
     raise ValueError(f"configs/ufm560.py: data={arg.data!r}; expected of, wb or both")
@@ -80,5 +82,7 @@ def get_config(arg=None):
       # Official: DDP, each GPU's own loss over its rows, gradients averaged; the GPU count of
       # the paper's runs is unknown (losses.Recipe.groups). 1: one loss over the global batch.
       "groups": 1})
+  if arg.cov:
+    config_lib.add_flow_covariance(c, pixels="robust_epe")
   c.evals = ml_collections.ConfigDict({"sintel": config_lib.bench_eval("sintel")})
   return c

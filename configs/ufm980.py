@@ -15,6 +15,12 @@ and 1e-5 (fusion transformer, flow head) with 2 warmup epochs, cosine to 1%; the
 is frozen (lr 0: no gradient, no optimizer state) and has no loss: the robust EPE is taken on every
 pixel whose ground-truth target lies within a 25% margin around the image
 (`loss.epe_all.range="all"`, margin 0.25).
+
+Arg `cov=True` (docs/uncertainty.md; not in the official recipe) is for a 560 run trained with
+`configs/ufm560.py:cov=True` (the same uncertainty head): the covariance is in px, so it is
+trained again at 980 by the Gaussian NLL on the pixels `epe_all` supervises; for that the
+uncertainty head trains (lr 1e-5, the flow head's) and keeps the 560 recipe's covisibility BCE,
+which holds its covisibility channel while the layers it shares with the covariance move.
 """
 
 import ml_collections
@@ -24,7 +30,7 @@ from ufm_jax.data import augment, mixture, pipeline
 
 
 def get_config(arg=None):
-  arg = config_lib.parse_arg(arg, model="ufm_base")
+  arg = config_lib.parse_arg(arg, model="ufm_base", cov=False)
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.seed = 42
   c.num_epochs = 15
@@ -69,5 +75,10 @@ def get_config(arg=None):
       # Official: DDP, each GPU's own loss over its rows, gradients averaged; the GPU count of
       # the paper's runs is unknown (losses.Recipe.groups). 1: one loss over the global batch.
       "groups": 1})
+  if arg.cov:
+    c.optim.lr.uncertainty_head = 1e-5
+    c.loss.terms = tuple(c.loss.terms) + ("covisibility_ce",)
+    c.loss.covisibility_ce = {"type": "bce", "multiplier": 10.0, "eps": 1e-6}
+    config_lib.add_flow_covariance(c, pixels="epe_all")
   c.evals = ml_collections.ConfigDict({"sintel": config_lib.bench_eval("sintel", resolution="980")})
   return c

@@ -90,7 +90,8 @@ def test_api_end_to_end_and_threshold_changes_matches(client, pair):
   for thr in (0.1, 0.9):
     out = client.predict(handle_file(str(src)), handle_file(str(tgt)), thr, num,
                          api_name="/analyse")
-    flow, covis, warped, drawing, npz, summary = out
+    flow, covis, warped, drawing, npz, summary, uncertainty = out
+    assert uncertainty is None            # the base fixture has no flow covariance
     for img in (flow, covis, warped):
       assert io.read_image(img).shape == (96, 128, 3)
     assert io.read_image(drawing).shape == (96, 128 + 112, 3)  # side by side, heights padded

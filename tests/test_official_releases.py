@@ -40,77 +40,39 @@ def _case_dir(name) -> pathlib.Path:
   return FOLDERS[name]
 
 
-def _nhwc(a):
-  return np.transpose(a, (0, 2, 3, 1))
-
-
-def _close(name, got, want, atol):
-  got = np.asarray(got, np.float64)
-  assert got.shape == want.shape, f"{name}: shape {got.shape} != {want.shape}"
-  err = float(np.abs(got - want).max())
-  assert err <= atol, f"{name}: max |diff| {err:.3g} > {atol:.3g}"
-
-
 @pytest.fixture(scope="module", params=CASES or [None])
 def case(request):
   d = _case_dir(request.param)
-  model, variables = ufm_jax.load_official(d)
-  io = dict(np.load(d / "io.npz"))
-  out = jax.jit(model.apply)(variables, io["img1_uint8"], io["img2_uint8"])
-  return d, model, variables, io, {k: np.asarray(v) for k, v in out.items()}
+  return (d,) + testing.official_case(d)
 
 
 def test_forward_matches_the_official_outputs(case):
-  """Tolerances of the older fixtures: flow 1e-3 px (5e-3 after refinement), logits 2e-4."""
-  _, model, _, io, out = case
-  refined = "flow_before_refinement" in io
-  _close("flow", out["flow"], _nhwc(io["flow"]), 5e-3 if refined else 1e-3)
-  if "covisibility_logits" in io:
-    _close("covisibility_logits", out["covisibility_logits"], io["covisibility_logits"][:, 0], 2e-4)
-    _close("covisibility", out["covisibility"], io["covisibility_mask"][:, 0], 5e-5)
-  if refined:
-    _close("flow_before_refinement", out["flow_before_refinement"],
-           _nhwc(io["flow_before_refinement"]), 1e-3)
-    _close("residual", out["residual"], _nhwc(io["residual"]), 5e-3)
-    for k in ("feature_map_0", "feature_map_1"):
-      _close(k, out[k], _nhwc(io[k]), 2e-4)
+  """Tolerances of the older fixtures (testing.assert_forward_parity): flow 1e-3 px (5e-3 after
+  refinement), logits 2e-4."""
+  testing.assert_forward_parity(case[3], case[4])
 
 
-# predict_correspondences_batched's flow: 1e-3 px as the forward (measured at most 3.05e-5 px on
-# the public base cases). After refinement 6e-3 px: the refiner's softmax-weighted 7x7 window turns
-# float32 reduction-order noise into up to ~5e-3 px at isolated pixels, on the official code's side
-# too (measured on refine_bn_conv: ours 5.17e-3 / 8.7e-4 / 4.57e-3 px on hl0 / hl1 / hl2, with
-# the resized inputs identical and the unmapping within 1.5e-5 px; the official code itself, rerun
-# with torch 2.13.0 on this CPU, differs from the fixture by up to 2.8e-3 px and between 1 and 2
-# threads by up to 2.6e-3 px on the same pairs). The older fixtures' ~1e-2 px is not needed.
-HL_FLOW_ATOL = {"base": 1e-3, "refine": 6e-3}
-
-
+# predict_correspondences_batched's flow (testing.HL_FLOW_ATOL): 1e-3 px as the forward (measured
+# at most 3.05e-5 px on the public base cases). After refinement 6e-3 px: the refiner's
+# softmax-weighted 7x7 window turns float32 reduction-order noise into up to ~5e-3 px at isolated
+# pixels, on the official code's side too (measured on refine_bn_conv: ours 5.17e-3 / 8.7e-4 /
+# 4.57e-3 px on hl0 / hl1 / hl2, with the resized inputs identical and the unmapping within 1.5e-5
+# px; the official code itself, rerun with torch 2.13.0 on this CPU, differs from the fixture by
+# up to 2.8e-3 px and between 1 and 2 threads by up to 2.6e-3 px on the same pairs). The older
+# fixtures' ~1e-2 px is not needed.
 @pytest.mark.parametrize("pair", ["hl0", "hl1", "hl2"])
 def test_predict_matches_the_official_high_level_api(case, pair):
-  """predict_correspondences_batched; hl*_flow within HL_FLOW_ATOL."""
+  """predict_correspondences_batched; hl*_flow within testing.HL_FLOW_ATOL."""
   _, model, variables, io, _ = case
-  if f"{pair}_src_uint8" not in io:
-    pytest.skip(f"this case has no {pair}")
-  got = ufm_jax.predict(model, variables, io[f"{pair}_src_uint8"], io[f"{pair}_tgt_uint8"])
-  refined = "flow_before_refinement" in io
-  _close(f"{pair}_flow", got["flow"], _nhwc(io[f"{pair}_flow"])[0],
-         HL_FLOW_ATOL["refine" if refined else "base"])
-  _close(f"{pair}_covisibility", got["covisibility"], io[f"{pair}_covisibility"][0], 5e-5)
+  testing.assert_predict_parity(model, variables, io, pair)
 
 
 def test_round_trip_through_our_checkpoint_is_exact(case, tmp_path):
   """snapshot -> our checkpoint (convert) -> official snapshot (save_official with the snapshot
-  as source): config.json and model.safetensors byte for byte (the header as the source file has
-  it, alias order included)."""
+  as source): config.json and model.safetensors byte for byte
+  (testing.assert_exact_official_round_trip)."""
   d, model, variables, _, _ = case
-  model_io.save(tmp_path / "ckpt", model, variables)
-  back_model, back_params = ufm_jax.load(tmp_path / "ckpt")
-  assert back_model.config == model.config
-  ufm_jax.save_official(back_model, back_params, tmp_path / "out", source=str(d))
-  assert (tmp_path / "out" / "config.json").read_bytes() == (d / "config.json").read_bytes()
-  assert (tmp_path / "out" / "model.safetensors").read_bytes() == \
-      (d / "model.safetensors").read_bytes()
+  testing.assert_exact_official_round_trip(d, model, variables, tmp_path)
 
 
 # --------------------------------------------------------------------------- config.json rules
@@ -119,15 +81,6 @@ def test_round_trip_through_our_checkpoint_is_exact(case, tmp_path):
 @pytest.fixture(scope="module")
 def refine_bn():
   return _case_dir("refine_bn_conv" if "refine_bn_conv" in CASES else None)
-
-
-def _with_config(src, dst, edit):
-  dst.mkdir()
-  cj = json.loads((src / "config.json").read_text())
-  edit(cj)
-  (dst / "config.json").write_text(json.dumps(cj, indent=2, sort_keys=True))
-  os.symlink(src / "model.safetensors", dst / "model.safetensors")
-  return dst
 
 
 @pytest.mark.parametrize("section,key", [
@@ -140,7 +93,7 @@ def test_a_key_the_loader_does_not_know_is_an_error_naming_it(refine_bn, tmp_pat
     for part in (section.split(".") if section else ()):
       d = d[part]
     d[key] = True
-  snap = _with_config(refine_bn, tmp_path / "snap", edit)
+  snap = testing.snapshot_with_config(refine_bn, tmp_path / "snap", edit)
   with pytest.raises(ValueError, match=rf"{section + '.' if section else ''}{key}: not an option"):
     ufm_jax.load_official(snap)
 
@@ -149,7 +102,7 @@ def test_integer_input_feature_dim_is_written_back_as_an_integer(refine_bn, tmp_
   def edit(cj):
     cj["classification_head_kwargs"]["input_feature_dim"] = sum(
         int(t) for t in cj["classification_head_kwargs"]["input_feature_dim"].split("+"))
-  snap = _with_config(refine_bn, tmp_path / "snap", edit)
+  snap = testing.snapshot_with_config(refine_bn, tmp_path / "snap", edit)
   model, variables = ufm_jax.load_official(snap)
   ufm_jax.save_official(model, variables, tmp_path / "out")
   assert (tmp_path / "out" / "config.json").read_text() == (snap / "config.json").read_text()
@@ -171,7 +124,7 @@ def test_a_changed_model_is_exported_with_the_new_kwargs(refine_bn, tmp_path):
 
 def test_several_inference_resolutions(refine_bn, tmp_path):
   """inference_resolution may list several (W, H): predict picks the closest aspect per pair."""
-  snap = _with_config(refine_bn, tmp_path / "snap",
+  snap = testing.snapshot_with_config(refine_bn, tmp_path / "snap",
                       lambda cj: cj.update(inference_resolution=[[140, 98], [98, 140]]))
   model, _ = ufm_jax.load_official(snap)
   assert model.config.inference_resolution == ((98, 140), (140, 98))
@@ -184,7 +137,7 @@ def test_random_view_rows_warn_and_use_row_one(tmp_path):
   """use_rand_idx_pe_for_non_reference_views with more than two rows: the official forward is
   random; the loader warns and view 2 gets row 1, as with the option off."""
   src = _case_dir("base_v2_defaults" if "base_v2_defaults" in CASES else None)
-  snap = _with_config(src, tmp_path / "snap",
+  snap = testing.snapshot_with_config(src, tmp_path / "snap",
                       lambda cj: cj["info_sharing_kwargs"].pop(
                           "use_rand_idx_pe_for_non_reference_views"))
   with pytest.warns(UserWarning, match=r"snap/config.json: .*left out \(default true\).*row 1"):
@@ -242,7 +195,7 @@ assert evaluate.main(["--checkpoint", "infinity1096/UFM-Fixture", "--snapshot", 
                                         HF_HUB_CACHE=str(tmp_path / "hub"), HF_HUB_OFFLINE="1"))
   assert r.returncode == 0, r.stderr[-3000:]
   np.testing.assert_allclose(np.load(tmp_path / "out" / "forward_flow.npy"),
-                             _nhwc(io["hl1_flow"])[0], atol=1e-2)
+                             testing.nhwc(io["hl1_flow"])[0], atol=1e-2)
   missing = r.stdout[r.stdout.index("missing"):]
   assert missing.startswith("missing 2 ") and "infinity1096/UFM-Missing" in missing
   assert str(tmp_path / "hub") in missing and "HF_HUB_OFFLINE" in missing

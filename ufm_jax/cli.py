@@ -7,14 +7,19 @@ as `ufm-jax`).
         <dir>_flow.npy           the same flow, [H, W, 2] float32
         <dir>_covisibility.npy   covisibility probability, [H, W] float32
         <dir>_covisibility.png   covisibility as 8-bit grey (255 = covisible)
+        <dir>_flow_covariance.npy  flow covariance (var_x, var_y, cov_xy) px^2, [H, W, 3] float32
+                                 (a model with a flow covariance head)
         <dir>_panel.png          source | target | flow colours | target warped into the source
+                                 (| uncertainty, sigma_max in px over a legend, with a covariance)
   python -m ufm_jax infer (--frames DIR [--stride k] | --pairs LIST.txt | VIDEO.mp4) --checkpoint DIR
       --out DIR [--batch N] [--save npy,covis,panel] [--overwrite]   (see `ufm_jax.sequence`)
   python -m ufm_jax export --checkpoint DIR --size HxW --out PATH [--batch N|dynamic]
       [--dtype float32|bfloat16] [--format stablehlo|onnx] [--outputs flow,covisibility]
       A deployable artifact of the forward pass plus PATH.json (see `ufm_jax.export`).
   python -m ufm_jax match SOURCE TARGET --checkpoint DIR --out matches.npz [--draw m.png]
-      [--num 5000] [--min-covisibility 0.5] [--bidirectional]   (see `ufm_jax.matching`)
+      [--num 5000] [--min-covisibility 0.5] [--bidirectional] [--max-sigma PX]
+      (see `ufm_jax.matching`; a flow covariance model adds each match's covariance and
+      precision and ranks the matches, most certain first)
   python -m ufm_jax demo --checkpoint DIR [--port 7860] [--host 127.0.0.1] [--max-side 2048] [--share]
       A local Gradio page: flow, covisibility, warp and matches (see `ufm_jax.demo`; [demo] extra).
   python -m ufm_jax convert SNAPSHOT_DIR OUT_DIR ...
@@ -36,6 +41,8 @@ import argparse
 import os
 import pathlib
 import sys
+
+import numpy as np
 
 from ufm_jax import compile_cache, model_io
 from ufm_jax.model_io import load_model
@@ -183,8 +190,8 @@ def _add_export_parser(sub) -> None:
   p.add_argument("--outputs", default=None,
                  help="comma-separated model outputs to keep (default: "
                       f"{','.join(export.DEFAULT_OUTPUTS)}, flow alone for a model without "
-                      "covisibility; refinement models also have flow_before_refinement, "
-                      "residual, log_softmax, ...)")
+                      "covisibility, plus flow_covariance for a model with one; refinement models "
+                      "also have flow_before_refinement, residual, log_softmax, ...)")
   p.set_defaults(func=_export_main)
 
 
@@ -207,13 +214,17 @@ def _add_match_parser(sub) -> None:
   p.add_argument("source")
   p.add_argument("target")
   _add_checkpoint_args(p)
-  p.add_argument("--out", required=True, help="matches .npz: keypoints0, keypoints1, confidence")
+  p.add_argument("--out", required=True, help="matches .npz: keypoints0, keypoints1, confidence "
+                 "(+ covariance, precision, sigma from a flow covariance model)")
   p.add_argument("--draw", default=None, help="also draw the matches into this PNG")
   p.add_argument("--num", type=int, default=5000)
   p.add_argument("--min-covisibility", type=float, default=0.5)
   p.add_argument("--bidirectional", action="store_true",
                  help="keep forward-backward consistent matches only (--max-fb-error px)")
   p.add_argument("--max-fb-error", type=float, default=1.0)
+  p.add_argument("--max-sigma", type=float, default=None,
+                 help="drop matches whose predicted sigma (px, the error ellipse's long axis) is "
+                      "above this (a flow covariance model)")
   p.add_argument("--seed", type=int, default=0)
   p.set_defaults(func=_match_main)
 
@@ -225,10 +236,12 @@ def _match_main(args) -> int:
   model, variables = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   m = matching.match(model, variables, source, target, num=args.num,
                      min_covisibility=args.min_covisibility, bidirectional=args.bidirectional,
-                     max_fb_error_px=args.max_fb_error, seed=args.seed)
+                     max_fb_error_px=args.max_fb_error, seed=args.seed, max_sigma=args.max_sigma)
   out = matching.save_matches(args.out, m, source.shape, target.shape)
   why = matching.shortfall(m, args.num, args.min_covisibility, args.bidirectional)
-  print(f"{out}: {len(m['keypoints0'])} matches" + (f" ({why})" if why else ""))
+  ranked = (f", most certain first (median sigma {float(np.median(m['sigma'])):.2f} px)"
+            if "sigma" in m and len(m["sigma"]) else "")
+  print(f"{out}: {len(m['keypoints0'])} matches{ranked}" + (f" ({why})" if why else ""))
   if args.draw:
     io.write_image(args.draw, matching.draw_matches(source, target, m["keypoints0"], m["keypoints1"]))
     print(args.draw)

@@ -91,6 +91,30 @@ def model_options(dtype: str = "bfloat16", remat: bool = True, scan_blocks: bool
       "attention_impl": unset(str)})
 
 
+def add_flow_covariance(c: ml_collections.ConfigDict, pixels: str, head: str = "uncertainty",
+                        head_output_dim: int | None = None,
+                        multiplier: float = 1.0) -> ml_collections.ConfigDict:
+  """The `cov=True` switch of a recipe: a flow covariance adaptor (exp_tanh, low_confidence_init)
+  in the uncertainty head before its covisibility channel, or with head="main" in the flow head
+  after the flow (the sorted orders an official snapshot reloads in; the head's output_dim grows
+  by 3 from `head_output_dim`, default 1 for the uncertainty head and 2 for the main), and the
+  Gaussian NLL term `flow_nll` (ufm_jax.losses.FlowCovarianceNLL) on the pixels of the flow term
+  `pixels`, added after the recipe's terms. Returns `c`."""
+  if head == "uncertainty":
+    c.model.covisibility_head = {"output_dim": (head_output_dim or 1) + 3}
+    c.model.uncertainty_head_adaptors = ("flow_cov", "non_occluded_mask")
+  elif head == "main":
+    c.model.flow_head = {"output_dim": (head_output_dim or 2) + 3}
+    c.model.flow_head_adaptors = ("flow", "flow_cov")
+  else:
+    raise ValueError(f"add_flow_covariance: head {head!r}; expected 'uncertainty' or 'main'")
+  c.model.flow_covariance = {"parametrization": "exp_tanh", "low_confidence_init": True}
+  c.loss.terms = tuple(c.loss.terms) + ("flow_nll",)
+  c.loss.flow_nll = {"type": "flow_nll", "pixels": pixels, "multiplier": multiplier,
+                     "detach_flow": True, "eps": 1e-4}
+  return c
+
+
 def bench_eval(bench="sintel", every=5000, max_pairs=200, resolution="560",
                data_root=mixture.DEFAULT_DATA_ROOT) -> ml_collections.ConfigDict:
   """An `evals` entry that runs a benchmark of ufm_jax.evaluators during training."""

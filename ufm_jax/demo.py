@@ -3,9 +3,11 @@
 
 A Gradio app (the optional `[demo]` extra): upload two images (or pick the generated example
 pair) and see the flow in the Middlebury colour wheel, the covisibility, the target warped into
-the source and sampled matches drawn as lines; a slider sets the covisibility threshold (pixels
-below it are greyed out and never matched) and the matches download as the `.npz` that
-`python -m ufm_jax match` writes. The forward pass is `ufm_jax.predict` (one jitted forward per
+the source and sampled matches drawn as lines, and for a model with a flow covariance its
+uncertainty (sigma_max in px on a fixed log scale with a legend, `viz.uncertainty_view`); a
+slider sets the covisibility threshold (pixels below it are greyed out and never matched) and the
+matches download as the `.npz` that `python -m ufm_jax match` writes (with a covariance: each
+match's covariance and precision, most certain first). The forward pass is `ufm_jax.predict` (one jitted forward per
 inference shape); a changed threshold re-samples the cached prediction without running the model.
 
 It binds 127.0.0.1 unless --host says otherwise, refuses uploads over --max-file-size, files that
@@ -14,7 +16,7 @@ are no image, and images with a side over --max-side or under the model's minimu
 with a message naming the limit and the image's size, and makes a public share link only with
 --share. Its API (`gradio_client`): `Client(url).predict(source,
 target, threshold, num, api_name="/analyse")` -> (flow colours, covisibility, warped target,
-matches drawing, matches.npz, summary).
+matches drawing, matches.npz, summary, uncertainty (None for a model without a flow covariance)).
 """
 
 from __future__ import annotations
@@ -117,7 +119,8 @@ class Analyser:
     return key, pred, ms
 
   def __call__(self, source, target, threshold: float = 0.5, num: int = DEFAULT_NUM):
-    """-> (flow colours, covisibility, warped target, matches drawing, matches .npz path, summary)."""
+    """-> (flow colours, covisibility, warped target, matches drawing, matches .npz path, summary,
+    uncertainty view or None)."""
     from ufm_jax import matching, viz
     source, target = read_upload(source, "source"), read_upload(target, "target")
     if source is None or target is None:
@@ -130,8 +133,10 @@ class Analyser:
     flow, covis = pred["flow"], pred.get("covisibility")
     threshold, num = float(threshold), int(num)
     colours, warped = viz.flow_views(target, flow, covis, threshold=threshold)
+    cov = pred.get("flow_covariance")
     m = matching.matches_from_dense(flow, covis, num=num, min_covisibility=threshold,
-                                    target_hw=target.shape[:2])
+                                    target_hw=target.shape[:2], covariance=cov,
+                                    covariance_inv=pred.get("flow_covariance_inv"))
     drawing = matching.draw_matches(source, target, m["keypoints0"], m["keypoints1"],
                                     max_lines=MAX_LINES)
     npz = matching.save_matches(self.out_dir / f"matches_{key}_{threshold:.3f}_{num}.npz", m,
@@ -141,8 +146,12 @@ class Analyser:
     summary = (f"{n} matches at covisibility >= {threshold:.2f} ({min(n, MAX_LINES)} drawn"
                + (f"; {why}" if why else "") + "); "
                f"{100 * float(np.mean(covis >= threshold)):.1f}% of source pixels covisible; "
+               + (f"median match sigma {float(np.median(m['sigma'])):.2f} px; "
+                  if cov is not None and n else "")
                + (f"forward {ms:.0f} ms" if ms else "prediction cached"))
-    return colours, viz.covisibility_to_image(covis), warped, drawing, str(npz), summary
+    uncertainty = None if cov is None else viz.uncertainty_view(cov)
+    return (colours, viz.covisibility_to_image(covis), warped, drawing, str(npz), summary,
+            uncertainty)
 
 
 def build_app(analyser: Analyser, examples: list[list[str]] | None = None):
@@ -180,9 +189,14 @@ def build_app(analyser: Analyser, examples: list[list[str]] | None = None):
                show_label=True, width=120, height=120)
       covis = gr.Image(format="png", label="covisibility", interactive=False)
       warped = gr.Image(format="png", label="warped target", interactive=False)
+    has_cov = getattr(getattr(analyser.model, "config", None), "flow_covariance", None) is not None
+    uncertainty = gr.Image(format="png", label="uncertainty (sigma, px)", interactive=False,
+                           visible=has_cov)
     drawing = gr.Image(format="png", label="sampled matches", interactive=False)
-    npz = gr.File(label="matches.npz (keypoints0, keypoints1, confidence)", interactive=False)
-    outputs = [flow, covis, warped, drawing, npz, summary]
+    npz = gr.File(label="matches.npz (keypoints0, keypoints1, confidence"
+                  + (", covariance, precision, sigma: most certain first)" if has_cov else ")"),
+                  interactive=False)
+    outputs = [flow, covis, warped, drawing, npz, summary, uncertainty]
     inputs = [source, target, threshold, num]
     # preprocess=False: the uploads reach `analyse` as files and go through the project's image
     # reader (read_upload), so a file that is no image gets our message, not Gradio's (which

@@ -4,9 +4,11 @@
       [--batch N|dynamic] [--dtype float32|bfloat16] [--format stablehlo|onnx] [--outputs a,b]
 
 Both formats take `source`, `target` uint8 [B, H, W, 3] RGB (H, W the export size) and return
-`flow` [B, H, W, 2] float32 pixels and `covisibility` [B, H, W] (plus any extra outputs named with
---outputs, e.g. a refinement model's `flow_before_refinement`); a model without an uncertainty
-head (the refinement training recipe's) exports `flow` alone by default (a warning says so).
+`flow` [B, H, W, 2] float32 pixels and `covisibility` [B, H, W], and from a model with a flow
+covariance `flow_covariance` [B, H, W, 3] (var_x, var_y, cov_xy in px^2 of the export size) (plus
+any extra outputs named with --outputs, e.g. `flow_covariance_inv`, a refinement model's
+`flow_before_refinement`); a model without an uncertainty head (the refinement training recipe's)
+exports `flow` alone by default (a warning says so).
 Images must already be at the export size: resize on the host (ufm_jax.predict does it the
 official way) or export at the camera's resolution.
 
@@ -34,6 +36,8 @@ import numpy as np
 FORMATS = ("stablehlo", "onnx")
 DTYPES = ("float32", "bfloat16")
 DEFAULT_OUTPUTS = ("flow", "covisibility")
+# Added to the defaults when the model has them (no warning when it has not).
+OPTIONAL_OUTPUTS = ("flow_covariance",)
 PLATFORMS = ("cpu", "cuda")
 INPUT_NAMES = ("source", "target")
 
@@ -89,16 +93,18 @@ def _prepare(model, variables, size, dtype, outputs, attention_impl=None):
 
 def resolve_outputs(outputs, available, model=None) -> tuple[str, ...]:
   """The output names to export: `outputs`, or for None the default ones the model produces
-  (`DEFAULT_OUTPUTS`: no covisibility from a model without an uncertainty head, with a warning)."""
+  (`DEFAULT_OUTPUTS`: no covisibility from a model without an uncertainty head, with a warning;
+  `OPTIONAL_OUTPUTS` where the model has them)."""
   if outputs is not None:
     return tuple(outputs)
+  optional = tuple(k for k in OPTIONAL_OUTPUTS if k in available)
   chosen = tuple(k for k in DEFAULT_OUTPUTS if k in available)
   if chosen != DEFAULT_OUTPUTS:
     from absl import logging
     logging.log_first_n(logging.WARNING, "%s produces no %s (no uncertainty head): exporting %s",
                         1, type(model).__name__,
                         ", ".join(sorted(set(DEFAULT_OUTPUTS) - set(chosen))), ", ".join(chosen))
-  return chosen
+  return chosen + optional
 
 
 def _batch_dim(batch):

@@ -14,7 +14,10 @@ The resize and unmap run in numpy on the host (they are cheap and must match PyT
 arithmetic); the forward pass is jitted once per model and traced once per inference shape.
 
 A model without an uncertainty head (the refinement training recipe's, `ufm_refine_recipe`)
-predicts flow only: its predictions have no "covisibility" key (a warning says so once).
+predicts flow only: its predictions have no "covisibility" key (a warning says so once). A model
+with a flow covariance adaptor adds "flow_covariance" (and its inverse, "flow_covariance_inv"),
+unmapped like covisibility and rescaled to the source's pixels as the official predict does
+(`unmap_covariance`).
 """
 
 from __future__ import annotations
@@ -182,6 +185,22 @@ def unmap_channels(values: np.ndarray, region0: np.ndarray, src_hw) -> np.ndarra
   return resize_nearest(np.asarray(values)[t:b, l:r], tuple(src_hw))
 
 
+def unmap_covariance(cov: np.ndarray, region0: np.ndarray, src_hw, inference_hw,
+                     inverse: bool = False) -> np.ndarray:
+  """Covariance triplets [h, w, 3] (px^2 at inference resolution) -> [H, W, 3] at the source
+  size: unmapped like covisibility, then scaled by (rw^2, rh^2, rw rh) with rw = W / w_inference,
+  rh = H / h_inference, the SOURCE image's ratios over the whole inference image (the official
+  base.py:294-319; the flow's target coordinates are scaled by the target's ratios, so for
+  images of different sizes this describes the flow in source pixels). `inverse`: the triplets
+  are precisions, scaled by the reciprocals."""
+  (h, w), (hi, wi) = tuple(src_hw), tuple(inference_hw)
+  # float32 like the official torch.tensor([w_ratio**2, ...]) (python floats -> float32)
+  rw, rh = w / wi, h / hi
+  out = unmap_channels(np.asarray(cov, np.float32), region0, src_hw)
+  scale = np.array([rw ** 2, rh ** 2, rw * rh], np.float32)
+  return (out / scale if inverse else out * scale).astype(np.float32)
+
+
 # ----------------------------------------------------------------------------------------------
 # Model plumbing
 # ----------------------------------------------------------------------------------------------
@@ -202,6 +221,8 @@ def inference_resolutions(model) -> list[tuple[int, int]]:
 
 
 _FORWARDS: dict[int, tuple[Any, Any, set]] = {}
+# The forward outputs predict unmaps (those a model has).
+PREDICTED = ("flow", "covisibility", "flow_covariance", "flow_covariance_inv")
 
 
 def _forward_fn(model):
@@ -220,7 +241,7 @@ def _forward_fn(model):
       out = model.apply(variables, source, target)
       if "covisibility" not in out:
         _warn_no_covisibility(model)
-      return {k: out[k] for k in ("flow", "covisibility") if k in out}
+      return {k: out[k] for k in PREDICTED if k in out}
     entry = (model, jax.jit(fwd), set())
     _FORWARDS[id(model)] = entry
   return entry[1], entry[2]
@@ -265,13 +286,17 @@ def _warn_no_covisibility(model) -> None:
                     type(model).__name__)
 
 
-def unmap_prediction(flow, covisibility, book) -> dict[str, np.ndarray]:
-  """Forward outputs of one pair at inference resolution -> source-resolution dict (no
-  "covisibility" when `covisibility` is None)."""
-  out = {"flow": unmap_flow(flow, book["region0"], book["src_hw"], book["tgt_hw"])}
-  if covisibility is not None:
-    out["covisibility"] = unmap_channels(np.asarray(covisibility, np.float32), book["region0"],
-                                         book["src_hw"])
+def unmap_prediction(pred: dict, book) -> dict[str, np.ndarray]:
+  """Forward outputs of one pair at inference resolution ({"flow"[, "covisibility",
+  "flow_covariance", "flow_covariance_inv"]}) -> the same keys at the source resolution."""
+  out = {"flow": unmap_flow(pred["flow"], book["region0"], book["src_hw"], book["tgt_hw"])}
+  if pred.get("covisibility") is not None:
+    out["covisibility"] = unmap_channels(np.asarray(pred["covisibility"], np.float32),
+                                         book["region0"], book["src_hw"])
+  for key in ("flow_covariance", "flow_covariance_inv"):
+    if pred.get(key) is not None:
+      out[key] = unmap_covariance(pred[key], book["region0"], book["src_hw"], book["resolution"],
+                                  inverse=key == "flow_covariance_inv")
   return out
 
 
@@ -304,7 +329,9 @@ def predict(model, variables, source, target, *, batch_size: int = 8, resolution
   Returns:
     {"flow": [H, W, 2] float32 px, "covisibility": [H, W] float32} at the SOURCE size for a single
     pair; a list of such dicts for lists; stacked [B, ...] arrays for [B, H, W, 3] inputs. No
-    "covisibility" from a model without an uncertainty head.
+    "covisibility" from a model without an uncertainty head. A model with a flow covariance adds
+    "flow_covariance" [H, W, 3] = (var_x, var_y, cov_xy) in px^2 and its inverse
+    "flow_covariance_inv" [H, W, 3] (`unmap_covariance`).
   """
   if getattr(source, "ndim", None) == 4:
     source, target = np.asarray(source), np.asarray(target)
@@ -344,9 +371,7 @@ def predict(model, variables, source, target, *, batch_size: int = 8, resolution
       if timings is not None and src.shape in compiled_shapes:
         timings.append((time.perf_counter() - t0, len(chunk)))
       compiled_shapes.add(src.shape)
-      flow = np.asarray(out["flow"], np.float32)
-      covis = np.asarray(out["covisibility"], np.float32) if "covisibility" in out else None
+      out = {k: np.asarray(v, np.float32) for k, v in out.items()}
       for j, i in enumerate(chunk):
-        results[i] = unmap_prediction(flow[j], None if covis is None else covis[j],
-                                      prepared[i][2])
+        results[i] = unmap_prediction({k: v[j] for k, v in out.items()}, prepared[i][2])
   return results[0] if single else results

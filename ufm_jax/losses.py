@@ -11,6 +11,8 @@ terms summed in config order (the official YAML order, `configs/loss/*.yaml`):
   type "refinement_ce_eval"  RefinementCrossEntropyLoss, the refine recipes' test loss
   type "teacher_robust", "teacher_bce"  distillation: the same two losses against a teacher's
                         outputs instead of labels (ufm_jax.distill_loss, configs/distill.py)
+  type "flow_nll"       FlowCovarianceNLL: the flow's negative log-likelihood under the predicted
+                        covariance (ours: the official code has the head but no loss for it)
 
 Every official quirk is a field of its term with the official behaviour as default; the field's
 comment says what the alternative changes. docs/recipe.md lists them with their file:line.
@@ -39,6 +41,7 @@ import numpy as np
 from ufm_jax import distill_loss, refine_training
 from ufm_jax.loss_common import (MAX_GT, check_choice, invalid_gt_mask, masked_mean,
                                  pixel_grid, robust_of_squared)
+from ufm_jax.models import covariance
 
 # Thresholds (px) of the official outlier-ratio logs (loss/epe.py:190, 309).
 OUTLIER_THRESHOLDS = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0)
@@ -135,6 +138,7 @@ class FlowRegression:
     value = masked_mean(per_pixel, mask, self.eps)
     loss = value * self.multiplier if self.multiplier_applied else value
     logs = self._logs(value, jax.lax.stop_gradient(d), mask, filtered)
+    ctx.setdefault("masks", {})[ctx.get("term")] = mask   # the pixels it supervises (flow_nll)
     return loss, logs, dict(shared, gt=gt, pred=pred)
 
   def _logs(self, value, d, mask, filtered):
@@ -173,9 +177,66 @@ class CovisibilityBCE:
     return self.multiplier * ce, {"occlusion_ce": ce}, shared
 
 
+@dataclasses.dataclass(frozen=True)
+class FlowCovarianceNLL:
+  """Negative log-likelihood of the flow under the predicted covariance (`flow_covariance_params`,
+  ufm_jax.models.covariance), per pixel with r = flow - gt:
+
+    gaussian  0.5 r^T Sigma^-1 r + 0.5 log|Sigma|   (the 2D Gaussian's, less its constant log 2 pi)
+
+  in the closed forms of ufm_jax.models.covariance (finite for any correlation), averaged over the pixels
+  the flow term named by `pixels` supervises (its mask, with its invalid-GT rule: that term must
+  come first in `terms`), times `multiplier`. The official code has no such term (its validation
+  config names a FlowEPECovarianceLoss that exists on no branch).
+
+  `detach_flow` decides where the gradient goes: True stops it at r, so the NLL trains only the
+  covariance and the flow is trained by the flow term alone; False lets it reach the flow (and the
+  trunk), an extra regression loss weighted by the predicted precision. The recipes use True:
+  at the trained synthetic run that pull would be ~2% of the flow term's gradient on the flow
+  head and the trunk (benchmarks/nll_flow_gradient.py, docs/uncertainty.md), the flow term's own
+  direction reweighted towards the pixels the model is already sure of; True keeps the flow
+  trained by the recipe's flow term alone, as in the same run without the head.
+  """
+  pixels: str = "robust_epe"
+  multiplier: float = 1.0
+  detach_flow: bool = True
+  eps: Optional[float] = 1e-4      # masked-mean denominator, as the flow terms'
+  max_gt: float = MAX_GT
+
+  def __call__(self, outputs, batch, shared, ctx):
+    if "flow_covariance_params" not in outputs:
+      raise ValueError("loss term flow_nll: the model predicts no flow covariance (add a "
+                       "flow_cov adaptor: model.flow_covariance, ufm.with_flow_covariance)")
+    masks = ctx.get("masks", {})
+    if self.pixels not in masks:
+      raise ValueError(f"loss term flow_nll: pixels={self.pixels!r} names no flow term before it "
+                       f"(flow terms so far: {sorted(k for k in masks if k)})")
+    gt, pred = shared["gt"], shared["pred"]
+    gt = jnp.where(jnp.isnan(gt) | (jnp.abs(gt) > self.max_gt), 0.0, gt)
+    r = jnp.where(jnp.isnan(pred), 0.0, pred) - gt
+    if self.detach_flow:
+      r = jax.lax.stop_gradient(r)
+    params = outputs["flow_covariance_params"].astype(jnp.float32)
+    quad, log_det = covariance.quadratic_and_log_det(params, r)
+    mask = masks[self.pixels]
+    # where(), not the product alone: a pixel outside the mask contributes nothing, NaN included
+    value = masked_mean(jnp.where(mask, 0.5 * quad + 0.5 * log_det, 0.0), mask, self.eps)
+    q = jax.lax.stop_gradient(jnp.where(mask, quad, 0.0))
+    m = mask.astype(jnp.float32)
+    n = jnp.maximum(jnp.sum(m), 1.0)
+    logs = {"nll": value,
+            # a calibrated Gaussian: E[r^T Sigma^-1 r] = 2, P(within 2 sigma) = 1 - e^-2 = 0.865
+            "mahalanobis_sq": jnp.sum(q * m) / n,
+            "coverage_2sigma": jnp.sum((q <= 4.0) * m) / n,
+            "sigma_geomean": jnp.exp(jnp.sum(jax.lax.stop_gradient(
+                jnp.where(mask, log_det, 0.0))) / n / 4)}
+    return self.multiplier * value, logs, shared
+
+
 def term_types() -> dict:
   """Config `type` -> term class."""
   return {"robust": FlowRegression, "epe": FlowRegression, "bce": CovisibilityBCE,
+          "flow_nll": FlowCovarianceNLL,
           "refinement_ce": refine_training.RefinementCE,
           "refinement_ce_eval": refine_training.RefinementCEEval,
           "teacher_robust": distill_loss.TeacherFlow,
@@ -292,11 +353,12 @@ class Recipe:
     gt = batch.get("flow")
     shared = {"gt": None if gt is None else gt.astype(jnp.float32),
               "pred": None if pred is None else pred.astype(jnp.float32)}
-    ctx = {"temperature": self.temperature, "suitable_rows": suitable_rows}
+    ctx = {"temperature": self.temperature, "suitable_rows": suitable_rows, "masks": {}}
     total = jnp.zeros((), jnp.float32)
     aux = {}
     for i, (name, term) in enumerate(self.terms):
       ctx["rng"] = jax.random.fold_in(rng, i)
+      ctx["term"] = name
       loss, logs, after = term(outputs, batch, shared, ctx)
       if self.shared_cleanup:
         shared = after

@@ -11,6 +11,10 @@ Conventions (the benchmark protocols that use them: docs/benchmarks.md):
     the mean of per-image means (RAFT/SEA-RAFT KITTI EPE). Each evaluator states which it uses.
   * Pose: error = max(angle of the rotation error, angle between translation directions with the
     sign ambiguity removed), degrees; AUC@T integrates recall(error) from 0 to T (SuperGlue/LoFTR).
+  * Calibration of a predicted flow covariance Sigma (models with a flow_cov head; formulas at
+    `add_calibration`): `nll` (nats per pixel), `coverage_{1,2,3}sigma` (percent of pixels whose
+    Mahalanobis distance is within 1, 2, 3), `ause` / `ause_random` over the pooled pixels and
+    `ause_per_image` / `ause_per_image_random` per image (px, `Sparsification`).
 """
 
 from __future__ import annotations
@@ -94,6 +98,139 @@ def add_flow_errors(acc, epe: np.ndarray, mask: np.ndarray | None, prefix: str =
   acc.add(f"{prefix}epe", epe, mask)
   for n in thresholds:
     acc.add(f"{prefix}px{n:g}", 100.0 * (np.asarray(epe) > n), mask)
+
+
+# ---------------------------------------------------------------------------------------------
+# Calibration of a predicted flow covariance
+# ---------------------------------------------------------------------------------------------
+COVERAGE_SIGMAS = (1, 2, 3)
+
+
+def calibration_errors(flow, flow_gt, cov):
+  """(d^2, per-pixel NLL, uncertainty) [H, W] of a prediction with covariance `cov` [H, W, 3]
+  ((var_x, var_y, cov_xy), px^2; ufm_jax.models.covariance), float64:
+
+    r = flow - flow_gt,  d^2 = r^T Sigma^-1 r (the squared Mahalanobis distance),
+    nll = 0.5 d^2 + 0.5 log|Sigma| + log(2 pi)  (the 2D Gaussian's negative log-likelihood, nats),
+    uncertainty = trace(Sigma) = E[|r|^2] under the prediction (the order of `Sparsification`).
+  """
+  from ufm_jax.models import covariance
+  cov = np.asarray(cov, np.float64)
+  r = np.asarray(flow, np.float64) - np.asarray(flow_gt, np.float64)
+  d2 = covariance.mahalanobis_sq(cov, r)
+  with np.errstate(divide="ignore", invalid="ignore"):
+    nll = 0.5 * d2 + 0.5 * np.log(covariance.determinant(cov)) + covariance.LOG_2PI
+  return d2, nll, cov[..., 0] + cov[..., 1]
+
+
+def add_calibration(acc: "Pooled", sparsification: "Sparsification", flow, flow_gt, cov,
+                    mask) -> None:
+  """Adds the calibration of one image over `mask` to `acc` (pooled over pixels) and to
+  `sparsification` (per image):
+
+    nll               mean per-pixel NLL (`calibration_errors`)
+    coverage_<k>sigma 100 * share of pixels with d <= k, k = 1, 2, 3; a calibrated 2D Gaussian
+                      gives 100 (1 - e^(-k^2 / 2)) = 39.3, 86.5, 98.9 (d^2 is chi-square with 2
+                      degrees of freedom)
+  """
+  d2, nll, unc = calibration_errors(flow, flow_gt, cov)
+  acc.add("nll", nll, mask)
+  for k in COVERAGE_SIGMAS:
+    acc.add(f"coverage_{k}sigma", 100.0 * (d2 <= k * k), mask)
+  sparsification.add(endpoint_error(flow, flow_gt), unc, mask)
+
+
+class Sparsification:
+  """AUSE, the area under the sparsification error (Ilg et al. 2018, "Uncertainty Estimates and
+  Multi-Hypotheses Networks for Optical Flow"):
+
+    curve(f)  = mean EPE of the pixels left after removing the share f of them with the highest
+                predicted uncertainty, f = 0, 0.01, ..., 0.99 (floor(f n) pixels removed);
+    oracle(f) = the same with the pixels ordered by their true EPE (the best any order can do);
+    AUSE      = integral over f of curve - oracle (trapezoid rule), in px; 0 is a perfect order;
+    random    = the same for a random order, whose expected curve is flat at the mean EPE: the
+                baseline beside it (an uncertainty that ranks errors gets well under it).
+
+  Two poolings, both reported:
+    ause, ause_random                    one curve over every pixel of every image added: the
+                                         sparsification of the bench's pooled EPE (which pixels
+                                         of the whole bench to trust). Kept as histograms (HIST_BINS
+                                         log bins per decade of uncertainty and of EPE; a removal
+                                         that ends inside a bin takes that bin's mean EPE), so any
+                                         bench fits in memory.
+    ause_per_image, ause_per_image_random  each image's own curves (exact), areas averaged over
+                                         images (which pixels of one pair to trust).
+  """
+
+  FRACTIONS = np.arange(100) / 100.0
+  HIST_BINS = 256                      # per decade: bins 0.9% wide
+  UNC_DECADES = (-8.0, 8.0)            # log10 of the uncertainty (trace, px^2)
+  EPE_DECADES = (-6.0, 5.0)            # log10 of the EPE (px)
+
+  def __init__(self):
+    self.ause_image, self.ause_image_random = [], []
+    n_unc = int((self.UNC_DECADES[1] - self.UNC_DECADES[0]) * self.HIST_BINS)
+    n_epe = int((self.EPE_DECADES[1] - self.EPE_DECADES[0]) * self.HIST_BINS)
+    self.by_unc = np.zeros((2, n_unc))     # (count, EPE sum) per uncertainty bin
+    self.by_epe = np.zeros((2, n_epe))     # (count, EPE sum) per EPE bin
+
+  @classmethod
+  def curve(cls, epe: np.ndarray, order_key: np.ndarray) -> np.ndarray:
+    """Mean EPE left after removing floor(f n) pixels of largest `order_key`, per fraction."""
+    e = np.asarray(epe, np.float64)[np.argsort(-np.asarray(order_key), kind="stable")]
+    n = e.size
+    removed = np.floor(cls.FRACTIONS * n).astype(np.int64)
+    left_sum = e.sum() - np.concatenate([[0.0], np.cumsum(e)])[removed]
+    return left_sum / (n - removed)
+
+  @classmethod
+  def curve_from_histogram(cls, hist: np.ndarray) -> np.ndarray:
+    """`curve` from (count, EPE sum) per bin of the ordering key (ascending bins)."""
+    count, total = hist[0][::-1], hist[1][::-1]        # the largest key first
+    n, s = count.sum(), total.sum()
+    removed = np.floor(cls.FRACTIONS * n)
+    c_count, c_sum = np.concatenate([[0], np.cumsum(count)]), np.concatenate([[0], np.cumsum(total)])
+    i = np.clip(np.searchsorted(c_count, removed, side="right") - 1, 0, len(count) - 1)
+    partial = removed - c_count[i]
+    mean_i = np.where(count[i] > 0, total[i] / np.maximum(count[i], 1), 0.0)
+    return (s - c_sum[i] - partial * mean_i) / (n - removed)
+
+  def _bin(self, values, decades) -> np.ndarray:
+    n = int((decades[1] - decades[0]) * self.HIST_BINS)
+    with np.errstate(divide="ignore"):
+      x = (np.log10(values) - decades[0]) * self.HIST_BINS
+    return np.clip(np.nan_to_num(x, nan=n - 1, neginf=0, posinf=n - 1), 0, n - 1).astype(np.int64)
+
+  def add(self, epe, uncertainty, mask=None) -> None:
+    e = np.asarray(epe, np.float64)
+    u = np.asarray(uncertainty, np.float64)
+    if mask is not None:
+      m = np.asarray(mask, bool)
+      e, u = e[m], u[m]
+    else:
+      e, u = e.ravel(), u.ravel()
+    if e.size == 0:
+      return
+    oracle = self.curve(e, e)
+    area = lambda c: float(np.trapezoid(c - oracle, self.FRACTIONS))  # noqa: E731
+    self.ause_image.append(area(self.curve(e, u)))
+    self.ause_image_random.append(area(np.full_like(oracle, e.mean())))
+    for hist, key, decades in ((self.by_unc, u, self.UNC_DECADES),
+                               (self.by_epe, e, self.EPE_DECADES)):
+      idx = self._bin(key, decades)
+      hist[0] += np.bincount(idx, minlength=hist.shape[1])
+      hist[1] += np.bincount(idx, weights=e, minlength=hist.shape[1])
+
+  def result(self) -> dict[str, float]:
+    if not self.ause_image:
+      return {}
+    oracle = self.curve_from_histogram(self.by_epe)
+    mean = self.by_epe[1].sum() / self.by_epe[0].sum()
+    area = lambda c: float(np.trapezoid(c - oracle, self.FRACTIONS))  # noqa: E731
+    return {"ause": area(self.curve_from_histogram(self.by_unc)),
+            "ause_random": area(np.full_like(oracle, mean)),
+            "ause_per_image": float(np.mean(self.ause_image)),
+            "ause_per_image_random": float(np.mean(self.ause_image_random))}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -27,6 +27,12 @@ a difference is refused before training (`check_structure`), naming both values 
 --config override that adopts the source's, rather than training a model whose output scale the
 config does not describe.
 
+A head may have adaptors the source's lacks (a flow covariance added to a released model,
+`configs/ufm560.py:cov=True` from UFM-Base): the head's last convolution takes the source's
+channels for the adaptors both have and keeps its fresh ones for the new adaptor
+(`head_channel_maps`; listed under "resized" in the report). An adaptor the source has and the
+model lacks is dropped the same way.
+
 `config.model_init_flow_adaptor` = "buffers" does what the official `resume_model` does
 (train_pl.py:496-518: `load_state_dict` of the source's weights and buffers into the model the
 YAML builds): before the run writes its config.json, `adopt_flow_adaptor` sets the config's
@@ -108,6 +114,47 @@ def merge_into(template, loaded: dict[str, np.ndarray], source: str,
   if mismatched:
     raise ValueError(f"model_init {source}: shape mismatch for\n  " + "\n  ".join(mismatched))
   return traverse_util.unflatten_dict(out, sep="/"), rep
+
+
+# The last convolution of each head (its output channels feed the adaptors), by adaptor field.
+HEAD_OUTPUT_CONVS = {"flow_head_adaptors": ("head1_0_1", "conv2_2"),
+                     "uncertainty_head_adaptors": ("uncertainty_head_0_1", "conv2_2")}
+
+
+def head_channel_maps(source_config, config) -> dict[str, tuple[np.ndarray, np.ndarray, str]]:
+  """{"<conv>/kernel" and "<conv>/bias": (model channels, source channels, note)} for every head
+  whose adaptors differ between the source and the model: the channels of the adaptors both
+  have, by name (the rest of the model's channels stay as initialised)."""
+  from ufm_jax.models import dpt
+  out = {}
+  for field, path in HEAD_OUTPUT_CONVS.items():
+    src, dst = getattr(source_config, field, None), getattr(config, field, None)
+    if src is None or dst is None or tuple(src) == tuple(dst):
+      continue
+    a, b = dpt.adaptor_slices(src), dpt.adaptor_slices(dst)
+    common = [n for n in dst if n in a]
+    to = np.concatenate([np.arange(*b[n]) for n in common] or [np.zeros(0, int)])
+    frm = np.concatenate([np.arange(*a[n]) for n in common] or [np.zeros(0, int)])
+    new = [n for n in dst if n not in a]
+    note = (f"adaptors {tuple(src)} -> {tuple(dst)}: {', '.join(common) or 'nothing'} loaded"
+            + (f", {', '.join(new)} left at init" if new else ""))
+    for leaf in ("kernel", "bias"):
+      out["/".join(path + (leaf,))] = (to, frm, note)
+  return out
+
+
+def _remap_channels(template_flat: dict, loaded: dict, maps: dict, report: "InitReport"):
+  """`loaded` with each mapped tensor rebuilt on the template's shape: its fresh values, the
+  source's channels where `maps` says."""
+  out = dict(loaded)
+  for k, (to, frm, note) in maps.items():
+    if k not in loaded or k not in template_flat:
+      continue
+    fresh = np.array(template_flat[k])
+    fresh[..., to] = np.asarray(loaded[k])[..., frm]
+    out[k] = fresh
+    report.resized.append(f"{k} ({note})")
+  return out
 
 
 def source_kind(spec: str) -> tuple[str, str]:
@@ -278,12 +325,18 @@ def load_init_variables(spec: str, template: dict, config=None, model_block=None
                         _show(va), _show(vb))
     check_structure(source_config, config, source, model_block, skip=keep)
   params = loaded["params"]
+  maps = {}
   if config is not None:
     from ufm_jax.models import scan
     tree = traverse_util.unflatten_dict(params, sep="/")
     params = flatten(scan.to_layout(tree, config))
+    if source_config is not None:
+      maps = head_channel_maps(source_config, config)
+  remapped = InitReport(source, [], [], [], [])
+  params = _remap_channels(flatten(template["params"]), params, maps, remapped)
   out = {}
   out["params"], report = merge_into(template["params"], params, source, partial=partial)
+  report.resized += remapped.resized
   stats = loaded.get("batch_stats", {})
   if "batch_stats" in template:
     out["batch_stats"], rep = merge_into(template["batch_stats"], stats, source, resizable=r"(?!)")
@@ -306,17 +359,24 @@ INIT_FREE_FIELDS = ("dtype", "remat", "attention_impl", "scan_blocks", "head_dty
                     "encoder.pos_grid", "info_sharing.tied_qk_init")
 
 
+# Fields a head's adaptors decide (compared through `head_channel_maps` instead): which adaptors
+# a head has and hence its width. An adaptor both have must agree (flow_adaptor, flow_covariance).
+ADAPTOR_FIELDS = ("flow_head_adaptors", "uncertainty_head_adaptors", "flow_head.output_dim",
+                  "covisibility_head.output_dim")
+
+
 def structure_differences(source_config, config) -> list[tuple[str, Any, Any]]:
   """(field, source value, config value) for every model-structure field on which the two
   disagree. Fields only one side has (a base model's source for a refinement model: the refiner's
-  fields; a head one side lacks: the refinement recipe has no uncertainty head) are not compared,
-  nor `INIT_FREE_FIELDS`; of `encoder.indices` only the last, the block the fusion transformer and
+  fields; a head or an adaptor one side lacks: the refinement recipe has no uncertainty head, a
+  released model no flow covariance) are not compared, nor `INIT_FREE_FIELDS` and
+  `ADAPTOR_FIELDS`; of `encoder.indices` only the last, the block the fusion transformer and
   the heads read (the refinement recipe adds an earlier tap for its refiner)."""
   a = traverse_util.flatten_dict(dataclasses.asdict(source_config), sep=".")
   b = traverse_util.flatten_dict(dataclasses.asdict(config), sep=".")
   out = []
   for k in sorted(set(a) & set(b)):
-    if k in INIT_FREE_FIELDS:
+    if k in INIT_FREE_FIELDS or k in ADAPTOR_FIELDS:
       continue
     va, vb = a[k], b[k]
     if k == "encoder.indices":

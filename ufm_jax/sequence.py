@@ -95,13 +95,15 @@ def run(model, variables, pairs, out_dir, *, batch: int = 1, save=(), overwrite=
   out_dir.mkdir(parents=True, exist_ok=True)
   counts = {"done": 0, "skipped": 0, "failed": 0}
   outputs.paths(out_dir, "check", save)  # an unknown --save choice fails before any work
+  expected = outputs.predicted(model)
 
   def todo():
     for a, b in pairs:
       na, nb = (a[0] if isinstance(a, tuple) else a), (b[0] if isinstance(b, tuple) else b)
       name = pair_name(na, nb)
       files = outputs.paths(out_dir, name, save)
-      if not overwrite and all(f.exists() for f in files.values()):
+      # done: every file this model's predictions write (no covariance file without the head)
+      if not overwrite and all(f.exists() for f in outputs.written(files, expected).values()):
         counts["skipped"] += 1
         continue
       yield a, b, str(na), str(nb), name, files

@@ -228,9 +228,9 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
 
 def make_predict(model, apply_kwargs, gather_params=None):
   """predict(variables, batch) -> {"flow", "covisibility"} for evaluation batches; "covisibility"
-  only from a model that has an uncertainty head. `variables`: {"params"[, "batch_stats"]}
-  (`TrainState.variables`); a model with BatchNorm normalises with its running statistics
-  (train=False).
+  only from a model that has an uncertainty head, plus "flow_covariance" from one that has a
+  flow covariance adaptor. `variables`: {"params"[, "batch_stats"]} (`TrainState.variables`); a
+  model with BatchNorm normalises with its running statistics (train=False).
 
   Training batches are symmetrized ((a, b), (b, a) rows whose images are encoded once); evaluation
   pairs are not, so `symmetrized` is dropped: with it every odd row would be predicted for the
@@ -242,7 +242,7 @@ def make_predict(model, apply_kwargs, gather_params=None):
     if gather_params is not None:
       variables = dict(variables, params=gather_params(variables["params"]))
     out = model.apply(variables, batch["image0"], batch["image1"], **kwargs)
-    return {k: out[k] for k in ("flow", "covisibility") if k in out}
+    return {k: out[k] for k in ("flow", "covisibility", "flow_covariance") if k in out}
 
   return predict
 

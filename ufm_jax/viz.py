@@ -1,6 +1,8 @@
-"""Visualisation: Middlebury flow colours, warping by flow, covisibility overlays, panels.
+"""Visualisation: Middlebury flow colours, warping by flow, covisibility overlays, the flow's
+uncertainty, panels.
 
-All images are HWC uint8 RGB numpy arrays; flow is [H, W, 2] float (u right, v down, pixels).
+All images are HWC uint8 RGB numpy arrays; flow is [H, W, 2] float (u right, v down, pixels); a
+flow covariance is [H, W, 3] = (var_x, var_y, cov_xy) in px^2 (ufm_jax.models.covariance).
 """
 
 from __future__ import annotations
@@ -111,9 +113,67 @@ def flow_views(target: np.ndarray, flow: np.ndarray, covisibility: np.ndarray | 
   return colours, warped
 
 
+# The uncertainty images' fixed scale: sigma_max from 1/4 px to 64 px on a log scale, so that
+# pictures of different pairs and models compare; values outside take the end colours.
+UNCERTAINTY_RANGE_PX = (0.25, 64.0)
+LEGEND_MIN_WIDTH = 240
+
+
+def _uncertainty_colours(sigma: np.ndarray, lo: float, hi: float) -> np.ndarray:
+  t = (np.log2(np.clip(sigma, lo, hi)) - np.log2(lo)) / (np.log2(hi) - np.log2(lo))
+  t = np.where(np.isfinite(t), t, 1.0)
+  grey = np.round(255 * t).astype(np.uint8)
+  return cv2.cvtColor(cv2.applyColorMap(grey, cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
+
+
+def uncertainty_to_image(covariance: np.ndarray, range_px=UNCERTAINTY_RANGE_PX) -> np.ndarray:
+  """[H, W, 3] flow covariance -> [H, W, 3] uint8: sigma_max, the standard deviation along the
+  error ellipse's long axis (sqrt of the covariance's larger eigenvalue, px), on the fixed log
+  scale `range_px` of the inferno colour map (dark: sure to a fraction of a pixel; bright: tens
+  of pixels)."""
+  from ufm_jax.models import covariance as cov_lib
+  cov = np.asarray(covariance, np.float64)
+  if cov.ndim != 3 or cov.shape[-1] != 3:
+    raise ValueError(f"uncertainty_to_image: covariance must be [H, W, 3], got {cov.shape}")
+  return _uncertainty_colours(cov_lib.sigma_max(cov), *range_px)
+
+
+def uncertainty_legend(width: int, range_px=UNCERTAINTY_RANGE_PX, height: int = 30) -> np.ndarray:
+  """[height, width, 3] uint8 legend of `uncertainty_to_image`: the colour bar with its ticks
+  (powers of 4, the last with the unit, px), on white."""
+  lo, hi = range_px
+  out = np.full((height, width, 3), 255, np.uint8)
+  margin, bar_h = 8, height // 2 - 2
+  xs = np.linspace(np.log2(lo), np.log2(hi), width - 2 * margin)
+  out[2:2 + bar_h, margin:width - margin] = _uncertainty_colours(2.0 ** xs[None], lo, hi)
+  ticks = [v for v in 4.0 ** np.arange(-4, 6) if lo <= v <= hi]
+  for v in ticks:
+    x = margin + int(round((np.log2(v) - np.log2(lo)) / (np.log2(hi) - np.log2(lo))
+                           * (width - 2 * margin - 1)))
+    out[2 + bar_h:5 + bar_h, x] = 0
+    label = f"{v:g}" + (" px" if v == ticks[-1] else "")
+    (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.33, 1)
+    cv2.putText(out, label, (min(max(x - tw // 2, 0), width - tw), height - 3),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
+  return out
+
+
+def uncertainty_view(covariance: np.ndarray, range_px=UNCERTAINTY_RANGE_PX) -> np.ndarray:
+  """`uncertainty_to_image` over its legend (at least LEGEND_MIN_WIDTH wide, padded white)."""
+  image = uncertainty_to_image(covariance, range_px)
+  h, w = image.shape[:2]
+  width = max(w, LEGEND_MIN_WIDTH)
+  top = np.full((h, width, 3), 255, np.uint8)
+  top[:, (width - w) // 2:(width - w) // 2 + w] = image
+  return np.concatenate([top, uncertainty_legend(width, range_px)], axis=0)
+
+
 def panel(source: np.ndarray, target: np.ndarray, flow: np.ndarray,
-          covisibility: np.ndarray | None = None, max_flow: float | None = None) -> np.ndarray:
-  """One RGB row: source | target | flow colours | target warped into the source frame.
+          covisibility: np.ndarray | None = None, max_flow: float | None = None,
+          covariance: np.ndarray | None = None) -> np.ndarray:
+  """One RGB row: source | target | flow colours | target warped into the source frame, and with
+  a flow `covariance` | its uncertainty (`uncertainty_to_image`) over a legend row under the
+  panel.
 
   The target is shown resized to the source size; the warp uses the full-resolution target; with
   `covisibility`, non-covisible pixels of the warp (and of the flow colours) are greyed out.
@@ -122,6 +182,14 @@ def panel(source: np.ndarray, target: np.ndarray, flow: np.ndarray,
   tgt_small = target if target.shape[:2] == (h, w) else cv2.resize(
       np.ascontiguousarray(target), (w, h), interpolation=cv2.INTER_AREA)
   colours, warped = flow_views(target, flow, covisibility, max_flow=max_flow)
-  return np.concatenate([source, tgt_small, colours, warped], axis=1)
+  tiles = [source, tgt_small, colours, warped]
+  if covariance is None:
+    return np.concatenate(tiles, axis=1)
+  row = np.concatenate(tiles + [uncertainty_to_image(covariance)], axis=1)
+  # the legend ends under the uncertainty tile, at least LEGEND_MIN_WIDTH wide
+  width = min(max(w, LEGEND_MIN_WIDTH), row.shape[1])
+  legend = np.full((30, row.shape[1], 3), 255, np.uint8)
+  legend[:, row.shape[1] - width:] = uncertainty_legend(width)
+  return np.concatenate([row, legend], axis=0)
 
 

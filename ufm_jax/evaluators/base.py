@@ -108,8 +108,8 @@ def relpath_of(sample: dict, index: int) -> str:
 
 class PredictionWriter:
   """--save_predictions: flow (.flo) + covisibility PNG per pair (when the model predicts
-  covisibility), panels for the first N pairs of each bench, under <root>/<bench>/<the dataset's
-  GT relative path>."""
+  covisibility), panels for the first N pairs of each bench (with the uncertainty tile for a
+  flow covariance model), under <root>/<bench>/<the dataset's GT relative path>."""
 
   def __init__(self, root: str | os.PathLike | None, num_panels: int = 8):
     self.root = None if root is None else pathlib.Path(root)
@@ -134,7 +134,8 @@ class PredictionWriter:
       panels = self.root / bench / "panels"
       panels.mkdir(parents=True, exist_ok=True)
       io.write_image(panels / (str(rel).replace("/", "__") + ".png"),
-                     viz.panel(sample["image0"], sample["image1"], pred["flow"], covis))
+                     viz.panel(sample["image0"], sample["image1"], pred["flow"], covis,
+                               covariance=pred.get("flow_covariance")))
     self.written[bench] = self.written.get(bench, 0) + 1
 
 

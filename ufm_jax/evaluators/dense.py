@@ -22,6 +22,9 @@ With `baselines`, `epe_zero` (the EPE that predicting no motion gets on the `epe
 a model that matches must beat) and `covis_acc` (pixels with covis_valid whose thresholded
 covisibility >= 0.5 is right) are added; `covis_acc` only for a model that predicts covisibility
 (the refinement recipe's has no uncertainty head: a warning says so once).
+A model that predicts a flow covariance adds its calibration over the `epe` pixels
+(ufm_jax.metrics.add_calibration): nll, coverage_1sigma / 2sigma / 3sigma, ause and ause_random
+pooled over pixels like `epe`, ause_per_image and ause_per_image_random.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ class DenseMetrics:
     self.baselines = baselines
     self.official = official
     self.pooled = metrics.Pooled()
+    self.sparsification = metrics.Sparsification()
 
   def __call__(self, sample: dict, pred: dict) -> None:
     valid = np.asarray(sample["flow_valid"], bool)
@@ -53,6 +57,9 @@ class DenseMetrics:
     metrics.add_flow_errors(self.pooled, epe, covis, thresholds=self.thresholds)
     self.pooled.add("epe_occluded", epe, occluded)
     self.pooled.add("epe_all", epe, valid)
+    if pred.get("flow_covariance") is not None:
+      metrics.add_calibration(self.pooled, self.sparsification, pred["flow"], sample["flow"],
+                              pred["flow_covariance"], covis)
     if self.baselines:
       self.pooled.add("epe_zero", np.linalg.norm(np.asarray(sample["flow"], np.float64), axis=-1),
                       covis)
@@ -64,4 +71,4 @@ class DenseMetrics:
       self.pooled.add("covis_acc", right, covis_valid)
 
   def result(self) -> dict[str, float]:
-    return self.pooled.result()
+    return {**self.pooled.result(), **self.sparsification.result()}

@@ -13,6 +13,10 @@ Pooling, stated once:
     per-image means (RAFT/SEA-RAFT); `fl_all` = 100 * (EPE > 3 and EPE/|gt| > 5%) pooled over all
     valid pixels of all images (KITTI devkit, RAFT); `fl_bg`/`fl_fg` likewise over background /
     foreground (meta["foreground"], from obj_map) when the source provides it.
+  * A model that predicts a flow covariance adds its calibration over the `epe_covis` pixels, the
+    ones UFM is trained on (ufm_jax.metrics.add_calibration: nll, coverage_{1,2,3}sigma and
+    ause / ause_random pooled over pixels, ause_per_image / ause_per_image_random per image),
+    on both kinds.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ class FlowMetrics:
       raise ValueError(f"FlowMetrics kind must be 'sintel' or 'kitti', got {kind!r}")
     self.kind, self.thresholds = kind, tuple(thresholds)
     self.pooled, self.per_image = metrics.Pooled(), metrics.PerImage()
+    self.sparsification = metrics.Sparsification()
 
   def __call__(self, sample: dict, pred: dict) -> None:
     gt = np.asarray(sample["flow"], np.float32)
@@ -37,6 +42,9 @@ class FlowMetrics:
     covis = np.asarray(sample["covisibility"], bool) & valid
     epe = metrics.endpoint_error(pred["flow"], gt)
     meta = sample.get("meta", {}) or {}
+    if pred.get("flow_covariance") is not None:
+      metrics.add_calibration(self.pooled, self.sparsification, pred["flow"], gt,
+                              pred["flow_covariance"], covis)
     if self.kind == "kitti":
       self.per_image.add("epe_all", epe, valid)
       self.per_image.add("epe_covis", epe, covis)
@@ -70,4 +78,5 @@ class FlowMetrics:
     out = self.pooled.result()
     out.pop("epe", None)  # same as epe_all here
     out.update(self.per_image.result())
+    out.update(self.sparsification.result())
     return out

@@ -6,11 +6,15 @@ import math
 
 from ufm_jax import evaluators
 
+# A model with a flow covariance (ufm_jax.metrics.add_calibration); absent columns are dropped.
+CALIBRATION_COLUMNS = ["nll", "coverage_1sigma", "coverage_2sigma", "coverage_3sigma", "ause",
+                       "ause_random", "ause_per_image", "ause_per_image_random"]
 TABLE_COLUMNS = {  # the paper's column order per family (metric suffixes)
     "flow": ["epe_covis", "epe_all", "px1", "px3", "px5", "fl_all", "fl_bg", "fl_fg",
              "epe_matched", "epe_unmatched", "epe_s0-10", "epe_s10-40", "epe_s40+",
-             "epe_d0-10", "epe_d10-60", "epe_d60-140"],
-    "dense": ["epe", "epe_zero", "px1", "px2", "px5", "epe_occluded", "epe_all", "covis_acc"],
+             "epe_d0-10", "epe_d10-60", "epe_d60-140"] + CALIBRATION_COLUMNS,
+    "dense": ["epe", "epe_zero", "px1", "px2", "px5", "epe_occluded", "epe_all", "covis_acc"]
+             + CALIBRATION_COLUMNS,
     "pose": ["auc5", "auc10", "auc15", "auc20", "auc30", "acc5", "acc10", "acc15", "acc20", "acc30"],
 }
 

@@ -2,7 +2,7 @@
 
   heldout  fixed held-out pairs of a registered source, predicted by the sharded training-mesh
            forward; the dense metrics (`DenseMetrics` with baselines: epe, px1/3/5,
-           epe_occluded, epe_all, epe_zero, covis_acc)
+           epe_occluded, epe_all, epe_zero, covis_acc; with a flow covariance its calibration)
   bench    a benchmark of ufm_jax.evaluators (evaluate.py's benches) through ufm_jax.predict
   teacher_agreement  held-out unlabeled pairs scored against a distillation teacher's
            predictions (the heldout metrics with the teacher's flow and covisibility as labels)
@@ -79,13 +79,14 @@ class HeldoutEval:
         # No covisibility from a model without an uncertainty head: DenseMetrics then skips
         # covis_acc (and says so once), the panel greys nothing out.
         pred = {"flow": np.asarray(out["flow"][j], np.float32),
-                **({"covisibility": np.asarray(out["covisibility"][j])}
-                   if "covisibility" in out else {})}
+                **{k: np.asarray(out[k][j]) for k in ("covisibility", "flow_covariance")
+                   if k in out}}
         acc(chunk[j], pred)
         i = start + j
         if i < self.num_images:
           images[f"pair{i}"] = viz.panel(chunk[j]["image0"], chunk[j]["image1"], pred["flow"],
-                                         pred.get("covisibility"))
+                                         pred.get("covisibility"),
+                                         covariance=pred.get("flow_covariance"))
           images[f"pair{i}_gt"] = viz.panel(chunk[j]["image0"], chunk[j]["image1"],
                                             chunk[j]["flow"], chunk[j]["covisibility"])
     return EvalResult({**acc.result(), "num_pairs": float(n)}, images)

@@ -1,5 +1,6 @@
 """DPT feature head, regression processor and output adaptors (UniCeption `DPTFeature`,
-`DPTRegressionProcessor`, `FlowAdaptor`, `MaskAdaptor`), NHWC.
+`DPTRegressionProcessor`, `FlowAdaptor`, `MaskAdaptor`; `Covariance2DAdaptor` is
+models/covariance.py), NHWC.
 
 Module names follow the PyTorch ones with list indices joined by "_" (`input_process.0.0.1` ->
 `input_process_0_0_1`); `input_process_k_1` is the module UniCeption also registers as
@@ -39,6 +40,30 @@ class FlowAdaptorConfig:
     if self.scale_strategy not in ("none", "scale_width", "scale_height", "scale_both"):
       raise ValueError(f"invalid FlowAdaptor scale_strategy {self.scale_strategy!r}; expected "
                        "none, scale_width, scale_height or scale_both")
+
+
+# Channels each official adaptor takes from a head's output (UniCeption's `required_channels`).
+ADAPTOR_CHANNELS = {"flow": 2, "flow_cov": 3, "non_occluded_mask": 1}
+
+
+def adaptor_slices(names: Sequence[str]) -> dict:
+  """{adaptor name: (first, end) channel} of a head whose adaptors are `names`, in order."""
+  out, start = {}, 0
+  for name in names:
+    out[name] = (start, start + ADAPTOR_CHANNELS[name])
+    start += ADAPTOR_CHANNELS[name]
+  return out
+
+
+def split_adaptor_channels(x: jax.Array, names: Sequence[str]) -> dict:
+  """A head's output [..., C] -> {adaptor name: its channels}, in the order of `names` (the
+  official AdaptorMap hands out channels in the order of its keys)."""
+  slices = adaptor_slices(names)
+  total = sum(ADAPTOR_CHANNELS[n] for n in names)
+  if total != x.shape[-1]:
+    raise ValueError(f"head output has {x.shape[-1]} channels; adaptors {tuple(names)} take "
+                     f"{total}")
+  return {name: x[..., a:b] for name, (a, b) in slices.items()}
 
 
 # The ConvTranspose modules of DPTFeature (by name): torch's default init counts their fan-in

@@ -4,7 +4,10 @@ DPT covisibility head.
 Contract: `model.apply(variables(params), source, target)` with [B, H, W, 3] uint8 (or float
 0..255) images, H and W multiples of the patch size, returns
 {"flow" [B, H, W, 2] (pixels, u then v), "covisibility" [B, H, W], "covisibility_logits" [B, H, W]}
-(no covisibility without an uncertainty head). ImageNet normalisation of x / 255 happens inside.
+(no covisibility without an uncertainty head), and for a model with a flow covariance adaptor
+(`flow_covariance` set) "flow_covariance" [B, H, W, 3] = (var_x, var_y, cov_xy) in px^2,
+"flow_covariance_log_det" [B, H, W] and "flow_covariance_params" [B, H, W, 3] (models/covariance.py).
+ImageNet normalisation of x / 255 happens inside.
 Internals are sown into the "intermediates" collection (read them with `mutable=["intermediates"]`).
 `params` is the parameter tree, or for models with BatchNorm (a refiner with
 `use_unet_batchnorm`) the variables {"params", "batch_stats"}: see `variables`.
@@ -21,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from ufm_jax.models import dinov2, dpt, layers, scan
+from ufm_jax.models import covariance, dinov2, dpt, layers, scan
 from ufm_jax.models import info_sharing as info_sharing_lib
 
 # UniCeption data_norm_type "dinov2" (ImageNet), float32 like the official tensors.
@@ -40,6 +43,13 @@ class UFMConfig:
   covisibility_head: Optional[dpt.DPTConfig] = dpt.DPTConfig(output_dim=1)
   flow_adaptor: dpt.FlowAdaptorConfig = dpt.FlowAdaptorConfig()
   detach_uncertainty_head: bool = True
+  # Each head's adaptors in the order they take its output channels (the official AdaptorMap
+  # splits them in the order of config.json's keys, which save_pretrained sorts): "flow" (2
+  # channels), "flow_cov" (3), "non_occluded_mask" (1). The head's output_dim is their sum.
+  flow_head_adaptors: Tuple[str, ...] = ("flow",)
+  uncertainty_head_adaptors: Tuple[str, ...] = ("non_occluded_mask",)
+  # The Covariance2DAdaptor's kwargs when a head has "flow_cov" (models/covariance.py), else None.
+  flow_covariance: Optional[covariance.CovarianceConfig] = None
   # (H, W) used by ufm_jax.predict, or several: predict picks the closest aspect ratio per pair.
   inference_resolution: Tuple[int, int] = (420, 560)
   # Compute dtype of encoder + info sharing: "float32", "bfloat16" (heads stay float32, as the
@@ -83,13 +93,20 @@ class UFMConfig:
     if len(self.info_sharing.indices) != 2:
       raise ValueError("UFM feeds exactly two info-sharing intermediates to the DPT heads; "
                        f"got info_sharing.indices={self.info_sharing.indices}")
+    _check_adaptors(self)
+
+  @property
+  def has_flow_covariance(self) -> bool:
+    return self.flow_covariance is not None
 
   def replace(self, **kw) -> "UFMConfig":
     """dataclasses.replace; a mapping for a sub-config (e.g. flow_adaptor={"flow_std": ...},
     as a training config's `model` block gives it) replaces only the fields it names."""
     for k, v in kw.items():
       if k in _SUB and isinstance(v, Mapping):
-        kw[k] = dataclasses.replace(getattr(self, k), **{kk: _tuplify(vv) for kk, vv in v.items()})
+        fields = {kk: _tuplify(vv) for kk, vv in v.items()}
+        current = getattr(self, k)
+        kw[k] = _SUB[k](**fields) if current is None else dataclasses.replace(current, **fields)
       elif isinstance(v, list):
         kw[k] = _tuplify(v)
     return dataclasses.replace(self, **kw)
@@ -97,7 +114,64 @@ class UFMConfig:
 
 _SUB = {"encoder": dinov2.DinoV2Config, "info_sharing": info_sharing_lib.InfoSharingConfig,
         "flow_head": dpt.DPTConfig, "covisibility_head": dpt.DPTConfig,
-        "flow_adaptor": dpt.FlowAdaptorConfig}
+        "flow_adaptor": dpt.FlowAdaptorConfig, "flow_covariance": covariance.CovarianceConfig}
+
+
+def _check_adaptors(cfg: UFMConfig) -> None:
+  """ValueError naming the field when the heads' adaptor lists do not describe the heads."""
+  heads = {"flow_head_adaptors": (cfg.flow_head_adaptors, cfg.flow_head, "flow_head")}
+  if cfg.covisibility_head is not None:
+    heads["uncertainty_head_adaptors"] = (cfg.uncertainty_head_adaptors, cfg.covisibility_head,
+                                          "covisibility_head")
+  for field, (names, head, head_field) in heads.items():
+    unknown = [n for n in names if n not in dpt.ADAPTOR_CHANNELS]
+    if unknown or len(set(names)) != len(names):
+      raise ValueError(f"UFMConfig.{field}={tuple(names)}: each adaptor once, of "
+                       f"{', '.join(dpt.ADAPTOR_CHANNELS)}")
+    want = sum(dpt.ADAPTOR_CHANNELS[n] for n in names)
+    if head.output_dim != want:
+      raise ValueError(f"UFMConfig.{head_field}.output_dim={head.output_dim} but its adaptors "
+                       f"{field}={tuple(names)} take {want} channels")
+  if "flow" not in cfg.flow_head_adaptors:
+    raise ValueError(f"UFMConfig.flow_head_adaptors={cfg.flow_head_adaptors} has no 'flow'")
+  if "non_occluded_mask" in cfg.flow_head_adaptors:
+    raise ValueError("UFMConfig.flow_head_adaptors: a 'non_occluded_mask' in the main head is not "
+                     "supported (UniFlowMatchConfidence reads covisibility from the uncertainty "
+                     "head)")
+  if "flow" in cfg.uncertainty_head_adaptors:
+    raise ValueError("UFMConfig.uncertainty_head_adaptors: the flow comes from the main head")
+  where = [f for f, (names, _, _) in heads.items() if "flow_cov" in names]
+  if len(where) > 1:
+    raise ValueError("UFMConfig: 'flow_cov' in both heads' adaptors; one head predicts it")
+  if bool(where) != (cfg.flow_covariance is not None):
+    raise ValueError(
+        f"UFMConfig.flow_covariance={cfg.flow_covariance} but "
+        + (f"{where[0]} has a 'flow_cov' adaptor" if where else "no head has a 'flow_cov' adaptor")
+        + ": set both or neither (ufm.with_flow_covariance does)")
+
+
+def with_flow_covariance(cfg: UFMConfig, head: str = "uncertainty",
+                         low_confidence_init: bool = True) -> UFMConfig:
+  """`cfg` with a flow covariance adaptor ("flow_cov", exp_tanh) added to the `head`
+  ("uncertainty" or "main") in the channel order a reloaded official snapshot uses (sorted
+  adaptor names); the head's output_dim grows by 3."""
+  if cfg.flow_covariance is not None:
+    raise ValueError("with_flow_covariance: the config has a flow covariance already")
+  cov = covariance.CovarianceConfig(low_confidence_init=low_confidence_init)
+  if head == "main":
+    return cfg.replace(flow_head_adaptors=tuple(sorted(cfg.flow_head_adaptors + ("flow_cov",))),
+                       flow_head=dataclasses.replace(cfg.flow_head,
+                                                     output_dim=cfg.flow_head.output_dim + 3),
+                       flow_covariance=cov)
+  if head != "uncertainty":
+    raise ValueError(f"with_flow_covariance: head {head!r}; expected 'uncertainty' or 'main'")
+  if cfg.covisibility_head is None:
+    raise ValueError("with_flow_covariance: the model has no uncertainty head; use head='main'")
+  return cfg.replace(
+      uncertainty_head_adaptors=tuple(sorted(cfg.uncertainty_head_adaptors + ("flow_cov",))),
+      covisibility_head=dataclasses.replace(cfg.covisibility_head,
+                                            output_dim=cfg.covisibility_head.output_dim + 3),
+      flow_covariance=cov)
 
 
 def _tuplify(v):
@@ -279,17 +353,26 @@ class UFM(nn.Module):
             "hw": tuple(source.shape[1:3])}
 
   def heads(self, feats, hw) -> Dict[str, jax.Array]:
-    """DPT flow head + adaptor and the (gradient-stopped) covisibility head."""
+    """DPT flow head and the (gradient-stopped) uncertainty head, each through its adaptors."""
     cfg = self.config
-    flow_norm = self.head1_0_1(self.head1_0_0(feats), hw)
-    self.sow("intermediates", "flow_decoded_channels", flow_norm)
-    flow = dpt.flow_adaptor(flow_norm, cfg.flow_adaptor)
-    if cfg.covisibility_head is None:
-      return {"flow": self.constrain(flow)}
-    cov_feats = [jax.lax.stop_gradient(t) for t in feats] if cfg.detach_uncertainty_head else feats
-    logits = self.uncertainty_head_0_1(self.uncertainty_head_0_0(cov_feats), hw)[..., 0]
-    flow, logits = self.constrain(flow), self.constrain(logits)
-    return {"flow": flow, "covisibility": jax.nn.sigmoid(logits), "covisibility_logits": logits}
+    decoded = self.head1_0_1(self.head1_0_0(feats), hw)
+    self.sow("intermediates", "flow_decoded_channels", decoded)
+    main = dpt.split_adaptor_channels(decoded, cfg.flow_head_adaptors)
+    out = {"flow": dpt.flow_adaptor(main["flow"], cfg.flow_adaptor)}
+    unc = {}
+    if cfg.covisibility_head is not None:
+      unc_feats = ([jax.lax.stop_gradient(t) for t in feats] if cfg.detach_uncertainty_head
+                   else feats)
+      unc = dpt.split_adaptor_channels(
+          self.uncertainty_head_0_1(self.uncertainty_head_0_0(unc_feats), hw),
+          cfg.uncertainty_head_adaptors)
+    if "non_occluded_mask" in unc:
+      logits = unc["non_occluded_mask"][..., 0]
+      out.update(covisibility=jax.nn.sigmoid(logits), covisibility_logits=logits)
+    cov = main.get("flow_cov", unc.get("flow_cov"))
+    if cov is not None:
+      out.update(covariance.adaptor(cov, cfg.flow_covariance))
+    return {k: self.constrain(v) for k, v in out.items()}
 
   def __call__(self, source, target, symmetrized: bool = False,
                train: bool = False) -> Dict[str, jax.Array]:

@@ -15,7 +15,7 @@ from typing import Any, Callable, Dict, List, Tuple
 
 import numpy as np
 
-from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
+from ufm_jax.models import covariance, dinov2, dpt, info_sharing, refine, ufm
 
 @dataclasses.dataclass
 class OfficialSpec:
@@ -81,6 +81,7 @@ DPT_PROCESSOR_KEYS = ("input_feature_dim", "output_dim", "hidden_dims",
                       "pretrained_checkpoint_path", "checkpoint_gradient", "nonlinearity")
 FLOW_ADAPTOR_KEYS = ("name", "flow_mean", "flow_std", "base_shape", "scale_strategy",
                      "output_normalized_coordinate")
+COVARIANCE_ADAPTOR_KEYS = ("name", "parametrization", "low_confidence_init")
 CLASSIFICATION_HEAD_KEYS = ("input_feature_dim", "patch_size", "output_dim", "mlp_ratio", "bias",
                             "drop", "pretrained_checkpoint_path")
 BASE_KEYS = ("encoder_str", "encoder_kwargs", "info_sharing_and_head_structure",
@@ -231,19 +232,62 @@ def dpt_config_from_official(kw: dict, where: str, patch_size: int) -> dpt.DPTCo
       hidden_dims=tuple(hidden) if hidden else None)
 
 
-def flow_adaptor_from_official(adaptors: dict) -> dpt.FlowAdaptorConfig:
-  if set(adaptors) != {"flow"} or adaptors["flow"].get("class") != "FlowAdaptor":
-    raise ValueError(f"config.json: adaptors_kwargs {adaptors}; only a single FlowAdaptor named "
-                     "'flow' is supported")
-  check_keys(adaptors["flow"], ("class", "kwargs"), "adaptors_kwargs.flow")
-  kw = adaptors["flow"]["kwargs"]
-  check_keys(kw, FLOW_ADAPTOR_KEYS, "adaptors_kwargs.flow.kwargs")
+def flow_adaptor_from_official(kw: dict, where: str) -> dpt.FlowAdaptorConfig:
+  check_keys(kw, FLOW_ADAPTOR_KEYS, where)
   return dpt.FlowAdaptorConfig(
       flow_mean=tuple(float(v) for v in kw["flow_mean"]),
       flow_std=tuple(float(v) for v in kw["flow_std"]),
       base_shape=tuple(kw["base_shape"]),  # UniCeption's base_shape is already (H, W)
       scale_strategy=kw["scale_strategy"],
       output_normalized_coordinate=bool(kw.get("output_normalized_coordinate", False)))
+
+
+def covariance_from_official(kw: dict, where: str) -> covariance.CovarianceConfig:
+  """Covariance2DAdaptor kwargs; a parametrisation other than exp_tanh is refused by name."""
+  check_keys(kw, COVARIANCE_ADAPTOR_KEYS, where)
+  param = kw.get("parametrization", "exp_tanh")
+  if param not in covariance.PARAMETRIZATIONS:
+    raise ValueError(f"config.json: {where}.parametrization={param!r} is not supported (expected "
+                     f"one of {', '.join(repr(p) for p in covariance.PARAMETRIZATIONS)})")
+  return covariance.CovarianceConfig(parametrization=param,
+                                     low_confidence_init=bool(kw.get("low_confidence_init", False)))
+
+
+# The adaptors UniFlowMatchConfidence reads from each head (ufm.py:646-669 at 3732a50; the main
+# head's flow_cov is what UniFlowMatch reads, ufm.py:431-434), by key: (class, allowed there).
+ADAPTOR_CLASSES = {"flow": "FlowAdaptor", "flow_cov": "Covariance2DAdaptor",
+                   "non_occluded_mask": "MaskAdaptor"}
+HEAD_ADAPTORS = {"adaptors_kwargs": ("flow", "flow_cov"),
+                 "uncertainty_adaptors_kwargs": ("flow_cov", "non_occluded_mask")}
+
+
+def adaptors_from_official(adaptors: dict, where: str) -> Tuple[Tuple[str, ...], dict]:
+  """A head's adaptor map -> (its keys in config.json's order: the order the official AdaptorMap
+  splits the head's channels in, {key: our config of that adaptor})."""
+  allowed = HEAD_ADAPTORS[where]
+  out = {}
+  for key, spec in adaptors.items():
+    if key not in allowed:
+      classes = ", ".join(f"{a} ({ADAPTOR_CLASSES[a]})" for a in allowed)
+      raise ValueError(f"config.json: {where}.{key}: not an adaptor this loader builds in this "
+                       f"head (known: {classes})")
+    check_keys(spec, ("class", "kwargs"), f"{where}.{key}")
+    if spec.get("class") != ADAPTOR_CLASSES[key]:
+      raise ValueError(f"config.json: {where}.{key}.class={spec.get('class')!r}; the official "
+                       f"model reads {key!r} as a {ADAPTOR_CLASSES[key]}")
+    kw = spec.get("kwargs", {})
+    if kw.get("name", key) != key:
+      raise ValueError(f"config.json: {where}.{key}.kwargs.name={kw['name']!r}; the official "
+                       f"AdaptorMap keys outputs by this name, so it must be {key!r}")
+    kw_where = f"{where}.{key}.kwargs"
+    if key == "flow":
+      out[key] = flow_adaptor_from_official(kw, kw_where)
+    elif key == "flow_cov":
+      out[key] = covariance_from_official(kw, kw_where)
+    else:
+      check_keys(kw, ("name",), kw_where)
+      out[key] = None
+  return tuple(adaptors), out
 
 
 def ufm_config_from_official(cj: dict, shapes: dict, keys=BASE_KEYS) -> ufm.UFMConfig:
@@ -256,18 +300,28 @@ def ufm_config_from_official(cj: dict, shapes: dict, keys=BASE_KEYS) -> ufm.UFMC
     if cj.get(key, want) != want:
       raise ValueError(f"config.json: {key}={cj[key]!r} is not supported (expected {want!r})")
   encoder = encoder_config_from_official(cj["encoder_kwargs"], shapes)
-  covisibility = None
+  main_order, main = adaptors_from_official(cj.get("adaptors_kwargs", {}), "adaptors_kwargs")
+  if "flow" not in main:
+    raise ValueError("config.json: adaptors_kwargs has no 'flow' (FlowAdaptor)")
+  covisibility, unc_order, unc = None, ("non_occluded_mask",), {}
   if cj.get("uncertainty_head_kwargs"):  # the refinement class may have none
-    unc = cj.get("uncertainty_adaptors_kwargs", {})
-    if set(unc) != {"non_occluded_mask"} or unc["non_occluded_mask"].get("class") != "MaskAdaptor":
-      raise ValueError(f"config.json: uncertainty_adaptors_kwargs {unc}; only a MaskAdaptor "
-                       "'non_occluded_mask' is supported")
-    check_keys(unc["non_occluded_mask"], ("class", "kwargs"),
-               "uncertainty_adaptors_kwargs.non_occluded_mask")
-    check_keys(unc["non_occluded_mask"].get("kwargs", {}), ("name",),
-               "uncertainty_adaptors_kwargs.non_occluded_mask.kwargs")
+    unc_order, unc = adaptors_from_official(cj.get("uncertainty_adaptors_kwargs", {}),
+                                            "uncertainty_adaptors_kwargs")
+    if not unc:
+      raise ValueError("config.json: uncertainty_head_kwargs without uncertainty_adaptors_kwargs")
     covisibility = dpt_config_from_official(cj["uncertainty_head_kwargs"],
                                             "uncertainty_head_kwargs", encoder.patch_size)
+  if "flow_cov" in main and "flow_cov" in unc:
+    raise ValueError("config.json: both adaptors_kwargs and uncertainty_adaptors_kwargs have a "
+                     "'flow_cov'; UniFlowMatchConfidence reads the uncertainty head's only")
+  flow_head = dpt_config_from_official(cj["feature_head_kwargs"], "feature_head_kwargs",
+                                       encoder.patch_size)
+  for where, order, head in (("feature_head_kwargs", main_order, flow_head),
+                             ("uncertainty_head_kwargs", unc_order, covisibility)):
+    want = sum(dpt.ADAPTOR_CHANNELS[k] for k in order)
+    if head is not None and head.output_dim != want:
+      raise ValueError(f"config.json: {where}.dpt_processor.output_dim={head.output_dim} but its "
+                       f"adaptors {list(order)} take {want} channels")
   res = cj.get("inference_resolution") or (560, 420)  # official order is (W, H)
   # one (W, H) or a list of them (UniFlowMatchModelsBase picks the closest aspect per pair)
   res = (int(res[1]), int(res[0])) if isinstance(res[0], int) else tuple(
@@ -275,10 +329,9 @@ def ufm_config_from_official(cj: dict, shapes: dict, keys=BASE_KEYS) -> ufm.UFMC
   return ufm.UFMConfig(
       encoder=encoder,
       info_sharing=info_sharing_config_from_official(cj.get("info_sharing_kwargs", {}), shapes),
-      flow_head=dpt_config_from_official(cj["feature_head_kwargs"], "feature_head_kwargs",
-                                         encoder.patch_size),
-      covisibility_head=covisibility,
-      flow_adaptor=flow_adaptor_from_official(cj["adaptors_kwargs"]),
+      flow_head=flow_head, covisibility_head=covisibility, flow_adaptor=main["flow"],
+      flow_head_adaptors=main_order, uncertainty_head_adaptors=unc_order,
+      flow_covariance=main.get("flow_cov", unc.get("flow_cov")),
       detach_uncertainty_head=bool(cj.get("detach_uncertainty_head", True)),
       inference_resolution=res)
 
@@ -407,12 +460,28 @@ def official_config_dict(cfg: ufm.UFMConfig) -> dict:
     enc["keep_first_n_layers"] = e.depth
   if not e.norm_returned_features:   # UniCeption >= 0.1.6 only: written when it matters
     enc["norm_returned_features"] = False
+  adaptor_kwargs = {
+      "flow": {"base_shape": list(fa.base_shape), "flow_mean": list(fa.flow_mean),
+               "flow_std": list(fa.flow_std), "name": "flow",
+               "output_normalized_coordinate": fa.output_normalized_coordinate,
+               "scale_strategy": fa.scale_strategy},
+      "non_occluded_mask": {"name": "non_occluded_mask"}}
+  if cfg.flow_covariance is not None:
+    adaptor_kwargs["flow_cov"] = {"low_confidence_init": cfg.flow_covariance.low_confidence_init,
+                                  "name": "flow_cov",
+                                  "parametrization": cfg.flow_covariance.parametrization}
+
+  def adaptor_map(names, field):
+    # save_pretrained writes config.json with sorted keys, and a reloaded model splits the
+    # head's channels in that order: another order would reload as a different model.
+    if list(names) != sorted(names):
+      raise ValueError(f"{field}={tuple(names)}: an official config.json lists a head's adaptors "
+                       f"sorted ({tuple(sorted(names))}), and the official AdaptorMap splits the "
+                       "channels in that order, so this channel order cannot be exported")
+    return {n: {"class": ADAPTOR_CLASSES[n], "kwargs": adaptor_kwargs[n]} for n in names}
+
   out = {
-      "adaptors_kwargs": {"flow": {"class": "FlowAdaptor", "kwargs": {
-          "base_shape": list(fa.base_shape), "flow_mean": list(fa.flow_mean),
-          "flow_std": list(fa.flow_std), "name": "flow",
-          "output_normalized_coordinate": fa.output_normalized_coordinate,
-          "scale_strategy": fa.scale_strategy}}},
+      "adaptors_kwargs": adaptor_map(cfg.flow_head_adaptors, "flow_head_adaptors"),
       "detach_uncertainty_head": cfg.detach_uncertainty_head,
       "encoder_kwargs": enc, "encoder_str": "dinov2",
       "feature_head_kwargs": head(cfg.flow_head), "head_type": "dpt",
@@ -427,8 +496,9 @@ def official_config_dict(cfg: ufm.UFMConfig) -> dict:
           "use_rand_idx_pe_for_non_reference_views": s.use_rand_idx_pe_for_non_reference_views,
           **_new_info_sharing_kwargs(s)},
       "info_sharing_str": "global_attention",
-      "uncertainty_adaptors_kwargs": {"non_occluded_mask": {
-          "class": "MaskAdaptor", "kwargs": {"name": "non_occluded_mask"}}},
+      "uncertainty_adaptors_kwargs": (
+          cfg.covisibility_head and adaptor_map(cfg.uncertainty_head_adaptors,
+                                                "uncertainty_head_adaptors")),
       "uncertainty_head_kwargs": cfg.covisibility_head and head(cfg.covisibility_head),
       "uncertainty_head_type": "dpt",
   }

@@ -243,7 +243,8 @@ def save_official(model, variables, out_dir, *, source: Optional[str] = None,
     cj, dropped, notes = None, [], []
     if cfg.official_kwargs is not None:
       try:   # the source's config.json, if it still describes this model
-        cj = json.loads(cfg.official_kwargs)
+        # as written (sorted keys): a head's adaptors split its channels in config.json's order
+        cj = json.loads(json.dumps(json.loads(cfg.official_kwargs), sort_keys=True))
         dropped = _check_export(model, variables, cj, state, class_name)
         notes = ["config.json: the source snapshot's, key for key"]
       except ValueError:

@@ -83,6 +83,140 @@ def training_fixtures(subdir: str | None = None) -> pathlib.Path:
   return folder
 
 
+def reference_cases(folder: str, env: str) -> tuple[pathlib.Path, list[str]]:
+  """(root, case names) of a folder of official reference snapshots: `env` when set (a folder of
+  case folders), else `<UFM_FIXTURES or ../shared/fixtures beside the repository>/<folder>`; a case
+  is any sub-folder with a config.json, so every case a folder holds is checked. No cases (or no
+  folder): an empty list, for the test to skip or fail on (`skip_or_fail`)."""
+  import os
+  repo = pathlib.Path(__file__).resolve().parents[2]
+  fixtures = pathlib.Path(os.environ.get("UFM_FIXTURES", repo.parent / "shared" / "fixtures"))
+  root = pathlib.Path(os.environ.get(env) or fixtures / folder)
+  return root, sorted(p.parent.name for p in root.glob("*/config.json"))
+
+
+def reference_case(root: pathlib.Path, name: str | None, env: str) -> pathlib.Path:
+  """`root / name`, or for None (a folder without cases) skip naming where they were looked
+  for and the variables that move it (fails under CI=true: parity tests may not be skipped)."""
+  if name is None:
+    skip_or_fail(f"no official reference snapshots under {root}: set {env} to a folder of case "
+                 f"folders, or UFM_FIXTURES to the folder that holds {root.name}/",
+                 "CI=true: parity tests may not be skipped")
+  return root / name
+
+
+def nhwc(a):
+  """[B, C, H, W] (the official outputs) -> [B, H, W, C]."""
+  return np.transpose(a, (0, 2, 3, 1))
+
+
+def assert_max_abs(name: str, got, want, atol: float) -> None:
+  """Same shape and max |got - want| <= atol, the message naming both."""
+  got = np.asarray(got, np.float64)
+  assert got.shape == want.shape, f"{name}: shape {got.shape} != {want.shape}"
+  err = float(np.abs(got - want).max())
+  assert err <= atol, f"{name}: max |diff| {err:.3g} > {atol:.3g}"
+
+
+def official_case(case_dir) -> tuple:
+  """(model, variables, io, forward outputs as numpy) of an official reference snapshot folder
+  (config.json + model.safetensors + io.npz): the snapshot loaded and run on io.npz's pair."""
+  import jax
+
+  import ufm_jax
+  model, variables = ufm_jax.load_official(case_dir)
+  io = dict(np.load(pathlib.Path(case_dir) / "io.npz"))
+  out = jax.jit(model.apply)(variables, io["img1_uint8"], io["img2_uint8"])
+  return model, variables, io, {k: np.asarray(v) for k, v in out.items()}
+
+
+def assert_forward_parity(io: dict, out: dict) -> None:
+  """The forward outputs an official io.npz has, at the fixtures' tolerances: flow 1e-3 px (5e-3
+  after refinement), covisibility logits 2e-4 and mask 5e-5; a refinement model's regressed flow
+  1e-3, residual 5e-3 and feature maps 2e-4."""
+  refined = "flow_before_refinement" in io
+  assert_max_abs("flow", out["flow"], nhwc(io["flow"]), 5e-3 if refined else 1e-3)
+  if "covisibility_logits" in io:
+    assert_max_abs("covisibility_logits", out["covisibility_logits"],
+                   io["covisibility_logits"][:, 0], 2e-4)
+    assert_max_abs("covisibility", out["covisibility"], io["covisibility_mask"][:, 0], 5e-5)
+  if refined:
+    assert_max_abs("flow_before_refinement", out["flow_before_refinement"],
+                   nhwc(io["flow_before_refinement"]), 1e-3)
+    assert_max_abs("residual", out["residual"], nhwc(io["residual"]), 5e-3)
+    for k in ("feature_map_0", "feature_map_1"):
+      assert_max_abs(k, out[k], nhwc(io[k]), 2e-4)
+
+
+# predict_correspondences_batched's flow, as the v2 tests hold it (tests/test_official_releases.py,
+# HL_FLOW_ATOL there says why): 1e-3 px, 6e-3 px after refinement.
+HL_FLOW_ATOL = {"base": 1e-3, "refine": 6e-3}
+
+
+def assert_predict_parity(model, variables, io: dict, pair: str) -> dict:
+  """ufm_jax.predict on io.npz's high-level pair `pair` (hl0, hl1, ...) against the official
+  predict_correspondences_batched: flow within HL_FLOW_ATOL, covisibility 5e-5. Skips when the
+  case has no such pair; returns the prediction."""
+  import pytest
+
+  import ufm_jax
+  if f"{pair}_src_uint8" not in io:
+    pytest.skip(f"this case has no {pair}")
+  got = ufm_jax.predict(model, variables, io[f"{pair}_src_uint8"], io[f"{pair}_tgt_uint8"])
+  atol = HL_FLOW_ATOL["refine" if "flow_before_refinement" in io else "base"]
+  assert_max_abs(f"{pair}_flow", got["flow"], nhwc(io[f"{pair}_flow"])[0], atol)
+  assert_max_abs(f"{pair}_covisibility", got["covisibility"], io[f"{pair}_covisibility"][0], 5e-5)
+  return got
+
+
+def assert_covariance_close(name: str, got, want, rtol: float, slack=None) -> None:
+  """Flow covariance triplets [..., 3] (var_x, var_y, cov_xy) compared as issue #42 states it:
+  each variance within `rtol` of itself, cov_xy within `rtol` of sqrt(var_x var_y) (so a
+  correlation near 0 is not held to a relative bound); `slack` [...] widens the bound per pixel.
+  The message names the worst pixel."""
+  got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
+  assert got.shape == want.shape, f"{name}: shape {got.shape} != {want.shape}"
+  bound = np.broadcast_to(rtol + (0 if slack is None else slack), want.shape[:-1])
+  errors = {"var_x": np.abs(got[..., 0] / want[..., 0] - 1),
+            "var_y": np.abs(got[..., 1] / want[..., 1] - 1),
+            "cov_xy": np.abs(got[..., 2] - want[..., 2]) / np.sqrt(want[..., 0] * want[..., 1])}
+  for what, err in errors.items():
+    worst = np.unravel_index(np.argmax(err - bound), err.shape)
+    assert (err <= bound).all(), (f"{name} {what}: error {err[worst]:.3g} > {bound[worst]:.3g} "
+                                  f"(relative{' to sqrt(var_x var_y)' if what == 'cov_xy' else ''})"
+                                  f" at {worst}")
+
+
+def assert_exact_official_round_trip(snapshot_dir, model, variables, tmp_path) -> None:
+  """snapshot -> our checkpoint (convert) -> official snapshot (save_official with the snapshot
+  as source): config.json and model.safetensors byte for byte (the header as the source file has
+  it, alias order included)."""
+  import ufm_jax
+  from ufm_jax import model_io
+  d, tmp = pathlib.Path(snapshot_dir), pathlib.Path(tmp_path)
+  model_io.save(tmp / "ckpt", model, variables)
+  back_model, back_variables = ufm_jax.load(tmp / "ckpt")
+  assert back_model.config == model.config
+  ufm_jax.save_official(back_model, back_variables, tmp / "out", source=str(d))
+  assert (tmp / "out" / "config.json").read_bytes() == (d / "config.json").read_bytes()
+  assert (tmp / "out" / "model.safetensors").read_bytes() == \
+      (d / "model.safetensors").read_bytes()
+
+
+def snapshot_with_config(src, dst, edit, sort_keys: bool = True) -> pathlib.Path:
+  """A snapshot folder `dst` with `src`'s weights (linked) and its config.json changed by
+  `edit(config_dict)`, written with sorted keys as save_pretrained writes it, or in the order
+  `edit` left them (`sort_keys=False`)."""
+  import os
+  src, dst = pathlib.Path(src), pathlib.Path(dst)
+  dst.mkdir()
+  cj = json.loads((src / "config.json").read_text())
+  edit(cj)
+  (dst / "config.json").write_text(json.dumps(cj, indent=2, sort_keys=sort_keys))
+  os.symlink(src / "model.safetensors", dst / "model.safetensors")
+  return dst
+
+
 def write_snapshot(folder, config: dict, state: dict, metadata=None) -> pathlib.Path:
   """A Hugging Face snapshot folder (config.json + model.safetensors) from a torch-named state."""
   from safetensors.numpy import save_file
