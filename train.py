@@ -4,10 +4,10 @@ r"""Trains UFM (or its refiner) on a device mesh.
   python train.py --config=configs/ufm560.py:data=both --workdir=DIR --config.input.batch_size=96
   python train.py --config=configs/ufm560.py --compile_only --topology=v5e-8 --config.grad_accum=3
 
-Sections: plan (--compile_only), mesh, data, model/optimizer/sharding/step
-(ufm_jax.trainer.setup), checkpoint, evals, loop. The run resumes from the latest checkpoint in
---workdir by itself; SIGTERM saves and exits cleanly. --compile_only builds the same mesh,
-shardings and step from the config alone, compiles the step (on these devices, or with
+Sections: plan (--compile_only), mesh, teacher (distillation only), data,
+model/optimizer/sharding/step (ufm_jax.trainer.setup), checkpoint, evals, loop. The run resumes from
+the latest checkpoint in --workdir by itself; SIGTERM saves and exits cleanly. --compile_only builds
+the same mesh, shardings and step from the config alone, compiles the step (on these devices, or with
 --topology for a TPU slice through libtpu), prints the plan (ufm_jax.planning; its JSON is the
 last line) and exits 0, or 1 where the step needs more HBM than the chip has (docs/scale.md).
 """
@@ -88,6 +88,16 @@ def main(argv):
   logging.info("mesh %s over %d devices (%d processes)", dict(mesh.shape), jax.device_count(),
                jax.process_count())
 
+  # ---------------------------------------------------------------------------------- teacher
+  # Distillation (configs/distill.py): a frozen teacher that the train step runs before the
+  # student, on the un-augmented pair; its variables go to the mesh with the first step.
+  teacher = None
+  if config.get("teacher"):
+    from ufm_jax import teacher as teacher_lib
+    teacher = teacher_lib.load_teacher(config, mesh)
+    if is_main:
+      print(teacher.describe(), flush=True)
+
   # ---------------------------------------------------------------------------------- data
   process_batch = sharding.local_batch_size(config.input.batch_size, mesh)
   if config.grad_accum > 1:   # refused here, before the pipeline starts, rather than at trace time
@@ -96,7 +106,7 @@ def main(argv):
                                  accumulation.pair_rows(config.apply_kwargs))
     logging.info("gradient accumulation: %d microbatches of %d rows per step", config.grad_accum,
                  config.input.batch_size // config.grad_accum)
-  host_iter, data_info = trainer.build_input(config, process_batch, config.seed)
+  host_iter, data_info = trainer.build_input(config, process_batch, config.seed, teacher)
   # Global batches, the next `device_prefetch` already on their way to the devices.
   train_iter = sharding.DevicePrefetch(host_iter, mesh, config.device_prefetch)
   total_steps, steps_per_epoch = trainer.schedule_steps(config, data_info.get("pairs_per_epoch"))
@@ -105,7 +115,8 @@ def main(argv):
 
   # --------------------------------------------------- model, optimizer, sharding, step
   ts = trainer.setup(config, mesh, sample_shape, total_steps, steps_per_epoch=steps_per_epoch,
-                     dataset_names=tuple(data_info.get("datasets") or ()) or None)
+                     dataset_names=tuple(data_info.get("datasets") or ()) or None,
+                     teacher=teacher)
   model, tx, schedules, init_fn = ts.model, ts.tx, ts.schedules, ts.init_fn
   abstract_state, param_sh, state_sh = ts.abstract_state, ts.param_sh, ts.state_sh
   train_step, predict = ts.train_step, ts.predict

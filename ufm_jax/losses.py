@@ -9,6 +9,8 @@ terms summed in config order (the official YAML order, `configs/loss/*.yaml`):
   type "bce"            CrossEntropyLoss: covisibility BCE on logits (paper eq. 3)
   type "refinement_ce"  RefinementCrossEntropyLossEfficient (ufm_jax.refine_training)
   type "refinement_ce_eval"  RefinementCrossEntropyLoss, the refine recipes' test loss
+  type "teacher_robust", "teacher_bce"  distillation: the same two losses against a teacher's
+                        outputs instead of labels (ufm_jax.distill_loss, configs/distill.py)
   type "flow_nll"       FlowCovarianceNLL: the flow's negative log-likelihood under the predicted
                         covariance (ours: the official code has the head but no loss for it)
 
@@ -36,9 +38,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ufm_jax import refine_training
+from ufm_jax import distill_loss, refine_training
 from ufm_jax.loss_common import (MAX_GT, check_choice, invalid_gt_mask, masked_mean,
-                                 pixel_grid)
+                                 pixel_grid, robust_of_squared)
 from ufm_jax.models import covariance
 
 # Thresholds (px) of the official outlier-ratio logs (loss/epe.py:190, 309).
@@ -57,14 +59,7 @@ def end_point_error(d, eps: float = 0.0):
 def robust_charbonnier(x, alpha: float = 0.5, c: float = 0.24):
   """Barron's general robust loss of an error x, as a function of x^2 (smooth at 0):
   |a-2|/a * (((x/c)^2/|a-2| + 1)^(a/2) - 1); alpha not in {0, 2}."""
-  return _robust_of_squared(jnp.square(x / c), alpha)
-
-
-def _robust_of_squared(e, alpha):
-  if alpha in (0.0, 2.0):
-    raise ValueError(f"robust loss: alpha={alpha} needs the limit form; UFM uses 0.5")
-  b = abs(alpha - 2.0)
-  return b / alpha * ((e / b + 1.0) ** (alpha / 2.0) - 1.0)
+  return robust_of_squared(jnp.square(x / c), alpha)
 
 
 def _ones_like_mask(x):
@@ -137,7 +132,7 @@ class FlowRegression:
     pred = jnp.where(jnp.isnan(pred), 0.0, pred)
     d = pred - gt
     if self.kind == "robust":
-      per_pixel = _robust_of_squared(jnp.sum(jnp.square(d / self.c), -1), self.alpha)
+      per_pixel = robust_of_squared(jnp.sum(jnp.square(d / self.c), -1), self.alpha)
     else:
       per_pixel = end_point_error(d, self.epe_eps)
     value = masked_mean(per_pixel, mask, self.eps)
@@ -243,7 +238,9 @@ def term_types() -> dict:
   return {"robust": FlowRegression, "epe": FlowRegression, "bce": CovisibilityBCE,
           "flow_nll": FlowCovarianceNLL,
           "refinement_ce": refine_training.RefinementCE,
-          "refinement_ce_eval": refine_training.RefinementCEEval}
+          "refinement_ce_eval": refine_training.RefinementCEEval,
+          "teacher_robust": distill_loss.TeacherFlow,
+          "teacher_bce": distill_loss.TeacherCovisibility}
 
 
 def make_term(spec: Mapping[str, Any], name: str = "?"):
@@ -352,7 +349,9 @@ class Recipe:
 
   def _pooled(self, outputs, batch, rng, suitable_rows):
     pred = outputs.get("flow_before_refinement", outputs.get("flow"))
-    shared = {"gt": batch["flow"].astype(jnp.float32),
+    # A distillation batch may carry no labels at all (ufm_jax.distill_loss reads the teacher's).
+    gt = batch.get("flow")
+    shared = {"gt": None if gt is None else gt.astype(jnp.float32),
               "pred": None if pred is None else pred.astype(jnp.float32)}
     ctx = {"temperature": self.temperature, "suitable_rows": suitable_rows, "masks": {}}
     total = jnp.zeros((), jnp.float32)

@@ -7,6 +7,10 @@ Sources (a string, optionally prefixed with a kind; without one, `model_io.what_
                  its folder, or a Hub ID (`snapshot:infinity1096/UFM-Base`), optionally at a
                  revision (`snapshot:infinity1096/UFM-Base@REVISION`: a branch, tag or commit);
                  the report names the commit the Hub ID resolved to
+  teacher:SRC    a distillation student's start from its teacher (SRC: any ckpt: or snapshot:
+                 source): every parameter whose path and shape the student shares is loaded, the
+                 rest (narrower MLPs or heads) left at init and listed; no structure check, the
+                 two models differ by design (configs/distill.py init=teacher)
   dinov2:PATH    DINOv2 weights for the encoder: HF `facebook/dinov2-*` model.safetensors (or its
                  folder), transformers naming, no torch needed; or the original `dinov2_vit*14*.pth`
                  (needs the optional torch extra)
@@ -51,7 +55,7 @@ from flax import traverse_util
 
 from ufm_jax import model_io
 
-KINDS = ("ckpt", "snapshot", "dinov2")
+KINDS = ("ckpt", "snapshot", "dinov2", "teacher")
 
 
 @dataclasses.dataclass
@@ -79,11 +83,12 @@ def flatten(tree) -> dict[str, Any]:
 
 
 def merge_into(template, loaded: dict[str, np.ndarray], source: str,
-               resizable: str = r"pos_embed") -> tuple[Any, InitReport]:
+               resizable: str = r"pos_embed", partial: bool = False) -> tuple[Any, InitReport]:
   """Fills `template` (a param tree) with `loaded` (flat "a/b/c" -> array) where paths match.
 
   Shape mismatches on `resizable` params (position embeddings) are resized; other mismatches
-  are an error naming both shapes. Returns (params, report).
+  are an error naming both shapes, or with `partial` left at init (listed with both shapes).
+  Returns (params, report).
   """
   from ufm_jax.models import dinov2
   flat_t = flatten(template)
@@ -101,6 +106,9 @@ def merge_into(template, loaded: dict[str, np.ndarray], source: str,
     elif re.search(resizable, k):
       out[k] = jnp.asarray(dinov2.resize_pos_embed(w, v.shape), v.dtype)
       rep.resized.append(f"{k} {w.shape}->{tuple(v.shape)}")
+    elif partial:
+      out[k] = v
+      rep.left_at_init.append(f"{k} (source {w.shape}, model {tuple(v.shape)})")
     else:
       mismatched.append(f"{k}: checkpoint {w.shape} vs model {tuple(v.shape)}")
   if mismatched:
@@ -299,8 +307,13 @@ def load_init_variables(spec: str, template: dict, config=None, model_block=None
   `adopt_flow_adaptor` put the source's flow_mean / flow_std into the config.
   """
   kind, path = source_kind(spec)
+  partial = kind == "teacher"
+  if partial:
+    kind, path = source_kind(path)
   loaded, source_config, source = _read_source(kind, path, want_config=config is not None)
-  if config is not None and source_config is not None:
+  if partial:
+    source = f"teacher:{source}"
+  if config is not None and source_config is not None and not partial:
     if flow_adaptor not in FLOW_ADAPTOR_MODES:
       raise ValueError(f"model_init_flow_adaptor={flow_adaptor!r}; expected one of "
                        f"{FLOW_ADAPTOR_MODES}")
@@ -322,7 +335,7 @@ def load_init_variables(spec: str, template: dict, config=None, model_block=None
   remapped = InitReport(source, [], [], [], [])
   params = _remap_channels(flatten(template["params"]), params, maps, remapped)
   out = {}
-  out["params"], report = merge_into(template["params"], params, source)
+  out["params"], report = merge_into(template["params"], params, source, partial=partial)
   report.resized += remapped.resized
   stats = loaded.get("batch_stats", {})
   if "batch_stats" in template:

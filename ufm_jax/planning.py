@@ -162,14 +162,21 @@ def _per_device_bytes(tree, shardings) -> int:
 
 
 def state_bytes(ts) -> dict:
-  """Parameter bytes (total, per device) and the train state's per device."""
+  """Parameter bytes (total, per device) and the train state's per device; a distillation
+  step's teacher variables too (a step argument beside the state, sharded by the same rules)."""
   import jax
-  return {"param_count": sum(int(x.size) for x in jax.tree.leaves(ts.abstract_params)),
-          "param_bytes": _tree_bytes(ts.abstract_params),
-          "param_bytes_per_device": _per_device_bytes(ts.abstract_params, ts.param_sh),
-          "opt_state_bytes_per_device": _per_device_bytes(ts.abstract_state.opt_state,
-                                                          ts.state_sh.opt_state),
-          "state_bytes_per_device": _per_device_bytes(ts.abstract_state, ts.state_sh)}
+  out = {"param_count": sum(int(x.size) for x in jax.tree.leaves(ts.abstract_params)),
+         "param_bytes": _tree_bytes(ts.abstract_params),
+         "param_bytes_per_device": _per_device_bytes(ts.abstract_params, ts.param_sh),
+         "opt_state_bytes_per_device": _per_device_bytes(ts.abstract_state.opt_state,
+                                                         ts.state_sh.opt_state),
+         "state_bytes_per_device": _per_device_bytes(ts.abstract_state, ts.state_sh)}
+  if ts.teacher is not None:
+    t = ts.teacher
+    out.update(teacher=t.source, teacher_resolution=list(t.resolution),
+               teacher_param_count=sum(int(x.size) for x in jax.tree.leaves(t.abstract["params"])),
+               teacher_bytes_per_device=_per_device_bytes(t.abstract, t.shardings))
+  return out
 
 
 def compile_step(ts, batch: int, image_shape, row_ids: bool = True) -> dict:
@@ -294,6 +301,10 @@ def plan(config, tgt: Target, *, batch: int | None = None, image_shape=None, mfu
       f"scan_blocks {config.model.get('scan_blocks', False)}, fsdp_gather {config.fsdp_gather}")
   log(f"  params {gib(info['param_bytes'])} total, {gib(info['param_bytes_per_device'])} per "
       f"chip; train state {gib(info['state_bytes_per_device'])} per chip", flush=True)
+  if "teacher" in info:
+    log(f"  teacher {info['teacher']}: {info['teacher_param_count'] / 1e6:.1f}M params, "
+        f"{gib(info['teacher_bytes_per_device'])} per chip, its forward in the step at "
+        f"{info['teacher_resolution'][0]}x{info['teacher_resolution'][1]}", flush=True)
   r = compile_step(ts, batch, hw, row_ids=not config.input.get("data_fn"))
   fits = "refused" not in r and (tgt.capacity is None or r["hbm_bytes_per_chip"] <= tgt.capacity)
   result = {"target": tgt.name, "chips": tgt.chips, "device_kind": tgt.device_kind,

@@ -86,12 +86,22 @@ def random_params(model, seed: int = 0, image_shape=None):
   return lowered.compile(compiler_options=options)(key)
 
 
-def build_input(config, process_batch: int, seed: int):
-  """(iterator of numpy batches, info) from config.input (grain pipeline of ufm_jax.data)."""
+def build_input(config, process_batch: int, seed: int, teacher=None):
+  """(iterator of numpy batches, info) from config.input (grain pipeline of ufm_jax.data).
+  `teacher` (ufm_jax.distill.Teacher): distillation rows with the teacher's view of each pair at
+  its resolution (ufm_jax.data.distill_rows)."""
   if config.input.get("data_fn"):
     return import_attr(config.input.data_fn)(config.input, process_batch, seed)
   from ufm_jax.data import pipeline
-  return pipeline.make_train_iterator(config.input, process_batch=process_batch, seed=seed)
+  block = config.input
+  if teacher is not None:
+    block = block.to_dict()
+    given = block.get("teacher_shape")
+    if given and tuple(given) != tuple(teacher.resolution):
+      raise ValueError(f"config.input.teacher_shape={tuple(given)} but the teacher sees "
+                       f"{teacher.resolution}: set config.teacher.resolution instead")
+    block["teacher_shape"] = tuple(teacher.resolution)
+  return pipeline.make_train_iterator(block, process_batch=process_batch, seed=seed)
 
 
 def schedule_steps(config, pairs_per_epoch):
@@ -124,9 +134,13 @@ def build_loss(config, model=None, dataset_names=None):
 
 
 def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None, seed: int = 0,
-                    grad_accum: int = 1, mesh=None, param_sh=None,
+                    grad_accum: int = 1, mesh=None, param_sh=None, targets_fn=None,
                     skip_advances_schedule: bool = True):
-  """train_step(state, batch) -> (state, metrics): one optimizer update.
+  """train_step(state, batch[, teacher_variables]) -> (state, metrics): one optimizer update.
+
+  `targets_fn(teacher_variables, batch) -> batch` (distillation, ufm_jax.distill): the frozen
+  teacher's targets, computed per microbatch before the student's forward; its outputs leave
+  through stop_gradient and its variables are no argument of the gradient.
 
   Gradients are taken w.r.t. the trainable params only (frozen ones enter through stop_gradient,
   so e.g. the refine stage runs no backward pass through the base model). `gather_params`
@@ -157,7 +171,9 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
   if grad_accum < 1:
     raise ValueError(f"grad_accum={grad_accum}: the microbatches per step must be 1 or more")
 
-  def loss_and_aux(trainable, frozen, batch_stats, batch, rng):
+  def loss_and_aux(trainable, frozen, batch_stats, batch, rng, teacher=None):
+    if targets_fn is not None:
+      batch = targets_fn(teacher, batch)
     params = optim.merge_params(trainable, jax.lax.stop_gradient(frozen))
     if gather_params is not None:
       params = gather_params(params)
@@ -175,14 +191,14 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
   grad_fn = jax.value_and_grad(loss_and_aux, has_aux=True)
   grad_sh = None if param_sh is None else optim.split_trainable(param_sh, labels)[0]
 
-  def accumulated(trainable, frozen, batch_stats, batch, rng):
+  def accumulated(trainable, frozen, batch_stats, batch, rng, teacher=None):
     micro = accumulation.microbatches(batch, grad_accum, mesh,
                                       accumulation.pair_rows(apply_kwargs))
 
     def body(g_sum, xs):
       j, mb = xs
       (loss, (aux, stats)), g = grad_fn(trainable, frozen, batch_stats, mb,
-                                        jax.random.fold_in(rng, j))
+                                        jax.random.fold_in(rng, j), teacher)
       g_sum = jax.tree.map(lambda a, b: a + b.astype(a.dtype), g_sum, g)
       return accumulation.constrain(g_sum, grad_sh), (loss, aux, stats)
 
@@ -193,11 +209,12 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
     stats = None if stats is None else jax.tree.map(mean, stats)
     return (jnp.mean(losses), (jax.tree.map(jnp.mean, aux), stats)), g
 
-  def train_step(state, batch):
+  def train_step(state, batch, teacher=None):
     trainable, frozen = optim.split_trainable(state.params, labels)
     rng = jax.random.fold_in(jax.random.PRNGKey(seed), state.step)
     step_fn = grad_fn if grad_accum == 1 else accumulated
-    (loss, (aux, new_stats)), g = step_fn(trainable, frozen, state.batch_stats, batch, rng)
+    (loss, (aux, new_stats)), g = step_fn(trainable, frozen, state.batch_stats, batch, rng,
+                                          teacher)
     grads = optim.merge_params(g, jax.tree.map(jnp.zeros_like, frozen))
     new_state, ok = optim.apply_gradients(state, grads, loss, tx, skip_advances_schedule)
     if new_stats is not None:   # a skipped (non-finite) step leaves the running statistics too
@@ -246,23 +263,34 @@ class TrainSetup:
   train_step: Callable         # jitted (state, batch) -> (state, metrics); state donated
   predict: Callable            # jitted (state.variables(), batch) -> {"flow"[, "covisibility"]}
   variables_sh: Any = None     # shardings of init_fn's output
+  teacher: Any = None          # ufm_jax.distill.Teacher of a distillation run
+  labelled: bool = True        # the batches carry labels (a distillation run: keep_labels)
+
+  def row_shapes(self, image_shape) -> dict:
+    """{key: (per-row shape, numpy dtype)} of a training row at (H, W) `image_shape`."""
+    import numpy as np
+    h, w = image_shape
+    rows = {"image0": ((h, w, 3), np.uint8), "image1": ((h, w, 3), np.uint8)}
+    if self.labelled:
+      rows.update({"flow": ((h, w, 2), np.float32), "covisibility": ((h, w), np.bool_),
+                   "flow_valid": ((h, w), np.bool_), "covis_valid": ((h, w), np.bool_)})
+    if self.teacher is not None:
+      from ufm_jax.data import distill_rows
+      rows.update(distill_rows.row_shapes(self.teacher.resolution))
+    return rows
 
   def abstract_batch(self, batch_size: int, image_shape, row_ids: bool = False):
     """ShapeDtypeStructs of a global training batch, sharded as the step expects (AOT).
     `row_ids`: with the per-row dataset_id and epoch the training pipeline adds
     (ufm_jax.data.pipeline; the refinement loss reads dataset_id)."""
     import jax
-    import jax.numpy as jnp
-    h, w = image_shape
-    shapes = {"image0": ((batch_size, h, w, 3), jnp.uint8),
-              "image1": ((batch_size, h, w, 3), jnp.uint8),
-              "flow": ((batch_size, h, w, 2), jnp.float32),
-              "covisibility": ((batch_size, h, w), jnp.bool_),
-              "flow_valid": ((batch_size, h, w), jnp.bool_),
-              "covis_valid": ((batch_size, h, w), jnp.bool_)}
+    import jax
+    rows = self.row_shapes(image_shape)
     if row_ids:
-      shapes.update(dataset_id=((batch_size,), jnp.int32), epoch=((batch_size,), jnp.int32))
-    return {k: jax.ShapeDtypeStruct(s, d, sharding=self.batch_sh) for k, (s, d) in shapes.items()}
+      import numpy as np
+      rows.update(dataset_id=((), np.int32), epoch=((), np.int32))
+    return {k: jax.ShapeDtypeStruct((batch_size,) + s, d, sharding=self.batch_sh)
+            for k, (s, d) in rows.items()}
 
   def init_state(self, seed: int = 0):
     """A fresh sharded TrainState from the modules' initializers (benchmarks, smoke runs)."""
@@ -278,16 +306,28 @@ class TrainSetup:
                    out_shardings=self.state_sh)(variables)
 
   def random_batch(self, mesh, batch_size: int, image_shape, seed: int = 0):
-    """A global batch of random images and labels in the training layout (benchmarks)."""
+    """A global batch of random images and labels in the training layout (benchmarks); for a
+    distillation run the teacher's view of each row is its crop stretched to the teacher's
+    resolution."""
     import numpy as np
     from ufm_jax import sharding
     rng = np.random.default_rng(seed)
     b, (h, w) = batch_size, image_shape
     host = {"image0": rng.integers(0, 256, (b, h, w, 3), dtype=np.uint8),
-            "image1": rng.integers(0, 256, (b, h, w, 3), dtype=np.uint8),
-            "flow": rng.normal(0, 5, (b, h, w, 2)).astype(np.float32),
-            "covisibility": rng.random((b, h, w)) < 0.7,
-            "flow_valid": np.ones((b, h, w), bool), "covis_valid": np.ones((b, h, w), bool)}
+            "image1": rng.integers(0, 256, (b, h, w, 3), dtype=np.uint8)}
+    if self.labelled:
+      host.update({"flow": rng.normal(0, 5, (b, h, w, 2)).astype(np.float32),
+                   "covisibility": rng.random((b, h, w)) < 0.7,
+                   "flow_valid": np.ones((b, h, w), bool),
+                   "covis_valid": np.ones((b, h, w), bool)})
+    if self.teacher is not None:
+      from ufm_jax.data import distill_rows
+      th, tw = self.teacher.resolution
+      m = distill_rows.crop_map((h, w), (0, 0), (th, tw))
+      host.update({"teacher_image0": rng.integers(0, 256, (b, th, tw, 3), dtype=np.uint8),
+                   "teacher_image1": rng.integers(0, 256, (b, th, tw, 3), dtype=np.uint8),
+                   "teacher_to_crop0": np.repeat(m[None], b, 0),
+                   "teacher_to_crop1": np.repeat(m[None], b, 0)})
     return sharding.make_global_batch(host, mesh)
 
   def sharded_abstract_state(self):
@@ -297,13 +337,17 @@ class TrainSetup:
 
 
 def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
-          dataset_names=None) -> TrainSetup:
+          dataset_names=None, teacher=None) -> TrainSetup:
   """Model (activations constrained to the batch sharding of `mesh`), optimizer, parameter and
   state shardings (config.sharding_rules, config.sharding_min_size), the jitted train step and
   eval predict. Nothing is allocated: params exist only as shapes until `init_fn` runs.
 
   steps_per_epoch: optimizer steps per epoch (for warmup counted in epochs; default
-  total_steps / config.num_epochs). dataset_names: the pipeline's, in dataset_id order."""
+  total_steps / config.num_epochs). dataset_names: the pipeline's, in dataset_id order.
+  A distillation config (`config.teacher`): the step runs `teacher` (default
+  ufm_jax.teacher.load_teacher(config, mesh), which puts nothing on the devices) before the
+  student, its variables an argument the step binds on its first call (distill.BoundStep); the
+  planner and the FLOP count lower it with the teacher's abstract variables."""
   import jax
   from ufm_jax import optim, sharding
   gather_params, layer_gather = sharding.fsdp_gathers(mesh, config)
@@ -330,16 +374,31 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   batch_sh = sharding.batch_sharding(mesh)
   repl = sharding.replicated(mesh)
   loss_fn = build_loss(config, model, dataset_names)
+  targets_fn = None
+  if config.get("teacher") and teacher is None:
+    from ufm_jax import teacher as teacher_lib
+    teacher = teacher_lib.load_teacher(config, mesh)
+  if teacher is not None:
+    from ufm_jax import distill
+    targets_fn = distill.make_targets_fn(teacher, gather_params,
+                                         symmetrized=bool(apply_kwargs.get("symmetrized")))
   step = make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params,
                          seed=config.seed, grad_accum=config.grad_accum, mesh=mesh,
-                         param_sh=param_sh,
+                         param_sh=param_sh, targets_fn=targets_fn,
                          skip_advances_schedule=config.optim.get("skip_advances_schedule", True))
-  train_step = jax.jit(step, in_shardings=(state_sh, batch_sh), out_shardings=(state_sh, repl),
-                       donate_argnums=(0,))
+  if teacher is None:
+    train_step = jax.jit(step, in_shardings=(state_sh, batch_sh),
+                         out_shardings=(state_sh, repl), donate_argnums=(0,))
+  else:
+    train_step = distill.BoundStep(jax.jit(
+        step, in_shardings=(state_sh, batch_sh, teacher.shardings),
+        out_shardings=(state_sh, repl), donate_argnums=(0,)), teacher)
   predict = jax.jit(make_predict(model, apply_kwargs, gather_params),
                     in_shardings=(variables_sh, batch_sh), out_shardings=repl)
+  labelled = teacher is None or bool(config.input.get("keep_labels"))
   return TrainSetup(model, tx, labels, schedules, init_fn, abstract_params, abstract_state,
-                    param_sh, state_sh, batch_sh, train_step, predict, variables_sh)
+                    param_sh, state_sh, batch_sh, train_step, predict, variables_sh, teacher,
+                    labelled)
 
 
 class Writer:

@@ -32,6 +32,11 @@ INPUT_DEFAULTS = {
     "draw_variants": True,
     "max_retries": 8,
     "keep_heap": True,
+    # Distillation (configs/distill.py, ufm_jax.data.distill_rows): (H, W) the teacher sees each
+    # pair at, un-augmented; None: labelled rows. keep_labels: distillation rows also carry the
+    # crop's labels (read only when a loss term mixes them in).
+    "teacher_shape": None,
+    "keep_labels": False,
 }
 
 
@@ -95,6 +100,8 @@ def input_config(datasets, **overrides):
   the official ones, augment.SHAPES_560 / SHAPES_980); empty: W = longest_side and H from
   aspect_ratios.
   augment: `augment.AugmentConfig` keys (empty: the official augmentation).
+  teacher_shape: distillation rows (ufm_jax.data.distill_rows) with the teacher's view at this
+  (H, W); keep_labels: with the labels of the crop too.
   """
   import ml_collections  # pylint: disable=g-import-not-at-top
   unknown = sorted(set(overrides) - set(INPUT_DEFAULTS))

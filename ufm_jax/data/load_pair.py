@@ -99,7 +99,10 @@ def pathway(source, name: str, cfg: augment_lib.AugmentConfig) -> str:
 
 
 class LoadPair:
-  """grain map: index record -> dict of augmented arrays with a leading axis of 1 or 2 pairs."""
+  """grain map: index record -> dict of augmented arrays with a leading axis of 1 or 2 pairs.
+  A subclass (ufm_jax.data.distill_rows) makes other rows through `_augmented` and names their
+  keys in `row_keys`."""
+  row_keys = ARRAY_KEYS
 
   def __init__(self, sources, names, backward_modes, layout: MixtureLayout, shapes,
                augment_cfg: augment_lib.AugmentConfig, symmetrize: bool, max_retries: int = 8,
@@ -223,7 +226,7 @@ class LoadPair:
       raise SkipLimitExceeded(f"{self.max_retries + 1} consecutive unreadable samples from "
                               f"{self.names[d]!r}; last: {skipped[-1]}")
     # Rows stay separate arrays until `collate` stacks the batch: one copy of every row, not two.
-    out = {k: [p[k] for p in pairs] for k in ARRAY_KEYS}
+    out = {k: [p[k] for p in pairs] for k in self.row_keys}
     out["dataset_id"] = np.full(len(pairs), d, np.int32)
     out["epoch"] = np.full(len(pairs), rec["epoch"], np.int32)
     out["_attempts"] = len(skipped) + 1

@@ -12,7 +12,9 @@
 
 Batches are dicts of numpy arrays with a leading batch axis of the per-host batch size:
 image0, image1 [B,H,W,3] uint8; flow [B,H,W,2] float32; covisibility, flow_valid, covis_valid
-[B,H,W] bool; dataset_id [B] int32 (index into `Pipeline.names`); epoch [B] int32.
+[B,H,W] bool; dataset_id [B] int32 (index into `Pipeline.names`); epoch [B] int32. With
+`teacher_shape` (distillation) the labels give way to the teacher's view of each pair
+(ufm_jax.data.distill_rows).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import numpy as np
 from ufm_jax.data import augment as augment_lib
 from ufm_jax.data import mixture
 from ufm_jax.data.backward_labels import backward_mode
+from ufm_jax.data.distill_rows import DistillPair
 from ufm_jax.data.input_block import (INPUT_DEFAULTS, auto_num_workers, input_config, keep_heap,
                                       training_shapes)
 from ufm_jax.data.load_pair import LoadPair, SkipAccounting, SkipLimitExceeded, collate
@@ -166,8 +169,10 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   variants = tuple(int(getattr(s, "variants", 1)) if cfg["draw_variants"] else 1
                    for s in sources)
   sizes = tuple(len(s) // v for s, v in zip(sources, variants))
+  teacher_shape = cfg.get("teacher_shape")
+  labelled = not teacher_shape or bool(cfg.get("keep_labels"))
   modes = ()
-  if symmetrize:
+  if symmetrize and labelled:
     fallback = str(cfg["backward_fallback"])
     if fallback not in ("unsupervised", "error"):
       raise ValueError(f"input.backward_fallback must be 'unsupervised' or 'error', got {fallback!r}")
@@ -190,9 +195,14 @@ def create(config: Mapping[str, Any], *, seed: int = 0, num_epochs: int | None =
   if layout.num_steps == 0:
     raise ValueError(f"epoch of {layout.epoch_size} pairs is smaller than one global batch of "
                      f"{layout.unique_per_step} unique pairs")
-  load = LoadPair(sources, names, backward_modes=modes, layout=layout, shapes=shapes,
-                  augment_cfg=augment_lib.AugmentConfig.from_dict(cfg["augment"]),
-                  symmetrize=symmetrize, max_retries=int(cfg["max_retries"]), variants=variants)
+  load_kw = dict(backward_modes=modes, layout=layout, shapes=shapes,
+                 augment_cfg=augment_lib.AugmentConfig.from_dict(cfg["augment"]),
+                 symmetrize=symmetrize, max_retries=int(cfg["max_retries"]), variants=variants)
+  if teacher_shape:
+    load = DistillPair(sources, names, teacher_hw=tuple(teacher_shape),
+                       keep_labels=bool(cfg.get("keep_labels")), **load_kw)
+  else:
+    load = LoadPair(sources, names, **load_kw)
   ds = MixtureIndex(layout).map(load).batch(unique_per_host, drop_remainder=True, batch_fn=collate)
   ds = ds.to_iter_dataset(grain.ReadOptions(
       num_threads=int(cfg["read_threads"]),

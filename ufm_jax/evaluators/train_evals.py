@@ -4,6 +4,8 @@
            forward; the dense metrics (`DenseMetrics` with baselines: epe, px1/3/5,
            epe_occluded, epe_all, epe_zero, covis_acc; with a flow covariance its calibration)
   bench    a benchmark of ufm_jax.evaluators (evaluate.py's benches) through ufm_jax.predict
+  teacher_agreement  held-out unlabeled pairs scored against a distillation teacher's
+           predictions (the heldout metrics with the teacher's flow and covisibility as labels)
   "module:Class"  anything else, called with (cfg, mesh)
 """
 
@@ -43,22 +45,20 @@ class HeldoutEval:
     self.every = int(cfg.get("every", 0))
     self.mesh = mesh
     src = get_source(cfg.source, cfg.get("root"), **dict(cfg.get("kwargs", {})))
-    n = min(int(cfg.num_pairs), len(src))
-    h, w = cfg.shape
-    samples = []
-    for i in range(n):
-      s = src[i]
-      H, W = s["image0"].shape[:2]
-      if H < h or W < w:
-        raise ValueError(f"eval source {cfg.source}: sample {i} is {H}x{W}, smaller than the eval "
-                         f"shape {h}x{w}")
-      y0, x0 = (H - h) // 2, (W - w) // 2
-      samples.append({k: np.asarray(s[k])[y0:y0 + h, x0:x0 + w] for k in self.KEYS})
-    self.samples = samples
+    self.samples = self.load_samples(cfg, src)
     div = sharding.batch_divisor(mesh)
     bs = int(cfg.get("batch_size", div))
     self.batch_size = -(-bs // div) * div
     self.num_images = int(cfg.get("num_images", 2))
+
+  def load_samples(self, cfg, src) -> list:
+    """The first num_pairs samples of `src`, centre-cropped to cfg.shape."""
+    samples = []
+    for i in range(min(int(cfg.num_pairs), len(src))):
+      s = src[i]
+      samples.append({k: np.asarray(v) for k, v in zip(
+          self.KEYS, _centre_crop([s[k] for k in self.KEYS], cfg.shape, f"{cfg.source}[{i}]"))})
+    return samples
 
   def run(self, predict, params) -> EvalResult:
     import jax
@@ -90,6 +90,49 @@ class HeldoutEval:
           images[f"pair{i}_gt"] = viz.panel(chunk[j]["image0"], chunk[j]["image1"],
                                             chunk[j]["flow"], chunk[j]["covisibility"])
     return EvalResult({**acc.result(), "num_pairs": float(n)}, images)
+
+
+def _centre_crop(arrays, shape, where: str) -> list:
+  """The (H, W) centre of each array (centre crops keep flow labels valid)."""
+  h, w = shape
+  H, W = np.shape(arrays[0])[:2]
+  if H < h or W < w:
+    raise ValueError(f"eval source {where}: the sample is {H}x{W}, smaller than the eval shape "
+                     f"{h}x{w}")
+  y0, x0 = (H - h) // 2, (W - w) // 2
+  return [np.asarray(a)[y0:y0 + h, x0:x0 + w] for a in arrays]
+
+
+class TeacherAgreementEval(HeldoutEval):
+  """The student against its teacher on held-out unlabeled pairs (a distillation run's own
+  domain, configs/distill.py `eval_root=`): the teacher predicts each centre-cropped pair once,
+  at the start (`ufm_jax.predict` at its inference resolution), and its flow and covisibility
+  (probability >= 0.5) serve as the labels of HeldoutEval's metrics: epe is the student's EPE
+  against the teacher on the teacher's covisible pixels, covis_acc their covisibility
+  agreement, epe_zero the teacher's mean motion. No ground truth is read.
+
+  Config: as heldout (source, root, kwargs, num_pairs, shape, batch_size, every, num_images),
+  plus teacher (the run's config.teacher block).
+  """
+
+  def load_samples(self, cfg, src) -> list:
+    from ufm_jax import inference
+    from ufm_jax import teacher as teacher_lib
+    from ufm_jax.data import distill_rows
+    from ufm_jax.models import ufm
+    model, variables, _, _ = teacher_lib.load_spec(dict(cfg.teacher))
+    variables = ufm.variables(variables() if callable(variables) else variables)
+    samples = []
+    for i in range(min(int(cfg.num_pairs), len(src))):
+      where = f"{cfg.source}[{i}]"
+      image0, image1 = _centre_crop(distill_rows.read_images(src, i, where), cfg.shape, where)
+      pred = inference.predict(model, variables, image0, image1)
+      ones = np.ones(image0.shape[:2], bool)
+      covis = (pred["covisibility"] >= 0.5 if "covisibility" in pred else ones)
+      samples.append({"image0": image0, "image1": image1, "flow": pred["flow"],
+                      "covisibility": covis, "flow_valid": ones,
+                      "covis_valid": ones if "covisibility" in pred else ~ones})
+    return samples
 
 
 class BenchEval:
@@ -133,6 +176,8 @@ def build_evaluators(evals_cfg, mesh, model):
       out[name] = HeldoutEval(cfg, mesh)
     elif kind == "bench":
       out[name] = BenchEval(cfg, model)
+    elif kind == "teacher_agreement":
+      out[name] = TeacherAgreementEval(cfg, mesh)
     else:
       module, attr = kind.split(":")
       out[name] = getattr(importlib.import_module(module), attr)(cfg, mesh)

@@ -127,6 +127,39 @@ def fixture_small(**kw) -> ufm.UFMConfig:
   return cfg.replace(**kw)
 
 
+def _student(dim: int, depth: int, heads: int, taps, layer_dims, feature_dim: int,
+             **kw) -> ufm.UFMConfig:
+  """UFM-Base's structure on a DINOv2 ViT-S/14 encoder (all 12 blocks) with a narrower fusion
+  transformer and DPT heads: the distillation students."""
+  return ufm_base(
+      encoder=dinov2_small(),
+      info_sharing=info_sharing.InfoSharingConfig(
+          input_embed_dim=384, dim=dim, depth=depth, num_heads=heads, mlp_ratio=4.0,
+          qkv_bias=True, qk_norm=False, init_values=None, indices=tuple(taps)),
+      flow_head=_dpt(384, dim, 2, layer_dims, feature_dim),
+      covisibility_head=_dpt(384, dim, 1, layer_dims, feature_dim), **kw)
+
+
+def ufm_small(**kw) -> ufm.UFMConfig:
+  """UFM-Small, a distillation student (configs/distill.py): DINOv2 ViT-S/14 (all 12 blocks,
+  initialisable from facebook/dinov2-small with `model_init=dinov2:`), a 6 x 384 fusion
+  transformer with 6 heads tapped after blocks 3 and 5 (0-based 2, 4: UFM-Base's 6 and 9 of 12
+  scaled to 6), DPT heads at half UFM-Base's widths (layer dims [48, 96, 192, 384], feature dim
+  128); 42.2M parameters, inferred at 420 x 560 like UFM-Base. Sizes and speed beside UFM-Base:
+  docs/distillation.md."""
+  return _student(384, 6, 6, (2, 4), (48, 96, 192, 384), 128).replace(**kw)
+
+
+def ufm_tiny(**kw) -> ufm.UFMConfig:
+  """UFM-Tiny, the smallest distillation student: UFM-Small's ViT-S/14 encoder (facebook/dinov2-
+  small), a 4 x 256 fusion transformer with 4 heads tapped after blocks 2 and 3 (0-based 1, 2),
+  DPT heads at a quarter of UFM-Base's widths (layer dims [24, 48, 96, 192], feature dim 64);
+  27.7M parameters, inferred at 294 x 392 (3:4, 21 x 28 patches: half the tokens of 420 x 560).
+  Sizes and speed: docs/distillation.md."""
+  return _student(256, 4, 4, (1, 2), (24, 48, 96, 192), 64,
+                  inference_resolution=(294, 392)).replace(**kw)
+
+
 def tiny(**kw) -> ufm.UFMConfig:
   """A very small UFM for smoke tests and the synthetic training config (~1M parameters)."""
   cfg = ufm.UFMConfig(
@@ -164,6 +197,22 @@ def synth(**kw) -> ufm.UFMConfig:
   return cfg.replace(**kw)
 
 
+def synth_small(**kw) -> ufm.UFMConfig:
+  """The distillation student of the synthetic demonstration (docs/distillation.md): `synth`'s
+  attention and flow head as they are (64 wide, 2 heads of 32, 2 encoder and 3 fusion blocks,
+  the tied query/key init, the 16-wide flow DPT), MLPs of ratio 1/4 instead of 4 and a
+  covisibility head of width 8 (layer dims [8, 8, 16, 16]): 198,223 parameters, 0.49 x
+  `synth`'s 403,707. It shares synth's layout wherever it can, so that `init=teacher`
+  (configs/distill.py) starts it from the teacher's attention, patch embedding and flow head;
+  narrower students stayed on the zero-flow plateau (docs/distillation.md)."""
+  cfg = synth()
+  cfg = cfg.replace(
+      encoder=dataclasses.replace(cfg.encoder, mlp_ratio=0.25),
+      info_sharing=dataclasses.replace(cfg.info_sharing, mlp_ratio=0.25),
+      covisibility_head=_dpt(64, 64, 1, (8, 8, 16, 16), 8))
+  return cfg.replace(**kw)
+
+
 def tiny_refine(**kw) -> refine.UFMRefineConfig:
   """`tiny` plus a small refiner (U-Net [8, 16], 8 feature channels, 7 x 7 window): smoke tests
   and synthetic refine-stage training."""
@@ -187,7 +236,8 @@ def tiny_refine_recipe(**kw) -> refine.UFMRefineConfig:
 
 
 VARIANTS = {"fixture_small": fixture_small, "tiny": tiny, "tiny_synth": tiny_synth, "synth": synth,
-            "ufm_base": ufm_base,
+            "synth_small": synth_small, "ufm_base": ufm_base, "ufm_small": ufm_small,
+            "ufm_tiny": ufm_tiny,
             "ufm_base_980": ufm_base_980, "ufm_refine": ufm_refine, "tiny_refine": tiny_refine,
             "ufm_refine_recipe": ufm_refine_recipe, "tiny_refine_recipe": tiny_refine_recipe,
             "ufm_base_dinov2l_init": ufm_base_dinov2l_init}

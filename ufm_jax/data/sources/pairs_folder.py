@@ -1,7 +1,8 @@
 """`pairs_folder`: the project's own pair-folder format (custom user data, synthetic dumps).
 
 Layout (see data/pairs_folder/README.md):
-  <root>[/<split>]/<pair>/image0.png image1.png flow.flo      required
+  <root>[/<split>]/<pair>/image0.png image1.png flow.flo      required (flow.flo not for
+                                                               distillation: `images(i)`)
                           covisibility.png flow_valid.png covis_valid.png   optional, 0/255
                           meta.json depth.npz (depth0, depth1)              optional
                           reverse/flow.flo [+ the three masks]              optional, 1 -> 0 labels
@@ -167,6 +168,13 @@ class PairsFolder:
 
   def __getitem__(self, index):
     return self._load(index, backward=False)
+
+  def images(self, index):
+    """(image0, image1) alone: what distillation reads (ufm_jax.data.distill_rows), so pairs
+    without flow.flo, images only, serve it."""
+    folder = self.path(index)
+    return (_read_rgb(os.path.join(folder, "image0.png")),
+            _read_rgb(os.path.join(folder, "image1.png")))
 
   def backward(self, index):
     """The backward pair (image1 -> image0), labelled from <pair>/reverse/."""
