@@ -376,8 +376,10 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   loss_fn = build_loss(config, model, dataset_names)
   targets_fn = None
   if config.get("teacher") and teacher is None:
-    from ufm_jax import teacher as teacher_lib
-    teacher = teacher_lib.load_teacher(config, mesh)
+    # Loading it here would import model_io, which imports this module (a cycle): the callers
+    # (train.py, the planner, flops.model_flops) load it.
+    raise ValueError("config.teacher is set: pass setup(..., teacher=ufm_jax.teacher."
+                     "load_teacher(config, mesh))")
   if teacher is not None:
     from ufm_jax import distill
     targets_fn = distill.make_targets_fn(teacher, gather_params,

@@ -33,9 +33,10 @@ INPUT_DEFAULTS = {
     "max_retries": 8,
     "keep_heap": True,
     # Distillation (configs/distill.py, ufm_jax.data.distill_rows): (H, W) the teacher sees each
-    # pair at, un-augmented; None: labelled rows. keep_labels: distillation rows also carry the
-    # crop's labels (read only when a loss term mixes them in).
-    "teacher_shape": None,
+    # pair at, un-augmented; empty: labelled rows (a typed default, as `shapes`, so that the
+    # command line can set it). keep_labels: distillation rows also carry the crop's labels (read
+    # only when a loss term mixes them in).
+    "teacher_shape": (),
     "keep_labels": False,
 }
 
