@@ -8,13 +8,14 @@ same texture translated by up to `max_shift` px, exact flow and covisibility lab
 Model `synth` (ufm_jax/models/variants.py), flow loss `l1`. The held-out eval renders the `val`
 split and logs EPE and the zero-flow EPE at step 0, every 100 steps and at the end.
 
-Args (`configs/synthetic.py:steps=100,size=56`): pairs=flow|wide|mixed|pan|shift (pair types),
+Args (`configs/synthetic.py:steps=100,size=56`): pairs=flow|wide|mixed|pan|shift|layers (pair types),
 steps, batch (global pairs per step, both directions of 4 unique pairs by default), size (square
 images, a multiple of 14), eval (the held-out evaluation on/off), model (a ufm_jax/models/variants.py
 variant, e.g. tiny_synth or synth), lr (peak learning rate of every parameter group), loss
-(paper: alpha 0.5, c 0.24; l1: alpha 1, c 0.01, i.e. ~100 x EPE), and for pairs=shift: max_shift
-(px) and aligned (fraction of patch-aligned shifts in training, default 0; the held-out pairs have
-none), cov (a flow covariance in the uncertainty head, trained by the Gaussian NLL on the pixels the
+(paper: alpha 0.5, c 0.24; l1: alpha 1, c 0.01, i.e. ~100 x EPE), for pairs=shift and
+pairs=layers (a shift pair with a rectangle moving on its own over it): max_shift (px), for
+pairs=shift: aligned (fraction of patch-aligned shifts in training, default 0; the held-out pairs
+have none), cov (a flow covariance in the uncertainty head, trained by the Gaussian NLL on the pixels the
 flow term supervises: `config_lib.add_flow_covariance`, docs/uncertainty.md; cov_head=main puts it
 in the flow head instead):
 
@@ -52,16 +53,17 @@ def get_config(arg=None):
   c.total_steps = arg.steps
   c.num_epochs = config_lib.unset(int)
   shift, train_shift = {}, {}  # source options of shift pairs; only training ones are aligned
-  if arg.pairs == "shift":
+  if arg.pairs in ("shift", "layers"):
     shift = {"max_shift": arg.max_shift}
-    train_shift = {**shift, "aligned_shift_frac": arg.aligned}
+    train_shift = {**shift, **({"aligned_shift_frac": arg.aligned} if arg.pairs == "shift" else {})}
   c.input = pipeline.input_config(
       mixture.synthetic_mixture(num_pairs=100_000, size=hw, pair_type=arg.pairs, **train_shift),
       batch_size=arg.batch, longest_side=hw[1], aspect_ratios=(1.0,), num_workers=0,
       read_threads=2, prefetch_buffer_size=2,
       # Every shift pair is a fresh texture already; the official crops would break its
       # patch-aligned pairs and colour jitter was not needed (measured without any).
-      augment=_NO_AUGMENT if arg.pairs == "shift" else {"supervise_out_of_view": True})
+      augment=(_NO_AUGMENT if arg.pairs in ("shift", "layers") else
+               {"supervise_out_of_view": True}))
   if arg.loss not in ("l1", "paper"):
     raise ValueError(f"configs/synthetic.py: loss must be 'l1' or 'paper', got {arg.loss!r}")
   alpha, scale = (1.0, 0.01) if arg.loss == "l1" else (0.5, 0.24)
@@ -77,6 +79,8 @@ def get_config(arg=None):
   # docs/synthetic_training.md are of this layout.
   c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
   c.model.detach_uncertainty_head = True   # the variant's; a key so that flags can change it
+  # `ufm_jax.predict` on the workdir infers at the size it trained at (the default is 420x560).
+  c.model.inference_resolution = hw
   if arg.cov:
     config_lib.add_flow_covariance(c, pixels="robust_epe", head=arg.cov_head)
   c.model_init = config_lib.unset(str)  # e.g. ckpt:WORKDIR

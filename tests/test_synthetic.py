@@ -116,6 +116,38 @@ def test_shift_pairs_have_exact_labels():
     np.testing.assert_array_equal(bwd["image0"], fwd["image1"])
 
 
+def test_layers_pairs_have_exact_labels():
+  # Each view is two layers (background, rectangle on top); a pixel moves with its layer, lands
+  # on the same texel of the other view, and is covisible exactly where the other view shows the
+  # same layer there (so the rectangle occludes background pixels; checked from layer maps).
+  c = S.SyntheticConfig(size=(28, 42), pair_type="layers", max_shift=6)
+  occluded = 0
+  for i in range(8):
+    fwd, bwd = S.generate_pair(S.pair_seed(0, "train", i), c)
+    layer_maps = []
+    for s in (fwd, bwd):
+      t, l, rh, rw = s["meta"]["layer_rect"]
+      m = np.zeros((28, 42), bool)
+      m[max(t, 0):t + rh, max(l, 0):l + rw] = True
+      layer_maps.append(m)
+    for k, s in enumerate((fwd, bwd)):
+      front, other = layer_maps[k], layer_maps[1 - k]
+      d_bg, d_fg = np.array(s["meta"]["shift"]), np.array(s["meta"]["layer_shift"])
+      assert np.abs(d_bg).max() <= 6 and np.abs(d_fg).max() <= 6
+      np.testing.assert_array_equal(s["flow"], np.where(front[..., None], d_fg, d_bg))
+      v, u = np.mgrid[0:28, 0:42]
+      x, y = u + s["flow"][..., 0].astype(int), v + s["flow"][..., 1].astype(int)
+      in_view = (x >= 0) & (x < 42) & (y >= 0) & (y < 28)
+      same = np.zeros_like(in_view)
+      same[in_view] = other[y[in_view], x[in_view]] == front[in_view]
+      np.testing.assert_array_equal(s["covisibility"], in_view & same)
+      vv, uu = np.nonzero(s["covisibility"])
+      np.testing.assert_array_equal(s["image1"][y[vv, uu], x[vv, uu]], s["image0"][vv, uu])
+      occluded += (in_view & ~same).sum()
+    np.testing.assert_array_equal(bwd["image0"], fwd["image1"])
+  assert occluded > 0
+
+
 def test_aligned_shift_fraction():
   c = S.SyntheticConfig(size=(28, 28), pair_type="shift", max_shift=10, aligned_shift_frac=0.5,
                         aligned_shift_step=7)

@@ -87,3 +87,9 @@ def test_synthetic_config_learns(tmp_path):
     count += int(covis.sum())
   assert m["synthetic/epe_zero"] == pytest.approx(norm / count, rel=1e-6)
   assert np.isfinite(m["synthetic/epe"])
+
+  # ufm_jax.load + predict on the workdir infer at the size it trained at, not at 420x560.
+  import ufm_jax
+  from ufm_jax import inference
+  model, _ = ufm_jax.load(tmp_path)
+  assert inference.inference_resolutions(model) == [(56, 56)]

@@ -12,7 +12,10 @@ pans/tilts by `pan_angle_deg` with a small translation: a larger, mostly global 
 "shift" (no 3D scene: a smooth random texture and the same texture translated by an integer
 (dx, dy) with |dx|, |dy| <= `max_shift`: the easiest matching task, for probing whether a model
 trained from scratch learns to match at all; see configs/synthetic.py and
-benchmarks/synthetic_learning.py).
+benchmarks/synthetic_learning.py), "layers" (a shift pair with a rectangle of another texture
+drawn over it in both views, moving by its own integer shift: piecewise-constant flow with motion
+boundaries, and background pixels the rectangle covers in the other view not covisible; the
+flow's errors then differ pixel by pixel, which a flow uncertainty can rank, docs/uncertainty.md).
 
 Textures are smooth solid textures (sums of random 3D sinusoids) evaluated in each object's own
 frame, with the shading baked in the object frame, so a surface point looks the same in both
@@ -37,7 +40,7 @@ import numpy as np
 from ufm_jax import geometry as geo
 from ufm_jax.data import io
 
-PAIR_TYPES = ("flow", "wide", "mixed", "pan", "shift")
+PAIR_TYPES = ("flow", "wide", "mixed", "pan", "shift", "layers")
 _SPLITS = {"train": 0, "val": 1, "test": 2}
 _EPS = 1e-6
 
@@ -51,7 +54,7 @@ class SyntheticConfig:
   min_view_angle_deg: float = 10.0
   pan_angle_deg: tuple[float, float] = (4.0, 10.0)  # pan pairs: rotation drawn in this range
   num_objects: tuple[int, int] = (3, 6)   # inclusive range
-  max_shift: int = 10                     # shift pairs: |dx|, |dy| <= this (pixels)
+  max_shift: int = 10                     # shift/layers pairs: |dx|, |dy| <= this (pixels)
   # Shift pairs: this fraction moves by multiples of `aligned_shift_step` px (up to 2 steps), so a
   # token of a ViT with that patch size finds an identical token in the other view. A curriculum:
   # 0.5 shortened a minimal two-view ViT's plateau before it matches from ~1800 to ~1100 steps.
@@ -415,11 +418,59 @@ def _shift_pair(seed, config: SyntheticConfig, directions):
   return tuple(out)
 
 
+def _layers_pair(seed, config: SyntheticConfig, directions):
+  """Layers pairs (see the module docstring): a background texture shifted by d0 and, on top of
+  it in both views, a rectangle of another texture at R in view 0 and R + d1 in view 1. A pixel
+  of the rectangle moves by d1 and is covisible where it stays in the image; a background pixel
+  moves by d0 and is covisible where it lands in the image outside the other view's rectangle."""
+  rng = np.random.default_rng(seed)
+  h, w = config.size
+  m = config.max_shift
+  pad = m + 1
+  background = _smooth_texture(rng, h + 2 * pad, w + 2 * pad)
+  d0 = rng.integers(-m, m + 1, 2)
+  d1 = rng.integers(-m, m + 1, 2)
+  rh, rw = int(rng.integers(h // 4, h // 2 + 1)), int(rng.integers(w // 4, w // 2 + 1))
+  top, left = int(rng.integers(0, h - rh + 1)), int(rng.integers(0, w - rw + 1))
+  patch = _smooth_texture(rng, h, w)[:rh, :rw]  # the background's statistics, not a small blur's
+  rects = ((top, left), (top + int(d1[1]), left + int(d1[0])))  # (top, left) in view 0, view 1
+
+  def inside(view, x, y):
+    t, l = rects[view]
+    return (x >= l) & (x < l + rw) & (y >= t) & (y < t + rh)
+
+  v, u = np.mgrid[0:h, 0:w]
+  views = []
+  for view, d in ((0, np.zeros(2, int)), (1, d0)):
+    img = background[pad - d[1]:pad - d[1] + h, pad - d[0]:pad - d[0] + w].copy()
+    on = inside(view, u, v)
+    t, l = rects[view]
+    img[on] = patch[v[on] - t, u[on] - l]
+    views.append(img)
+  out = []
+  for src in directions:
+    sign = 1 if src == 0 else -1
+    front = inside(src, u, v)
+    flow = np.where(front[..., None], sign * d1, sign * d0).astype(np.float32)
+    x, y = u + flow[..., 0].astype(int), v + flow[..., 1].astype(int)
+    in_view = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    covis = in_view & (front | ~inside(1 - src, x, y))
+    meta = dict(dataset="synthetic", pair_type="layers", moving_object=True, frame0=src,
+                frame1=1 - src, shift=(sign * d0).tolist(), layer_shift=(sign * d1).tolist(),
+                layer_rect=[rects[src][0], rects[src][1], rh, rw])
+    out.append(dict(image0=views[src], image1=views[1 - src], covisibility=covis, flow=flow,
+                    flow_valid=np.ones((h, w), bool), covis_valid=np.ones((h, w), bool),
+                    meta=meta))
+  return tuple(out)
+
+
 def generate_pair(seed, config: SyntheticConfig = SyntheticConfig(), directions=(0, 1)):
   """Renders the pair drawn by `seed` -> one sample dict per entry of `directions`
   (0: view 0 -> view 1, the forward pair; 1: view 1 -> view 0, the backward pair)."""
   if config.pair_type == "shift":
     return _shift_pair(seed, config, directions)
+  if config.pair_type == "layers":
+    return _layers_pair(seed, config, directions)
   scene = make_scene(seed, config)
   views = [render(scene, 0), render(scene, 1)]
   tau = geo.COVIS_THRESHOLDS["synthetic"]
