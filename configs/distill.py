@@ -36,12 +36,16 @@ shapes agree, the rest at init, model_init=teacher:SRC; fresh: from its own init
 --config.model_init; default teacher in recipe synthetic, fresh otherwise), eval_root (a folder
 of held-out pairs of the same kind as data=: every 1000 steps, 100 in recipe synthetic, the
 student is scored against the teacher's predictions on 32 of them, `teacher_agreement`;
-data=synthetic is also scored against the true flow of its val split).
+data=synthetic is also scored against the true flow of its val split), colour (the colour part
+of the student's augmentation, `input.augment.photometric`: default true in recipe 560, false
+in recipe synthetic, whose teacher trained without it; docs/distillation.md has both measured).
 
 recipe=synthetic follows configs/synthetic.py (56 px shift pairs, 2000 steps of 8 rows, lr 1e-3
 everywhere, loss l1, float32; the student from the teacher's shared parameters, init=teacher,
 where the teacher is not a variant:NAME, else flax's init; with data=synthetic the held-out
-eval every 100 steps), except that the student's input takes the official augmentation;
+eval every 100 steps), except that the student's input takes the official augmentation's
+geometric part (resize and shared crop, the teacher's outputs warped into it; colour=true adds
+the colour part);
 recipe=560 follows the 560 recipe (configs/ufm560.py: its shapes, scaled to the student's
 inference width for ufm_tiny's 392, AdamW, encoder lr 5e-6 and 1e-4 elsewhere, 10% warmup and
 cosine to 1%, bf16, scan, remat, the official init). The
@@ -100,7 +104,7 @@ def get_config(arg=None):
   arg = config_lib.parse_arg(arg, teacher="", student="ufm_small", data="synthetic",
                              data_root="", strides="1", pairs=0, steps=0, batch=0, size=56,
                              lr=0.0, loss="", labels=0.0, teacher_res="", eval=True,
-                             recipe="", eval_root="", init="")
+                             recipe="", eval_root="", init="", colour="")
   if not arg.teacher:
     raise ValueError("configs/distill.py: name the teacher, e.g. "
                      "configs/distill.py:teacher=workdirs/synthetic,student=synth_small")
@@ -108,6 +112,9 @@ def get_config(arg=None):
   if recipe not in ("synthetic", "560"):
     raise ValueError(f"configs/distill.py: recipe must be 'synthetic' or '560', got {recipe!r}")
   synthetic = recipe == "synthetic"
+  if arg.colour.lower() not in ("", "true", "false", "1", "0"):
+    raise ValueError(f"configs/distill.py: colour must be true or false, got {arg.colour!r}")
+  colour = arg.colour.lower() in ("true", "1") if arg.colour else not synthetic
   loss = arg.loss or ("l1" if synthetic else "paper")
   if loss not in ("paper", "l1"):
     raise ValueError(f"configs/distill.py: loss must be 'paper' or 'l1', got {arg.loss!r}")
@@ -123,8 +130,9 @@ def get_config(arg=None):
       **({"data_root": arg.data_root} if arg.data_root and arg.data in mixture.LAYOUTS else {}),
       # Labels are read only when a loss term uses them.
       keep_labels=arg.labels > 0,
-      **({"num_workers": 0, "read_threads": 2, "prefetch_buffer_size": 2} if synthetic else
-         {"augment": {"fast_image_ops": True}}))
+      **({"num_workers": 0, "read_threads": 2, "prefetch_buffer_size": 2,
+          "augment": {"photometric": colour}} if synthetic else
+         {"augment": {"fast_image_ops": True, "photometric": colour}}))
 
   alpha, scale = (1.0, 0.01) if loss == "l1" else (0.5, 0.24)
   terms = ("teacher_robust", "teacher_bce")

@@ -213,3 +213,31 @@ def test_pipeline_rows_swap_for_the_backward_direction(tmp_path):
   stored = [src[i]["image0"] for i in range(8)]
   assert all(any(np.array_equal(t, s) for s in stored) for t in b["teacher_image0"][::2])
   assert b["image0"].shape == (4, 28, 42, 3) and b["teacher_to_crop0"].dtype == np.float32
+
+
+def test_photometric_off_keeps_the_geometric_crop_only():
+  """input.augment.photometric=False (configs/distill.py's synthetic recipe by default): the
+  student's images are the resize-and-crop of the pair, no colour; with it on they differ."""
+  fwd, bwd = _shift_pairs(1)[0]
+  for photometric in (False, True):
+    cfg = augment.AugmentConfig(photometric=photometric, identical_view_prob=0.0)
+    rows = _distill_rows(fwd, bwd, (56, 72), seed=3, cfg=cfg)
+    # The same draws of the crop: flow_crop is the first use of the generator.
+    crop = augment.flow_crop(fwd["image0"].shape[:2], (42, 56), np.random.default_rng(3), cfg)
+    s0, s1 = official_ops.flow_crop_images(fwd["image0"], fwd["image1"], crop)
+    same = np.array_equal(rows[0]["image0"], s0) and np.array_equal(rows[0]["image1"], s1)
+    assert same == (not photometric)
+
+
+def test_distill_config_colour_defaults_per_recipe():
+  import pathlib
+  from ufm_jax import config_lib
+  config = pathlib.Path(__file__).resolve().parents[1] / "configs" / "distill.py"
+  get = lambda a: config_lib.load_config(f"{config}:{a}")   # noqa: E731
+  synth = "teacher=variant:synth,student=synth_small,data=synthetic"
+  assert get(synth).input.augment["photometric"] is False
+  assert get(synth + ",colour=true").input.augment["photometric"] is True
+  frames = "teacher=variant:ufm_base,student=ufm_small,data=frames,data_root=/data/frames"
+  assert get(frames).input.augment["photometric"] is True
+  with pytest.raises(ValueError, match="colour"):
+    get(synth + ",colour=maybe")

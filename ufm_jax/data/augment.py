@@ -124,6 +124,9 @@ class AugmentConfig:
     and its num_covisible_sample=2048 (flow_manipulation.py:505-530).
   kubric_score_quirk: True (official): the backward term of a crop pair's score is read with the
     two crop indices swapped (flow_manipulation.py:606-630); False scores matching pairs.
+  photometric: True (official): the colour augmentation below. False: none of it (jitter,
+    grayscale, blur, low light), only the geometric part; configs/distill.py's synthetic recipe,
+    whose teacher trained on pairs without colour augmentation (docs/distillation.md).
   brightness, contrast, saturation, hue: torchvision ColorJitter(0.5, 0.5, 0.5, 0.1), each image
     independently, the four in random order.
   grayscale_prob, blur_prob, blur_sigma, blur_kernel: RandomGrayscale(0.05),
@@ -156,6 +159,7 @@ class AugmentConfig:
   kubric_crop_candidates: int = 10
   kubric_covisible_samples: int = 2048
   kubric_score_quirk: bool = True
+  photometric: bool = True
   brightness: float = 0.5
   contrast: float = 0.5
   saturation: float = 0.5
@@ -536,6 +540,8 @@ def photometric(image: np.ndarray, rng, cfg: AugmentConfig, low_light_on: bool,
                 static: bool) -> np.ndarray:
   """One image's colour augmentation in the official order: jitter, grayscale, blur, low light
   (static datasets grey the image first, base_stereo_view_dataset.py:370-373)."""
+  if not cfg.photometric:
+    return image
   image = color_jitter(image, draw_color(rng, cfg), cfg.fast_image_ops)
   if rng.random() < cfg.grayscale_prob:
     image = grayscale(image)
@@ -612,7 +618,8 @@ def kubric_pair(sample: Mapping[str, Any], backward: Mapping[str, Any], out_hw, 
   """Kubric-4D through the official Kubric pathway (labels at the stored size, colour jitter on
   the stored images, then crops) -> [fwd] or [fwd, bwd] rows."""
   hw = np.shape(sample["image0"])[:2]
-  colors = ((draw_color(rng, cfg), draw_color(rng, cfg)) if cfg.enabled else (None, None))
+  colors = ((draw_color(rng, cfg), draw_color(rng, cfg)) if cfg.enabled and cfg.photometric
+            else (None, None))
   jitter = ((lambda im, p: color_jitter(im, p, fast=True)) if cfg.fast_image_ops else
             color_jitter_float)
   images = {"image0": jitter(sample["image0"], colors[0]),
