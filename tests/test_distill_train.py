@@ -282,3 +282,29 @@ def test_the_planner_sets_up_the_distillation_step_with_its_teacher():
   # 8 FLOPs per pixel of each view, and the 2x2 inverses of the crop maps.
   warp = 2 * 4 * hw[0] * hw[1] * 8
   assert warp <= step - (student + teacher_flops) <= warp + 64
+
+
+@pytest.mark.slow
+def test_a_teacher_with_a_flow_covariance_weights_the_flow_term(tmp_path):
+  """A teacher with the covariance head (issue #42's Covariance2DAdaptor), saved as a converted
+  checkpoint: its covariance reaches the step and weights the flow term (the weight is logged
+  and is below 1: the fresh head's low_confidence_init variance is ~3000 px^2);
+  `covariance=off` drops the weighting and changes the loss."""
+  from ufm_jax.models import ufm
+  cfg = ufm.with_flow_covariance(variants.get("synth", inference_resolution=(56, 56)))
+  model = ufm.model_from_config(cfg)
+  x = jnp.zeros((1, 56, 56, 3), jnp.float32)
+  variables = model.init(jax.random.PRNGKey(0), x, x)
+  model_io.save(tmp_path / "teacher", model, variables)
+  config = _config(f",teacher={tmp_path / 'teacher'},init=fresh")
+  _, ts, batch = _setup(config)
+  state = ts.init_state(0)
+  copy = lambda s: jax.tree.map(jnp.copy, s)     # noqa: E731 - the step donates its state
+  _, m = ts.train_step(copy(state), batch)
+  weight = [k for k in m if k.endswith("covariance_weight")]
+  assert weight and 0.0 < float(m[weight[0]]) < 0.01, m
+  config.loss.teacher_robust.covariance = "off"
+  _, ts_off, _ = _setup(config)
+  _, m_off = ts_off.train_step(copy(state), batch)
+  assert not [k for k in m_off if k.endswith("covariance_weight")]
+  assert float(m_off["loss_teacher_robust"]) != float(m["loss_teacher_robust"])
