@@ -9,7 +9,8 @@
 SeedSequence([seed, split, i]), so any index is reproducible on its own and the train, val and
 test streams never share a scene. meta holds K0, K1, cam2world0, cam2world1 (OpenCV c2w), depth0,
 depth1 (z-depth), segmentation0 (1 = the moving object), pair_type, view_angle_deg; that of
-`pair_type="shift"` pairs (translated textures, no scene) only pair_type and the shift (dx, dy).
+`pair_type="shift"` pairs (translated textures, no scene) only pair_type and the shift (dx, dy);
+that of `"layers"` pairs also layer_shift (the rectangle's) and layer_rect (top, left, h, w).
 """
 
 from __future__ import annotations
