@@ -38,7 +38,7 @@ of held-out pairs of the same kind as data=: every 1000 steps, 100 in recipe syn
 student is scored against the teacher's predictions on 32 of them, `teacher_agreement`;
 data=synthetic is also scored against the true flow of its val split), colour (the colour part
 of the student's augmentation, `input.augment.photometric`: default true in recipe 560, false
-in recipe synthetic, whose teacher trained without it; docs/distillation.md has both measured).
+in recipe synthetic, whose teacher trained without it; docs/distillation.md has both runs).
 
 recipe=synthetic follows configs/synthetic.py (56 px shift pairs, 2000 steps of 8 rows, lr 1e-3
 everywhere, loss l1, float32; the student from the teacher's shared parameters, init=teacher,
