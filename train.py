@@ -91,12 +91,10 @@ def main(argv):
   # ---------------------------------------------------------------------------------- teacher
   # Distillation (configs/distill.py): a frozen teacher that the train step runs before the
   # student, on the un-augmented pair; its variables go to the mesh with the first step.
-  teacher = None
-  if config.get("teacher"):
-    from ufm_jax import teacher as teacher_lib
-    teacher = teacher_lib.load_teacher(config, mesh)
-    if is_main:
-      print(teacher.describe(), flush=True)
+  from ufm_jax import teacher as teacher_lib
+  teacher = teacher_lib.from_config(config, mesh)
+  if teacher is not None and is_main:
+    print(teacher.describe(), flush=True)
 
   # ---------------------------------------------------------------------------------- data
   process_batch = sharding.local_batch_size(config.input.batch_size, mesh)

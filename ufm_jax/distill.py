@@ -2,7 +2,7 @@
 
 A student learns from a frozen teacher's predictions instead of labels. Each training row
 carries the student's input (the official augmentation: the flow pathway's resize and shared
-crop, then colour; ufm_jax.data.distill_rows) and the same pair un-augmented at the teacher's
+crop, then colour unless `input.augment.photometric` is off; ufm_jax.data.distill_rows) and the same pair un-augmented at the teacher's
 resolution, with the two affine maps from teacher pixels to crop pixels (one per view). In the
 step, before the student's forward, the teacher predicts on the un-augmented pair and
 `warp_to_crop` carries its outputs into the student's crop; the loss (ufm_jax.distill_loss) reads

@@ -145,12 +145,10 @@ def model_flops(config, image_shape, batch: int, platform: str = "tpu") -> Count
   if config.model.get("remat"):
     config.model.remat = False
   mesh = sharding.make_mesh("data:1,fsdp:1", jax.devices()[:1])
-  teacher = None
-  if config.get("teacher"):
-    from ufm_jax import teacher as teacher_lib
-    teacher = teacher_lib.load_teacher(config, mesh)
-  return step_flops(trainer.setup(config, mesh, image_shape, total_steps=1000, teacher=teacher),
-                    batch, image_shape, platform)
+  from ufm_jax import teacher as teacher_lib
+  ts = trainer.setup(config, mesh, image_shape, total_steps=1000,
+                     teacher=teacher_lib.from_config(config, mesh))
+  return step_flops(ts, batch, image_shape, platform)
 
 
 # ----------------------------------------------------------------------------- analytic count

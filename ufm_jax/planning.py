@@ -141,12 +141,10 @@ def setup(config, devices, image_shape=None):
   mesh = sharding.make_mesh(config.mesh, devices)
   hw = tuple(image_shape or largest_shape(config))
   total_steps, steps_per_epoch = trainer.schedule_steps(config, pairs_per_epoch(config))
-  teacher = None
-  if config.get("teacher"):
-    from ufm_jax import teacher as teacher_lib
-    teacher = teacher_lib.load_teacher(config, mesh)
+  from ufm_jax import teacher as teacher_lib
   ts = trainer.setup(config, mesh, hw, total_steps, steps_per_epoch=steps_per_epoch,
-                     dataset_names=dataset_names(config), teacher=teacher)
+                     dataset_names=dataset_names(config),
+                     teacher=teacher_lib.from_config(config, mesh))
   return mesh, ts, hw
 
 

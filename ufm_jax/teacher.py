@@ -55,33 +55,28 @@ def random_variables(model, seed: int = 0) -> dict:
   """{"params"} of `model` drawn with numpy at its shapes, N(0, 1 / fan_in) (norm scales around
   1): a variant:NAME teacher's weights. Only shapes matter where it is used (compiling, planning,
   tests), and compiling flax's initialisers costs seconds to minutes on CPU."""
-  from flax import traverse_util
   from ufm_jax.models import ufm
-  rng = np.random.default_rng(seed)
-  flat = {}
-  for path, leaf in traverse_util.flatten_dict(ufm.param_shapes(model)).items():
-    shape = leaf.shape
-    scale = 0.05 if len(shape) < 2 else (1.0 / int(np.prod(shape[:-1]))) ** 0.5
-    base = 1.0 if path[-1] in ("scale", "gamma") else 0.0
-    flat[path] = (base + scale * rng.standard_normal(shape)).astype(np.float32)
-  return {"params": traverse_util.unflatten_dict(flat)}
+  return {"params": ufm.random_param_values(model, seed)}
 
 
 def workdir_training_shape(workdir) -> Optional[tuple]:
   """The first training shape (H, W) of a train.py workdir's recorded config, by the pipeline's
   rule (explicit `input.shapes`, else `longest_side` with the first aspect ratio); None when the
   config records neither."""
-  from ufm_jax.data import augment
+  from ufm_jax.data import input_block
   path = pathlib.Path(workdir)
   if path.name == "checkpoints":
     path = path.parent
   cfg = json.loads((path / "config.json").read_text()).get("input") or {}
-  if cfg.get("shapes"):
-    return tuple(int(v) for v in cfg["shapes"][0])
-  if cfg.get("longest_side"):
-    ratios = tuple(cfg.get("aspect_ratios") or augment.DEFAULT_ASPECT_RATIOS)
-    return augment.training_shapes(int(cfg["longest_side"]), ratios)[0]
-  return None
+  if not (cfg.get("shapes") or cfg.get("longest_side")):
+    return None
+  return tuple(int(v) for v in input_block.training_shapes(cfg)[0])
+
+
+def from_config(config, mesh) -> Optional[Teacher]:
+  """`load_teacher(config, mesh)` for a distillation config, None for any other: what train.py,
+  the planner and the FLOP count pass to `trainer.setup`."""
+  return load_teacher(config, mesh) if config.get("teacher") else None
 
 
 def load_teacher(config, mesh) -> Teacher:

@@ -284,7 +284,6 @@ class TrainSetup:
     `row_ids`: with the per-row dataset_id and epoch the training pipeline adds
     (ufm_jax.data.pipeline; the refinement loss reads dataset_id)."""
     import jax
-    import jax
     rows = self.row_shapes(image_shape)
     if row_ids:
       import numpy as np
@@ -344,8 +343,8 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
 
   steps_per_epoch: optimizer steps per epoch (for warmup counted in epochs; default
   total_steps / config.num_epochs). dataset_names: the pipeline's, in dataset_id order.
-  A distillation config (`config.teacher`): the step runs `teacher` (default
-  ufm_jax.teacher.load_teacher(config, mesh), which puts nothing on the devices) before the
+  A distillation config (`config.teacher`): the step runs `teacher` (required there:
+  ufm_jax.teacher.from_config(config, mesh), which puts nothing on the devices) before the
   student, its variables an argument the step binds on its first call (distill.BoundStep); the
   planner and the FLOP count lower it with the teacher's abstract variables."""
   import jax
@@ -379,7 +378,7 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
     # Loading it here would import model_io, which imports this module (a cycle): the callers
     # (train.py, the planner, flops.model_flops) load it.
     raise ValueError("config.teacher is set: pass setup(..., teacher=ufm_jax.teacher."
-                     "load_teacher(config, mesh))")
+                     "from_config(config, mesh))")
   if teacher is not None:
     from ufm_jax import distill
     targets_fn = distill.make_targets_fn(teacher, gather_params,

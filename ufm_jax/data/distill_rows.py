@@ -5,7 +5,8 @@
 become
   image0, image1                     the student's input: the official flow pathway's resize and
                                      shared random crop (`augment.flow_crop`), then the official
-                                     colour augmentation per image
+                                     colour augmentation per image (unless
+                                     `input.augment.photometric` is False)
   teacher_image0, teacher_image1     the same pair un-augmented, resized to teacher_shape
                                      (antialiased bilinear, as the training resize), as
                                      `ufm_jax.predict` shows a pair to a model: stretched to the

@@ -457,6 +457,22 @@ def variable_shapes(model: UFM) -> Dict[str, Any]:
   return {k: v for k, v in out.items() if k != "intermediates"}
 
 
+def random_param_values(model: UFM, seed: int = 0, small_names=()) -> dict:
+  """A numpy draw for every parameter of `model` (shapes via `param_shapes`; compiling flax's
+  initialisers costs seconds to minutes on CPU where only shapes and plausible scales matter):
+  N(0, 1 / fan_in) for tensors of 2 or more dimensions, N(0, 0.05^2) for vectors and the
+  parameters named in `small_names`, "scale" and "gamma" around 1. Nested like the params."""
+  rng = np.random.default_rng(seed)
+  flat = {}
+  for path, leaf in traverse_util.flatten_dict(param_shapes(model)).items():
+    shape = tuple(leaf.shape)
+    small = len(shape) < 2 or path[-1] in small_names
+    scale = 0.05 if small else (1.0 / int(np.prod(shape[:-1]))) ** 0.5
+    base = 1.0 if path[-1] in ("scale", "gamma") else 0.0
+    flat[path] = (base + scale * rng.standard_normal(shape)).astype(np.float32)
+  return traverse_util.unflatten_dict(flat)
+
+
 def param_shapes(model: UFM):
   """Shape/dtype tree of the parameters, without allocating them (jax.eval_shape)."""
   p = model.config.encoder.patch_size

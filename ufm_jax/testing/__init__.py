@@ -260,16 +260,8 @@ def hub_cache(root, repo_id: str, snapshot, commit: str) -> pathlib.Path:
 def perturbed_params(model, seed: int):
   """Random values for every parameter of the model's tree (shapes via jax.eval_shape; compiling
   flax's initialisers for a many-module tree is slow on CPU and not what the tests check)."""
-  rng = np.random.default_rng(seed)
-  flat = {}
-  from ufm_jax.official import snapshot
-  for path, shape in snapshot.expected_param_shapes(model).items():
-    fan_in = int(np.prod(shape[:-1])) if len(shape) > 1 else 1
-    scale = 0.05 if len(shape) == 1 or path[-1] in ("cls_token", "pos_embed", "register_tokens") \
-        else (1.0 / fan_in) ** 0.5
-    base = 1.0 if path[-1] in ("scale", "gamma") else 0.0
-    flat[path] = (base + scale * rng.standard_normal(shape)).astype(np.float32)
-  return traverse_util.unflatten_dict(flat)
+  return ufm.random_param_values(model, seed,
+                                 small_names=("cls_token", "pos_embed", "register_tokens"))
 
 
 def _small_dpt(enc_dim: int, dim: int, output_dim: int, layer_dims=(8, 16, 32, 48), feature_dim=16):
