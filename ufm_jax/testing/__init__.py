@@ -13,7 +13,6 @@ import json
 import pathlib
 
 import numpy as np
-from flax import traverse_util
 
 from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
 
