@@ -149,13 +149,10 @@ def test_stablehlo_export_carries_the_covariance(snap, tmp_path):
 
 
 @pytest.mark.slow
-def test_onnx_export_carries_the_covariance(tmp_path):
-  """ONNX through jax2onnx and onnxruntime, on the smallest official structure with the
-  covariance (the fixture's graph takes minutes to convert; the ops are the same)."""
+def test_onnx_export_carries_the_covariance(snap, tmp_path):
+  """ONNX through jax2onnx and onnxruntime, on the covariance snapshot itself."""
   testing.require_extra("onnx", ("jax2onnx", "onnxruntime"))
-  cfg = ufm.with_flow_covariance(testing.official_small_config())
-  model = ufm.model_from_config(cfg)
-  params = testing.perturbed_params(model, 3)
+  _, model, params, _ = snap
   out = tmp_path / "m.onnx"
   export.export(model, params, (28, 42), out, fmt="onnx")
   rng = np.random.default_rng(0)

@@ -223,8 +223,13 @@ def export_onnx(model, variables, size, path, *, batch=1, dtype="float32",
   forward, model, outputs = _prepare(model, variables, size, dtype, outputs, attention_impl="xla")
   spec = jax.ShapeDtypeStruct((_batch_dim(batch),) + tuple(size) + (3,), jnp.uint8)
   specs = [spec, spec]
-  write_onnx(lambda s, t: tuple(forward(s, t)[k] for k in outputs), specs, INPUT_NAMES, outputs,
-             path)
+  def fn(source, target):
+    # One call: a generator over forward(s, t)[k] traced the whole model once per output, and
+    # jax2onnx removes the copies only after its slowest (quadratic) pass.
+    out = forward(source, target)
+    return tuple(out[k] for k in outputs)
+
+  write_onnx(fn, specs, INPUT_NAMES, outputs, path)
   return model
 
 
