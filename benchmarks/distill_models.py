@@ -13,7 +13,7 @@ official code under CPU autocast), the min and median of --runs timed calls afte
 the models' runs interleaved round by round so that load from other processes falls on all of
 them alike; and the size of the ONNX file `python -m ufm_jax export --format onnx --size SIZE`
 writes for a converted checkpoint of the model (random weights; the size depends on the
-structure only). Also at each model's own inference resolution where it differs from --size
+structure only) and the seconds that command takes. Also at each model's own inference resolution where it differs from --size
 (ufm_tiny: 294 x 392). Params are random. No GPU figure: the device scripts are
 benchmarks/gpu_check.py and benchmarks/inference.py on a GPU host.
 The last line is one JSON object.
@@ -89,20 +89,23 @@ def gflop_per_pair(model, params, hw) -> float:
   return hlo_stats.flops(lowered) / 1e9
 
 
-def onnx_mb(model, params, hw, workdir) -> float:
-  """MB of the ONNX file the CLI exports for a converted checkpoint of (model, params)."""
+def onnx_export(model, params, hw, workdir) -> tuple[float, float]:
+  """(MB of the ONNX file the CLI exports for a converted checkpoint of (model, params), seconds
+  the export command took as a whole: start, load, conversion, write)."""
   from ufm_jax import model_io
   ckpt = pathlib.Path(workdir) / "ckpt"
   model_io.save(ckpt, model, {"params": params})
   out = pathlib.Path(workdir) / "model.onnx"
   cmd = [sys.executable, "-m", "ufm_jax", "export", "--checkpoint", str(ckpt), "--size",
          f"{hw[0]}x{hw[1]}", "--format", "onnx", "--out", str(out)]
+  t0 = time.perf_counter()
   r = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+  seconds = time.perf_counter() - t0
   if r.returncode:
     raise SystemExit(f"export failed:\n{r.stderr[-3000:]}")
   size = sum(p.stat().st_size for p in out.parent.glob(out.name + "*")
              if p.suffix != ".json")   # the graph and any external-data file, not the sidecar
-  return size / 1e6
+  return size / 1e6, seconds
 
 
 def main(argv=None) -> dict:
@@ -182,14 +185,14 @@ def main(argv=None) -> dict:
     for name in sorted(names, key=lambda n: rows[n]["params"]):   # the largest export last
       with tempfile.TemporaryDirectory(prefix="ufm_distill_onnx_") as tmp:
         try:
-          rows[name]["onnx_mb"] = onnx_mb(variants.build_model(name), weights[name],
-                                          tuple(args.size), tmp)
+          rows[name]["onnx_mb"], rows[name]["onnx_export_s"] = onnx_export(
+              variants.build_model(name), weights[name], tuple(args.size), tmp)
         except SystemExit as e:   # one model's failed export does not lose the other figures
           rows[name]["onnx_error"] = str(e)[-500:]
           print(f"{name}: ONNX export failed: {str(e)[-500:]}", flush=True)
           continue
-      print(f"{name}: ONNX {rows[name]['onnx_mb']:.1f} MB at {args.size[0]}x{args.size[1]}",
-            flush=True)
+      print(f"{name}: ONNX {rows[name]['onnx_mb']:.1f} MB at {args.size[0]}x{args.size[1]}, "
+            f"exported in {rows[name]['onnx_export_s']:.0f} s", flush=True)
   res = {"size": list(args.size), "models": rows, **env}
   print(json.dumps(res))
   if args.json:
