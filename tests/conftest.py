@@ -44,3 +44,9 @@ def run_evaluate():
                          text=True, timeout=900, cwd=REPO)
     return out.returncode, out.stdout, out.stderr
   return run
+
+
+def pytest_collection_modifyitems(items):
+  """The Slurm test first: it spends minutes waiting on its jobs' starts, and run first it
+  overlaps the other worker's tests instead of being the suite's last minutes on one worker."""
+  items.sort(key=lambda item: item.get_closest_marker("slurm") is None)

@@ -65,6 +65,10 @@ JobAcctGatherType=jobacct_gather/none
 SelectType=select/cons_tres
 SelectTypeParameters=CR_Core
 SchedulerType=sched/backfill
+# A requeued job becomes eligible again with no event to wake the scheduler: it waits for the next
+# periodic pass (backfill every 30 s and the main loop every 60 by default). One node, few jobs:
+# a pass every 2 s costs nothing here.
+SchedulerParameters=bf_interval=2,sched_interval=2
 MpiDefault=none
 ReturnToService=2
 JobRequeue=1
