@@ -13,6 +13,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from ufm_jax import checkpoint
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -96,6 +98,7 @@ def _wait_for(pred, proc, timeout=240):
     time.sleep(0.05)
 
 
+@pytest.mark.slow
 def test_sigkill_resume_bitwise_and_sigterm_saves(tmp_path):
   ref_dir, run_dir = tmp_path / "ref", tmp_path / "run"
   ref = _start(ref_dir)  # the uninterrupted run; it also fills the compilation cache

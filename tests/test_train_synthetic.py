@@ -24,6 +24,7 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 XLA_CACHE = pathlib.Path(tempfile.gettempdir()) / "ufm_jax_test_xla_cache"
 
 
+@pytest.mark.slow
 def test_synthetic_config_learns(tmp_path):
   env = dict(os.environ, PYTHONPATH=str(REPO),
              JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(XLA_CACHE),

@@ -224,8 +224,8 @@ def export_onnx(model, variables, size, path, *, batch=1, dtype="float32",
   spec = jax.ShapeDtypeStruct((_batch_dim(batch),) + tuple(size) + (3,), jnp.uint8)
   specs = [spec, spec]
   def fn(source, target):
-    # One call: a generator over forward(s, t)[k] traced the whole model once per output, and
-    # jax2onnx removes the copies only after its slowest (quadratic) pass.
+    # forward once for every output: a call per output traces the model once each, and jax2onnx
+    # merges the copies only after its quadratic transpose pass (minutes, larger files).
     out = forward(source, target)
     return tuple(out[k] for k in outputs)
 
