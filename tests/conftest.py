@@ -47,17 +47,6 @@ def run_evaluate():
 
 
 def pytest_collection_modifyitems(items):
-  """Modules with long tests first, whole (pyproject's `--dist loadscope` gives a module to one
-  worker, so its module fixtures run once): the Slurm test's, then those with `slow` or
-  `multiprocess` tests, then the rest, more tests first. Each worker takes the next module when it
-  is free, so the last minutes are short modules instead of one worker finishing a long test while
-  the other idles."""
-  modules = {}
-  for item in items:
-    modules.setdefault(item.module.__name__ if item.module else item.nodeid, []).append(item)
-
-  def rank(group):
-    marks = {m.name for item in group for m in item.iter_markers()}
-    return (0 if "slurm" in marks else 1 if marks & {"slow", "multiprocess"} else 2, -len(group))
-
-  items[:] = [item for group in sorted(modules.values(), key=rank) for item in group]
+  """The Slurm test first: it spends minutes waiting on its jobs' starts, and run first it
+  overlaps the other worker's tests instead of being the suite's last minutes on one worker."""
+  items.sort(key=lambda item: item.get_closest_marker("slurm") is None)
