@@ -2,11 +2,11 @@
 
 A student learns from a frozen teacher's predictions instead of labels. Each training row
 carries the student's input (the official augmentation: the flow pathway's resize and shared
-crop, then colour unless `input.augment.photometric` is off; ufm_jax.data.distill_rows) and the same pair un-augmented at the teacher's
-resolution, with the two affine maps from teacher pixels to crop pixels (one per view). In the
-step, before the student's forward, the teacher predicts on the un-augmented pair and
-`warp_to_crop` carries its outputs into the student's crop; the loss (ufm_jax.distill_loss) reads
-only those targets. No pre-pass, no label.
+crop, then colour unless `input.augment.photometric` is off; ufm_jax.data.distill_rows) and the
+same pair un-augmented at the teacher's resolution, with the two affine maps from teacher pixels
+to crop pixels (one per view). In the step, before the student's forward, the teacher predicts
+on the un-augmented pair and `warp_to_crop` carries its outputs into the student's crop; the loss
+(ufm_jax.distill_loss) reads only those targets. No pre-pass, no label.
 
 Where the teacher's parameters live: neither in the train state nor as constants of the
 compiled step, but as an explicit argument of the jitted step (`BoundStep`), placed on the mesh
