@@ -122,6 +122,36 @@ def test_detach_flow_decides_whether_the_nll_reaches_the_flow(detach):
   assert (flow_grad == 0) if detach else (flow_grad > 0)
 
 
+def test_laplace_density_integrates_to_one_with_covariance_sigma():
+  """exp(-laplace_nll_from(d^2, log|Sigma|, constant=True)) on a fine grid (|r| < 60 px, where the
+  tail left out is below 1e-12): total mass 1 and second moment Sigma = (1, 4, 1)."""
+  cov = np.array([1.0, 4.0, 1.0])
+  x = np.linspace(-60, 60, 2401)
+  rx, ry = np.meshgrid(x, x, indexing="ij")
+  r = np.stack([rx, ry], -1)
+  d2 = covariance.mahalanobis_sq(np.broadcast_to(cov, r.shape[:2] + (3,)), r)
+  p = np.exp(-covariance.laplace_nll_from(d2, math.log(3.0), constant=True))
+  cell = (x[1] - x[0]) ** 2
+  np.testing.assert_allclose(p.sum() * cell, 1.0, atol=1e-4)
+  second = [(p * rx * rx).sum() * cell, (p * ry * ry).sum() * cell, (p * rx * ry).sum() * cell]
+  np.testing.assert_allclose(second, cov, rtol=2e-3)
+
+
+def test_laplace_nll_term_by_hand_and_finite_where_the_residual_is_zero():
+  # r = (1, 1), Sigma = diag(1, 4): d = sqrt(1.25); sqrt(3) d + 0.5 ln 4
+  out, batch = _outputs_and_batch(1.0, [0.0, math.log(4.0), 0.0])
+  _, aux = _recipe(eps=None, likelihood="laplace")(out, batch)
+  np.testing.assert_allclose(float(aux["loss_flow_nll"]),
+                             math.sqrt(3 * 1.25) + 0.5 * math.log(4.0), rtol=1e-6)
+  exact, batch = _outputs_and_batch(0.0, [0.5, 0.5, 0.2])    # r = 0 on every pixel
+  recipe = _recipe(likelihood="laplace")
+  g = jax.grad(lambda p: recipe(dict(exact, flow_covariance_params=p), batch)[0])(
+      exact["flow_covariance_params"])
+  assert np.isfinite(np.asarray(g)).all()
+  with pytest.raises(ValueError, match="likelihood='student'"):
+    _recipe(likelihood="student")
+
+
 def test_nll_term_errors_name_what_is_missing():
   out, batch = _outputs_and_batch(1.0, [0.0, 0.0, 0.0])
   with pytest.raises(ValueError, match="pixels='epe_all' names no flow term"):
@@ -148,6 +178,50 @@ def test_calibration_of_exact_gaussians():
   for k, want in ((1, 39.347), (2, 86.466), (3, 98.889)):
     assert abs(res[f"coverage_{k}sigma"] - want) < 0.3, (k, res)
   assert abs(res["nll"] - (1 + 0.5 * math.log(3) + math.log(2 * math.pi))) < 0.01, res
+  assert res["nll_laplace"] > res["nll"] + 0.05, res   # a Gaussian's residuals: it fits worse
+
+
+def test_calibration_of_exact_laplaces():
+  """Residuals drawn from the elliptical Laplace with covariance Sigma = (1, 4, 1): d is
+  Gamma(2, rate sqrt 3), so coverage 100 (1 - (1 + sqrt(3) k) e^(-sqrt(3) k)) = 51.66, 86.03,
+  96.57 %; mean nll_laplace = E[sqrt(3) d] + 0.5 log 3 + log(2 pi / 3) = 2 + ..., and the
+  Gaussian's `nll` of the same residuals is larger (the Laplace fits them better)."""
+  rng = np.random.default_rng(2)
+  n = 400_000
+  d = rng.gamma(2.0, 1 / math.sqrt(3), size=n)
+  theta = rng.uniform(0, 2 * math.pi, size=n)
+  w = np.stack([d * np.cos(theta), d * np.sin(theta)], -1)
+  chol = np.linalg.cholesky(np.array([[1.0, 1.0], [1.0, 4.0]]))
+  r = (w @ chol.T).reshape(400, 1000, 2)
+  gt = np.zeros((400, 1000, 2))
+  cov = np.broadcast_to(np.array([1.0, 4.0, 1.0]), (400, 1000, 3))
+  acc, sp = metrics.Pooled(), metrics.Sparsification()
+  metrics.add_calibration(acc, sp, gt + r, gt, cov, np.ones((400, 1000), bool))
+  res = acc.result()
+  for k, want in ((1, 51.66), (2, 86.03), (3, 96.57)):
+    assert abs(res[f"coverage_{k}sigma"] - want) < 0.3, (k, res)
+  want_laplace = 2 + 0.5 * math.log(3) + math.log(2 * math.pi / 3)
+  assert abs(res["nll_laplace"] - want_laplace) < 0.01, res
+  assert res["nll"] > res["nll_laplace"] + 0.05, res
+
+
+def test_calibration_stays_finite_where_rho_rounds_to_one_in_float32():
+  """A float32 triplet from s = 12 (var 1, 4): cov_xy^2 rounds to var_x var_y or above it, so the
+  plain determinant is 0 or negative. Its floor (1 - rho^2 >= 1e-8, the official epsilon) keeps
+  the bench's NLL finite, and a residual along the ellipse's long axis stays inside 1 sigma."""
+  cov = covariance.adaptor(np.array([[0.0, math.log(4.0), 12.0]], np.float32),
+                           covariance.CovarianceConfig())["flow_covariance"].astype(np.float32)
+  assert cov[0, 0] * cov[0, 1] - cov[0, 2] ** 2 <= 0
+  det = covariance.determinant(cov.astype(np.float64))
+  np.testing.assert_allclose(det, 1e-8 * 4.0, rtol=1e-6)
+  flow_gt = np.zeros((1, 2, 2))
+  flow = np.array([[[0.0, 0.0], [0.5, 1.0]]])          # r = 0 and r = (0.5, 1), on the long axis
+  acc, sp = metrics.Pooled(), metrics.Sparsification()
+  metrics.add_calibration(acc, sp, flow, flow_gt, np.broadcast_to(cov, (1, 2, 3)),
+                          np.ones((1, 2), bool))
+  res = acc.result()
+  assert np.isfinite(res["nll"]) and np.isfinite(res["nll_laplace"]), res
+  assert res["coverage_1sigma"] == 100.0, res
 
 
 def test_sparsification_by_hand():

@@ -1,6 +1,7 @@
 """The flow covariance through the tools, on the ufm_reference_cov snapshot: `infer` writes it and
 its uncertainty panel, `match` gives each match its covariance and precision (target pixels) and
-ranks them, `export` (StableHLO and ONNX) carries it, the demo shows it; a model without the head
+ranks them, `export` (StableHLO and ONNX) carries it, the demo shows it, `evaluate.py` reports
+its calibration and saves it with --save_predictions; a model without the head
 behaves as before (its files, matches and exports have no covariance)."""
 
 import json
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import cli, demo, export, matching, outputs, testing, viz
+from ufm_jax import cli, demo, export, matching, metrics, outputs, testing, viz
 from ufm_jax.data import io
 from ufm_jax.models import covariance, ufm
 
@@ -163,6 +164,35 @@ def test_onnx_export_carries_the_covariance(snap, tmp_path):
   # onnxruntime's kernels round differently from XLA's: the issue's parity bound
   testing.assert_covariance_close("onnx", got["flow_covariance"], ref["flow_covariance"], 1e-3)
   np.testing.assert_allclose(got["flow"], np.asarray(ref["flow"]), atol=1e-3)
+
+
+def test_evaluate_reports_the_calibration(snap, tmp_path, run_evaluate):
+  """evaluate.py on the covariance snapshot: the synthetic bench's results.json and report carry
+  every calibration column, and the NLLs and coverages recomputed from the files
+  --save_predictions writes (the .flo and the covariance .npy) with the bench's ground truth
+  agree with them (the formulas themselves: tests/test_covariance.py)."""
+  from ufm_jax.data import get_source
+  from ufm_jax.evaluators import base, report
+  preds, out = tmp_path / "preds", tmp_path / "out"
+  rc, printed, err = run_evaluate("--bench", "synthetic", "--snapshot", str(snap[0]),
+                                  "--max_pairs", "2", "--save_predictions", str(preds),
+                                  "--num_panels", "0", "--out", str(out), "--no_progress")
+  assert rc == 0, err[-3000:]
+  m = json.loads((out / "results.json").read_text())["metrics"]
+  for k in report.CALIBRATION_COLUMNS:
+    assert np.isfinite(m[f"synthetic/{k}"]), (k, m)
+    assert f" {k} |" in printed, k
+  src = get_source("synthetic", None, split="test")
+  acc = metrics.Pooled()
+  for i in range(2):
+    s = src[i]
+    flo, _ = base.predicted_paths(preds, "synthetic", s, i)
+    cov = np.load(flo.with_name(flo.stem + "_flow_covariance.npy"))
+    assert cov.shape == s["flow"].shape[:2] + (3,) and cov.dtype == np.float32
+    mask = s["flow_valid"] & s["covisibility"] & s["covis_valid"]
+    metrics.add_calibration(acc, metrics.Sparsification(), io.read_flo(flo), s["flow"], cov, mask)
+  for k in ("nll", "nll_laplace", "coverage_1sigma", "coverage_2sigma", "coverage_3sigma"):
+    assert acc.mean(k) == pytest.approx(m[f"synthetic/{k}"], rel=1e-5), k
 
 
 def test_demo_shows_the_uncertainty(snap, images, tmp_path):

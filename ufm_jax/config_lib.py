@@ -98,8 +98,9 @@ def add_flow_covariance(c: ml_collections.ConfigDict, pixels: str, head: str = "
   in the uncertainty head before its covisibility channel, or with head="main" in the flow head
   after the flow (the sorted orders an official snapshot reloads in; the head's output_dim grows
   by 3 from `head_output_dim`, default 1 for the uncertainty head and 2 for the main), and the
-  Gaussian NLL term `flow_nll` (ufm_jax.losses.FlowCovarianceNLL) on the pixels of the flow term
-  `pixels`, added after the recipe's terms. Returns `c`."""
+  Gaussian NLL term `flow_nll` (ufm_jax.losses.FlowCovarianceNLL; `likelihood` "laplace" for
+  the elliptical Laplace) on the pixels of the flow term `pixels`, added after the recipe's
+  terms. Returns `c`."""
   if head == "uncertainty":
     c.model.covisibility_head = {"output_dim": (head_output_dim or 1) + 3}
     c.model.uncertainty_head_adaptors = ("flow_cov", "non_occluded_mask")
@@ -111,7 +112,7 @@ def add_flow_covariance(c: ml_collections.ConfigDict, pixels: str, head: str = "
   c.model.flow_covariance = {"parametrization": "exp_tanh", "low_confidence_init": True}
   c.loss.terms = tuple(c.loss.terms) + ("flow_nll",)
   c.loss.flow_nll = {"type": "flow_nll", "pixels": pixels, "multiplier": multiplier,
-                     "detach_flow": True, "eps": 1e-4}
+                     "detach_flow": True, "likelihood": "gaussian", "eps": 1e-4}
   return c
 
 

@@ -12,9 +12,9 @@ Conventions (the benchmark protocols that use them: docs/benchmarks.md):
   * Pose: error = max(angle of the rotation error, angle between translation directions with the
     sign ambiguity removed), degrees; AUC@T integrates recall(error) from 0 to T (SuperGlue/LoFTR).
   * Calibration of a predicted flow covariance Sigma (models with a flow_cov head; formulas at
-    `add_calibration`): `nll` (nats per pixel), `coverage_{1,2,3}sigma` (percent of pixels whose
-    Mahalanobis distance is within 1, 2, 3), `ause` / `ause_random` over the pooled pixels and
-    `ause_per_image` / `ause_per_image_random` per image (px, `Sparsification`).
+    `add_calibration`): `nll` and `nll_laplace` (nats per pixel), `coverage_{1,2,3}sigma` (percent
+    of pixels whose Mahalanobis distance is within 1, 2, 3), `ause` / `ause_random` over the
+    pooled pixels and `ause_per_image` / `ause_per_image_random` per image (px, `Sparsification`).
 """
 
 from __future__ import annotations
@@ -107,11 +107,14 @@ COVERAGE_SIGMAS = (1, 2, 3)
 
 
 def calibration_errors(flow, flow_gt, cov):
-  """(d^2, per-pixel NLL, uncertainty) [H, W] of a prediction with covariance `cov` [H, W, 3]
-  ((var_x, var_y, cov_xy), px^2; ufm_jax.models.covariance), float64:
+  """(d^2, per-pixel NLL, per-pixel Laplace NLL, uncertainty) [H, W] of a prediction with
+  covariance `cov` [H, W, 3] ((var_x, var_y, cov_xy), px^2; ufm_jax.models.covariance), float64:
 
     r = flow - flow_gt,  d^2 = r^T Sigma^-1 r (the squared Mahalanobis distance),
     nll = 0.5 d^2 + 0.5 log|Sigma| + log(2 pi)  (the 2D Gaussian's negative log-likelihood, nats),
+    nll_laplace = sqrt(3) d + 0.5 log|Sigma| + log(2 pi / 3)  (the elliptical Laplace's with the
+                  same covariance, covariance.laplace_nll_from: lower than `nll` where the
+                  residuals have heavier tails than a Gaussian's),
     uncertainty = trace(Sigma) = E[|r|^2] under the prediction (the order of `Sparsification`).
   """
   from ufm_jax.models import covariance
@@ -119,8 +122,10 @@ def calibration_errors(flow, flow_gt, cov):
   r = np.asarray(flow, np.float64) - np.asarray(flow_gt, np.float64)
   d2 = covariance.mahalanobis_sq(cov, r)
   with np.errstate(divide="ignore", invalid="ignore"):
-    nll = 0.5 * d2 + 0.5 * np.log(covariance.determinant(cov)) + covariance.LOG_2PI
-  return d2, nll, cov[..., 0] + cov[..., 1]
+    log_det = np.log(covariance.determinant(cov))
+  nll = 0.5 * d2 + 0.5 * log_det + covariance.LOG_2PI
+  nll_laplace = covariance.laplace_nll_from(d2, log_det, constant=True)
+  return d2, nll, nll_laplace, cov[..., 0] + cov[..., 1]
 
 
 def add_calibration(acc: "Pooled", sparsification: "Sparsification", flow, flow_gt, cov,
@@ -129,12 +134,14 @@ def add_calibration(acc: "Pooled", sparsification: "Sparsification", flow, flow_
   `sparsification` (per image):
 
     nll               mean per-pixel NLL (`calibration_errors`)
+    nll_laplace       the same under the elliptical Laplace of that covariance
     coverage_<k>sigma 100 * share of pixels with d <= k, k = 1, 2, 3; a calibrated 2D Gaussian
                       gives 100 (1 - e^(-k^2 / 2)) = 39.3, 86.5, 98.9 (d^2 is chi-square with 2
                       degrees of freedom)
   """
-  d2, nll, unc = calibration_errors(flow, flow_gt, cov)
+  d2, nll, nll_laplace, unc = calibration_errors(flow, flow_gt, cov)
   acc.add("nll", nll, mask)
+  acc.add("nll_laplace", nll_laplace, mask)
   for k in COVERAGE_SIGMAS:
     acc.add(f"coverage_{k}sigma", 100.0 * (d2 <= k * k), mask)
   sparsification.add(endpoint_error(flow, flow_gt), unc, mask)

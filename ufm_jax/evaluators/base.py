@@ -17,7 +17,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ufm_jax import inference
+from ufm_jax import inference, outputs
 
 
 class MissingDataError(FileNotFoundError):
@@ -108,7 +108,8 @@ def relpath_of(sample: dict, index: int) -> str:
 
 class PredictionWriter:
   """--save_predictions: flow (.flo) + covisibility PNG per pair (when the model predicts
-  covisibility), panels for the first N pairs of each bench (with the uncertainty tile for a
+  covisibility) + the flow covariance (`<name>_flow_covariance.npy`, ufm_jax.outputs, when it
+  predicts one), panels for the first N pairs of each bench (with the uncertainty tile for a
   flow covariance model), under <root>/<bench>/<the dataset's GT relative path>."""
 
   def __init__(self, root: str | os.PathLike | None, num_panels: int = 8):
@@ -130,6 +131,10 @@ class PredictionWriter:
     if covis is not None:
       io.write_image(base.parent / (base.name + "_covisibility.png"),
                      viz.covisibility_to_image(covis))
+    cov = pred.get("flow_covariance")
+    if cov is not None:
+      io.write_npy(base.parent / (base.name + outputs.SUFFIXES["vnpy"]),
+                   np.asarray(cov, np.float32))
     if self.written.get(bench, 0) < self.num_panels:
       panels = self.root / bench / "panels"
       panels.mkdir(parents=True, exist_ok=True)

@@ -40,6 +40,10 @@ LOW_CONFIDENCE_OFFSET = 8.0
 # adaptors.py:1130, 1132: added to 1 - tanh(s)^2 inside the official log and reciprocal.
 OFFICIAL_EPS = 1e-8
 LOG_2PI = math.log(2.0 * math.pi)
+# The elliptical Laplace with covariance Sigma: p(r) = 3 / (2 pi |Sigma|^(1/2)) e^(-sqrt(3) d).
+SQRT3 = math.sqrt(3.0)
+LOG_2PI_OVER_3 = math.log(2.0 * math.pi / 3.0)
+LIKELIHOODS = ("gaussian", "laplace")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,13 +111,34 @@ def gaussian_nll(params, r, constant: bool = False):
   return 0.5 * quad + 0.5 * log_det + (LOG_2PI if constant else 0.0)
 
 
+def laplace_nll_from(quad, log_det, constant: bool = False):
+  """sqrt(3 r^T Sigma^-1 r) + 0.5 log|Sigma| (+ log(2 pi / 3) with `constant`): the negative
+  log-likelihood of the 2D elliptical Laplace whose covariance is Sigma,
+
+    p(r) = 3 / (2 pi |Sigma|^(1/2)) exp(-sqrt(3) d),   d^2 = r^T Sigma^-1 r,
+
+  (d is Gamma(2, sqrt 3) distributed: E[d^2] = 2, the same Sigma as a Gaussian's). Its gradient
+  in Sigma weighs a residual by d rather than d^2, so a few large errors pull a pixel's variance
+  less. The square root's gradient at d = 0 is taken as 0 (a pixel with r = 0 exactly)."""
+  xp = _xp(quad, log_det)
+  pos = quad > 0
+  d = xp.where(pos, xp.sqrt(xp.where(pos, quad, 1.0)), 0.0)
+  return SQRT3 * d + 0.5 * log_det + (LOG_2PI_OVER_3 if constant else 0.0)
+
+
 # --------------------------------------------------------------------------------------------
 # On the (var_x, var_y, cov_xy) triplet
 
 
 def determinant(cov):
-  """|Sigma| [...] = var_x var_y - cov_xy^2."""
-  return cov[..., 0] * cov[..., 1] - cov[..., 2] * cov[..., 2]
+  """|Sigma| [...] = var_x var_y - cov_xy^2 = var_x var_y (1 - rho^2), with 1 - rho^2 floored at
+  OFFICIAL_EPS (1e-8, what the official adaptor adds to it). A float32 triplet resolves 1 - rho^2
+  only to ~1e-7: where a model predicts |rho| that near 1, the difference rounds to zero or below,
+  and the inverse, the Mahalanobis distance and the log-determinant would be infinite or NaN
+  (one such pixel makes a whole bench's mean NLL NaN)."""
+  xp = _xp(cov)
+  vv = cov[..., 0] * cov[..., 1]
+  return xp.maximum(vv - cov[..., 2] * cov[..., 2], OFFICIAL_EPS * vv)
 
 
 def inverse(cov):
@@ -124,7 +149,7 @@ def inverse(cov):
 
 
 def mahalanobis_sq(cov, r):
-  """r^T Sigma^-1 r [...] for residuals r [..., 2] (inf where Sigma is singular)."""
+  """r^T Sigma^-1 r [...] for residuals r [..., 2] (inf where a variance is 0)."""
   xp = _xp(cov, r)
   rx, ry = r[..., 0], r[..., 1]
   num = cov[..., 1] * rx * rx + cov[..., 0] * ry * ry - 2 * cov[..., 2] * rx * ry
