@@ -72,7 +72,8 @@ def parse_args(argv=None):
   ap.add_argument("--resolution", default=None,
                   help="560 | 980 | native (default: model config); native protocol only")
   ap.add_argument("--max_pairs", type=int, default=None, help="evaluate at most N pairs per split")
-  ap.add_argument("--save_predictions", default=None, help="write .flo + covisibility PNG per pair here")
+  ap.add_argument("--save_predictions", default=None,
+                  help="write .flo + covisibility PNG (+ flow covariance .npy) per pair here")
   ap.add_argument("--num_panels", type=int, default=8, help="panel PNGs for the first N pairs")
   ap.add_argument("--out", default="results", help="results.json goes here")
   ap.add_argument("--seed", type=int, default=0, help="pose RANSAC/sampling seed")
