@@ -13,9 +13,9 @@ official code under CPU autocast), the min and median of --runs timed calls afte
 the models' runs interleaved round by round so that load from other processes falls on all of
 them alike; and the size of the ONNX file `python -m ufm_jax export --format onnx --size SIZE`
 writes for a converted checkpoint of the model (random weights; the size depends on the
-structure only) and the seconds that command takes. Also at each model's own inference resolution where it differs from --size
-(ufm_tiny: 294 x 392). Params are random. No GPU figure: the device scripts are
-benchmarks/gpu_check.py and benchmarks/inference.py on a GPU host.
+structure only) and the seconds that command takes. Also at each model's own inference
+resolution where it differs from --size (ufm_tiny: 294 x 392). Params are random. No GPU
+figure: the device scripts are benchmarks/gpu_check.py and benchmarks/inference.py on a GPU host.
 The last line is one JSON object.
 """
 

@@ -206,8 +206,7 @@ def test_onnx_graph_computes_the_model_once(reference_dir, tmp_path, monkeypatch
   model per output made the converter's quadratic transpose pass take 106 s instead of 11 on the
   base structure with three outputs (it merges the copies only after that pass)."""
   model, variables = snapshot.load_official(reference_dir / "base")
-  model = ufm.model_from_config(
-      ufm.with_flow_covariance(model.config))
+  model = ufm.model_from_config(ufm.with_flow_covariance(model.config))
   variables = testing.perturbed_params(model, 0)
   seen = {}
   monkeypatch.setattr(export, "write_onnx",
@@ -219,8 +218,7 @@ def test_onnx_graph_computes_the_model_once(reference_dir, tmp_path, monkeypatch
     jaxpr = jax.make_jaxpr(fn)(*specs).jaxpr
     return sum(e.primitive.name == "conv_general_dilated" for e, _ in export._equations(jaxpr))
 
-  once = convs(lambda s, t: model.apply(ufm.variables(variables), s, t),
-               seen["specs"])
+  once = convs(lambda s, t: model.apply(ufm.variables(variables), s, t), seen["specs"])
   assert once > 0 and convs(seen["fn"], seen["specs"]) == once
 
 
