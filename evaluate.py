@@ -48,7 +48,8 @@ import pathlib
 import sys
 import time
 
-from ufm_jax import compile_cache, evaluators
+from ufm_jax import evaluators
+from ufm_jax.runtime import compile_cache
 from ufm_jax.data import io
 from ufm_jax.evaluators import base, report
 
@@ -121,7 +122,7 @@ def load_model(args):
   """(model, variables, source) following the --checkpoint / --snapshot rules above; source:
   what results.json records of where the model came from ({"checkpoint", "revision",
   "commit"})."""
-  from ufm_jax import model_io
+  from ufm_jax.runtime import model_io
   if args.snapshot:
     name = args.snapshot if isinstance(args.snapshot, str) else args.checkpoint
     return model_io.load_recorded(name, snapshot=True, revision=args.revision)
@@ -132,7 +133,7 @@ def load_model(args):
 
 def random_model(name: str = None):
   """A randomly initialised small model (no checkpoint on a fresh machine)."""
-  from ufm_jax import trainer
+  from ufm_jax.training import trainer
   from ufm_jax.models import variants
   name = name or RANDOM_MODEL
   print(f"warning: no checkpoint given and no {DEFAULT_WORKDIR}/: evaluating a randomly "

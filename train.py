@@ -5,10 +5,10 @@ r"""Trains UFM (or its refiner) on a device mesh.
   python train.py --config=configs/ufm560.py --compile_only --topology=v5e-8 --config.grad_accum=3
 
 Sections: plan (--compile_only), mesh, teacher (distillation only), data,
-model/optimizer/sharding/step (ufm_jax.trainer.setup), checkpoint, evals, loop. The run resumes from
+model/optimizer/sharding/step (ufm_jax.training.trainer.setup), checkpoint, evals, loop. The run resumes from
 the latest checkpoint in --workdir by itself; SIGTERM saves and exits cleanly. --compile_only builds
 the same mesh, shardings and step from the config alone, compiles the step (on these devices, or with
---topology for a TPU slice through libtpu), prints the plan (ufm_jax.planning; its JSON is the
+--topology for a TPU slice through libtpu), prints the plan (ufm_jax.planning.planner; its JSON is the
 last line) and exits 0, or 1 where the step needs more HBM than the chip has (docs/scale.md).
 """
 
@@ -58,19 +58,19 @@ def main(argv):
   # ---------------------------------------------------------------------------------- plan
   if _COMPILE_ONLY.value:
     # What this run would build (mesh, shardings, grad_accum, the step), from the config alone.
-    from ufm_jax import planning
-    result = planning.plan(config, planning.target(_TOPOLOGY.value))
-    planning.report(result)
-    print(planning.to_json(result), flush=True)
+    from ufm_jax.planning import planner
+    result = planner.plan(config, planner.target(_TOPOLOGY.value))
+    planner.report(result)
+    print(planner.to_json(result), flush=True)
     return 0 if result["fits"] else 1
 
   # ---------------------------------------------------------------------------------- mesh
   workdir = pathlib.Path(_WORKDIR.value).absolute()
-  from ufm_jax import sharding
+  from ufm_jax.training import sharding
   sharding.maybe_initialize_distributed()
   import numpy as np
-  from ufm_jax import checkpoint as ckpt_lib
-  from ufm_jax import accumulation, loop_control, model_init, optim, trainer
+  from ufm_jax.runtime import checkpoint as ckpt_lib
+  from ufm_jax.training import accumulation, loop_control, model_init, optim, trainer
   from ufm_jax.data import io
   from ufm_jax.evaluators import train_evals
 
@@ -91,7 +91,7 @@ def main(argv):
   # ---------------------------------------------------------------------------------- teacher
   # Distillation (configs/distill.py): a frozen teacher that the train step runs before the
   # student, on the un-augmented pair; its variables go to the mesh with the first step.
-  from ufm_jax import teacher as teacher_lib
+  from ufm_jax.training import teacher as teacher_lib
   teacher = teacher_lib.from_config(config, mesh)
   if teacher is not None and is_main:
     print(teacher.describe(), flush=True)

@@ -23,7 +23,9 @@ import pathlib
 
 import numpy as np
 
-from ufm_jax import evaluators, metrics, model_io
+from ufm_jax import evaluators
+from ufm_jax.evaluators import metrics
+from ufm_jax.runtime import model_io
 from ufm_jax.models import covariance
 
 

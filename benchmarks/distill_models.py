@@ -64,7 +64,8 @@ def candidates() -> dict:
 
 def step_flops(students, teacher: str, hw, batch: int) -> dict:
   """{student: GFLOP per row of the distillation step and of the plain 560-recipe step}."""
-  from ufm_jax import config_lib, flops
+  from ufm_jax.planning import flops
+  from ufm_jax.training import config_lib
   out = {}
   for student in students:
     distill = config_lib.load_config(f"{REPO}/configs/distill.py:teacher={teacher},"
@@ -82,7 +83,7 @@ def step_flops(students, teacher: str, hw, batch: int) -> dict:
 
 
 def gflop_per_pair(model, params, hw) -> float:
-  from ufm_jax import hlo_stats
+  from ufm_jax.planning import hlo_stats
   twin = bench.loop_free(model)
   x = jax.ShapeDtypeStruct((1, *hw, 3), jnp.uint8)
   lowered = jax.jit(lambda p, s, t: twin.apply({"params": p}, s, t)).lower(params, x, x)
@@ -92,7 +93,7 @@ def gflop_per_pair(model, params, hw) -> float:
 def onnx_export(model, params, hw, workdir) -> tuple[float, float]:
   """(MB of the ONNX file the CLI exports for a converted checkpoint of (model, params), seconds
   the export command took as a whole: start, load, conversion, write)."""
-  from ufm_jax import model_io
+  from ufm_jax.runtime import model_io
   ckpt = pathlib.Path(workdir) / "ckpt"
   model_io.save(ckpt, model, {"params": params})
   out = pathlib.Path(workdir) / "model.onnx"
@@ -118,7 +119,7 @@ def main(argv=None) -> dict:
   ap.add_argument("--step_flops", action="store_true",
                   help="FLOPs of configs/distill.py's train step (teacher --teacher, the student "
                        "each of --models) at --size and --batch rows, beside the same student's "
-                       "step in the 560 recipe without a teacher (ufm_jax.flops.model_flops: the "
+                       "step in the 560 recipe without a teacher (ufm_jax.planning.flops.model_flops: the "
                        "step's jaxpr, remat left out)")
   ap.add_argument("--teacher", default="variant:ufm_base")
   ap.add_argument("--batch", type=int, default=2, help="rows of the --step_flops step")
@@ -126,7 +127,8 @@ def main(argv=None) -> dict:
                   help="only params and GFLOP at --size of `candidates()` (no weights, no runs)")
   args = ap.parse_args(argv)
 
-  from ufm_jax import inference, optim, trainer
+  from ufm_jax.runtime import inference
+  from ufm_jax.training import optim, trainer
   from ufm_jax.models import ufm, variants
   if args.step_flops:
     return step_flops([n for n in args.models.split(",") if n], args.teacher, tuple(args.size),

@@ -1,4 +1,4 @@
-r"""How XLA:TPU reduces FSDP gradients on a slice: one stage or two (ufm_jax.sharding._two_stage).
+r"""How XLA:TPU reduces FSDP gradients on a slice: one stage or two (ufm_jax.training.sharding._two_stage).
 
   python benchmarks/fsdp_reduce.py --topology v5e-8,v5e-64,v5e-128,v5e-256,v5p-128
 
@@ -25,7 +25,8 @@ import time
 def compile_stack(topology: str, two_stage: bool, width: int, hidden: int, layers: int) -> dict:
   import jax
   import jax.numpy as jnp
-  from ufm_jax import hlo_stats, sharding, topologies
+  from ufm_jax.planning import hlo_stats, topologies
+  from ufm_jax.training import sharding
   mesh = sharding.make_mesh("data:1,fsdp:-1", topologies.devices(topology))
   sharding.TWO_STAGE_MIN_DEVICES = 2 if two_stage else mesh.size + 1
   rules = [(r".*", "fsdp")]
@@ -70,7 +71,7 @@ def compile_stack(topology: str, two_stage: bool, width: int, hidden: int, layer
 def main():
   ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
   ap.add_argument("--topology", default="v5e-8,v5e-64,v5e-128,v5e-256,v5p-128",
-                  help="TPU slices of ufm_jax.topologies, comma-separated")
+                  help="TPU slices of ufm_jax.planning.topologies, comma-separated")
   ap.add_argument("--width", type=int, default=1024, help="block width (UFM-Base's encoder: 1024)")
   ap.add_argument("--hidden", type=int, default=4096, help="MLP width (UFM-Base's encoder: 4096)")
   ap.add_argument("--layers", type=int, default=4)

@@ -13,7 +13,7 @@ import collections
 import jax
 import numpy as np
 
-from ufm_jax import config_lib, optim, trainer
+from ufm_jax.training import config_lib, optim, trainer
 from ufm_jax.models import scan, ufm
 
 

@@ -16,9 +16,9 @@ the machine's time limit still reports what it measured:
 2. UFM-Base / UFM-Refine inference at 420x560 (and 742x980): median and min of `--iters` timed
    runs after a warm-up, pairs/s, compile seconds, XLA's FLOP count and temp memory per call,
    and which attention kernel the compiled HLO holds (cuDNN fused custom calls, or none).
-3. The full UFM-560 train step (ufm_jax.trainer.setup, the exact train.py step; bf16, remat) at
+3. The full UFM-560 train step (ufm_jax.training.trainer.setup, the exact train.py step; bf16, remat) at
    `--train_batch`: step time, pairs/s, peak device memory, MFU (the planner's model FLOPs,
-   ufm_jax.flops.model_flops, / step time / the chip's dense bf16 peak).
+   ufm_jax.planning.flops.model_flops, / step time / the chip's dense bf16 peak).
 Prints a table, then one JSON line with every figure. Asserts nothing about speed.
 """
 
@@ -53,21 +53,21 @@ FORWARD_CASES = [
 
 
 def _peak(device) -> float | None:
-  """Dense bf16 peak FLOP/s of the device (ufm_jax.topologies.CHIPS), None if unknown."""
-  from ufm_jax import topologies
+  """Dense bf16 peak FLOP/s of the device (ufm_jax.planning.topologies.CHIPS), None if unknown."""
+  from ufm_jax.planning import topologies
   chip = topologies.chip_of(getattr(device, "device_kind", ""))
   return chip.peak_bf16_flops if chip else None
 
 
 def _flops(lowered) -> float | None:
-  from ufm_jax import hlo_stats
+  from ufm_jax.planning import hlo_stats
   return hlo_stats.flops(lowered)
 
 
 def _param_shapes(model):
   """The model's parameter tree as ShapeDtypeStructs (no weights made)."""
   import jax
-  from ufm_jax import trainer
+  from ufm_jax.training import trainer
   hw = (2 * model.config.encoder.patch_size,) * 2
   return jax.eval_shape(lambda: trainer.init_params(model, hw, jax.random.PRNGKey(0)))
 
@@ -95,10 +95,10 @@ def forward_flops(variant, hw, batch, dtype, head_dtype) -> float | None:
 
 
 def train_flops(config, hw, batch) -> float | None:
-  """The train step's model FLOPs, as the planner counts them (ufm_jax.flops.model_flops: matrix
+  """The train step's model FLOPs, as the planner counts them (ufm_jax.planning.flops.model_flops: matrix
   products and convolutions of the whole step on its jaxpr, every loop by its trip count,
   remat's recomputation left out), for a GPU's branch of platform-dependent code."""
-  from ufm_jax import flops
+  from ufm_jax.planning import flops
   return flops.model_flops(config, hw, batch, platform="gpu").flops
 
 
@@ -212,7 +212,7 @@ def bench_forward(variant, hw, batch, dtype, attention, head_dtype, iters):
 
 def bench_train(config_spec, model_name, hw, batch, steps):
   import jax
-  from ufm_jax import config_lib, sharding, trainer
+  from ufm_jax.training import config_lib, sharding, trainer
   config = config_lib.load_config(config_spec)
   config.unlock()
   config.model_name = model_name
@@ -284,7 +284,7 @@ def _table(rows):
 
 def print_flops(train_batch):
   """The FLOP counts behind the TFLOP/s and MFU columns, on any machine (no GPU needed)."""
-  from ufm_jax import config_lib
+  from ufm_jax.training import config_lib
   for case in FORWARD_CASES:
     if case == "train":
       config = config_lib.load_config(str(REPO / "configs" / "ufm560.py"))

@@ -7,7 +7,7 @@
       --set scan_blocks=true          # compile time only (abstract params, nothing runs)
   python benchmarks/inference.py --config ufm_base --size 420x560 --batch 8 --frames [DIR]
       # also end to end: frames read from DIR (default: random PNGs in a temp dir), predicted
-      # and written as .flo through ufm_jax.sequence, the path of `infer --frames`
+      # and written as .flo through ufm_jax.tools.sequence, the path of `infer --frames`
   python benchmarks/inference.py --snapshot SNAP --size 420x560 --runs 5 \
       --set dtype=bfloat16,head_dtype=bfloat16 --official ~/UFM --pair a.png b.png
       # the official PyTorch code on the same snapshot and pair, alternating with ours
@@ -167,7 +167,7 @@ def parse_size(text: str) -> tuple[int, int]:
 def read_pair_image(path: str, size_hw) -> np.ndarray:
   """An RGB uint8 image resized to size_hw (torch's bilinear antialias resize, as `predict`)."""
   from ufm_jax.data import io
-  from ufm_jax.inference import resize_bilinear_aa
+  from ufm_jax.runtime.inference import resize_bilinear_aa
   img = io.read_image(path)
   if img.shape[:2] != tuple(size_hw):
     img = np.clip(np.rint(resize_bilinear_aa(img.astype(np.float32), size_hw)), 0, 255)
@@ -254,7 +254,7 @@ def main(argv=None) -> dict:
                   help="with --compile_only: compile forward + gradient w.r.t. the params (a "
                        "one-device stand-in for the train step; --set remat=true to match it)")
   ap.add_argument("--frames", nargs="?", const="", default=None, metavar="DIR",
-                  help="also time `infer --frames` end to end (ufm_jax.sequence) on the frames in "
+                  help="also time `infer --frames` end to end (ufm_jax.tools.sequence) on the frames in "
                        "DIR, or on --frames_pairs + 1 random PNGs in a temp dir when DIR is omitted")
   ap.add_argument("--frames_pairs", type=int, default=16,
                   help="pairs of the generated frames folder (consecutive frames)")
@@ -287,7 +287,7 @@ def main(argv=None) -> dict:
   if args.compile_only:
     return compile_only(model, name, args)
   if args.size is None:
-    from ufm_jax.inference import inference_resolutions
+    from ufm_jax.runtime.inference import inference_resolutions
     args.size = inference_resolutions(model)[0]
   h, w = args.size
   if args.pair:
@@ -300,7 +300,7 @@ def main(argv=None) -> dict:
 
   t0 = time.perf_counter()
   if params is None:
-    from ufm_jax import trainer  # pylint: disable=g-import-not-at-top
+    from ufm_jax.training import trainer  # pylint: disable=g-import-not-at-top
     params = jax.block_until_ready(trainer.random_params(model))
   t_init = time.perf_counter() - t0
   n_params = sum(int(np.prod(x.shape)) for x in jax.tree_util.tree_leaves(params))
@@ -381,7 +381,7 @@ def main(argv=None) -> dict:
   if args.frames is not None:
     res.update(end_to_end(model, params, (h, w), args.batch, args.frames, args.frames_pairs))
     print(f"  end to end ({res['frames_pairs']} pairs of {res['frames_dir']}: read, predict, write "
-          f".flo, through ufm_jax.sequence): {res['end_to_end_pairs_per_s']:.3f} pairs/s, "
+          f".flo, through ufm_jax.tools.sequence): {res['end_to_end_pairs_per_s']:.3f} pairs/s, "
           f"{100 * res['end_to_end_pairs_per_s'] / res['pairs_per_s']:.0f}% of the model-only "
           f"{res['pairs_per_s']:.3f} pairs/s (min)")
   print(json.dumps(res))
@@ -391,17 +391,18 @@ def main(argv=None) -> dict:
 
 
 def end_to_end(model, params, size_hw, batch: int, frames: str, n_pairs: int) -> dict:
-  """Pairs/s of `python -m ufm_jax infer --frames` (ufm_jax.sequence.run: thread-pool reads,
+  """Pairs/s of `python -m ufm_jax infer --frames` (ufm_jax.tools.sequence.run: thread-pool reads,
   batched predict, .flo writes) on `frames` (empty: n_pairs + 1 random PNGs written to a temp dir),
   with the model's inference resolution set to size_hw. A first run over one batch compiles;
   the timed run rewrites everything (overwrite)."""
   import tempfile
 
-  from ufm_jax import sequence
+  from ufm_jax.tools import sequence
   from ufm_jax.data import io
 
   model = model.clone(config=model.config.replace(inference_resolution=tuple(size_hw)))
   label = frames or f"{n_pairs + 1} random {size_hw[0]}x{size_hw[1]} PNGs"
+  from ufm_jax.data.sources import frames as frame_source
   with tempfile.TemporaryDirectory(prefix="ufm_bench_frames_") as tmp:
     if not frames:
       frames = os.path.join(tmp, "frames")
@@ -412,7 +413,7 @@ def end_to_end(model, params, size_hw, batch: int, frames: str, n_pairs: int) ->
                        rng.integers(0, 256, (*size_hw, 3), dtype=np.uint8))
     elif not os.path.isdir(frames):
       raise SystemExit(f"--frames {frames}: folder not found")
-    pairs = sequence.frame_pairs(frames)
+    pairs = frame_source.frame_pairs(frames)
     sequence.run(model, params, pairs[:batch], os.path.join(tmp, "warmup"), batch=batch,
                  progress=False)
     counts = sequence.run(model, params, pairs, os.path.join(tmp, "out"), batch=batch,

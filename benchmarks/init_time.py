@@ -19,7 +19,7 @@ import time
 
 import jax
 
-from ufm_jax import optim, trainer
+from ufm_jax.training import optim, trainer
 from ufm_jax.models import variants
 
 

@@ -15,7 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from ufm_jax import losses, model_io
+from ufm_jax.runtime import model_io
+from ufm_jax.training import losses
 from ufm_jax.data import synthetic
 
 

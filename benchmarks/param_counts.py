@@ -6,7 +6,7 @@ Shapes come from jax.eval_shape of each variant (nothing is allocated); a snapsh
 config.json is authoritative for the release itself (`ufm_jax.load_official`).
 """
 
-from ufm_jax import optim
+from ufm_jax.training import optim
 from ufm_jax.models import ufm, variants
 
 RELEASES = [  # (Hub ID, variant)

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from ufm_jax import metrics
+from ufm_jax.evaluators import metrics
 
 
 def scene(h: int, w: int):

@@ -8,7 +8,7 @@ builders); the data is a fixed set of the config's synthetic pairs made once int
 sampled without augmentation, and the held-out EPE (train.py's own evaluator on the config's
 held-out pairs) is printed as often as asked. Per step it costs what train.py costs once compiled (~0.1 s for `tiny` at 56 px,
 batch 8, on 2 cores; ~0.2 s for `synth`), so a 3000-step probe takes minutes. Parameters come
-from train.py's init (`ufm_jax.trainer.init_params`, the modules' own initializers). `pairs=shift` (translated textures) is the easiest matching task:
+from train.py's init (`ufm_jax.training.trainer.init_params`, the modules' own initializers). `pairs=shift` (translated textures) is the easiest matching task:
 a model that cannot learn it cannot learn the scenes.
 
 Each line prints the held-out EPE on covisible pixels, the zero-flow EPE of the same pixels (the
@@ -52,8 +52,8 @@ def main(argv=None):
   args = parser.parse_args(argv)
 
   import jax
-  from ufm_jax import optim, sharding, trainer
-  from ufm_jax.config_lib import load_config
+  from ufm_jax.training import optim, sharding, trainer
+  from ufm_jax.training.config_lib import load_config
   from ufm_jax.evaluators import train_evals
 
   spec = args.config + (f":{args.arg}" if args.arg else "")

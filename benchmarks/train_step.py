@@ -1,4 +1,4 @@
-r"""Train-step benchmark: the exact train.py step (ufm_jax.trainer.setup), timed or compiled only.
+r"""Train-step benchmark: the exact train.py step (ufm_jax.training.trainer.setup), timed or compiled only.
 
   python benchmarks/train_step.py --config synthetic                 # time the tiny config here
   python benchmarks/train_step.py --config ufm560 --model ufm_base --mesh data:2,fsdp:4 \
@@ -8,16 +8,16 @@ r"""Train-step benchmark: the exact train.py step (ufm_jax.trainer.setup), timed
   python benchmarks/train_step.py --config ufm560 --estimate_only    # memory of the full config
   python benchmarks/train_step.py --config ufm560 --topology v5e-8 --fit   # plan a TPU slice
 
---aot and --topology run the planner, ufm_jax.planning.plan: the code path of
+--aot and --topology run the planner, ufm_jax.planning.planner.plan: the code path of
 `train.py --compile_only`. The step is built from the config as train.py builds it (its mesh,
 config.mesh unless --mesh; grad_accum; the largest of the recipe's training shapes unless --size;
 the recipe's batch unless --batch / --per_chip_batch) and compiled, never run: on the devices at
 hand (--aot; --devices N fake CPU devices, set before jax is imported) or for a TPU slice from
-this host (--topology NAME of ufm_jax.topologies: v5e-8, v5p-8, v5e-256, ...; libtpu installed:
+this host (--topology NAME of ufm_jax.planning.topologies: v5e-8, v5p-8, v5e-256, ...; libtpu installed:
 `pip install "ufm_jax[tpu]"` in its own virtualenv, no TPU). It prints the parameter and train
 state bytes, XLA's memory per chip (HBM = temp + arguments + outputs - aliases) against the
-chip's, the collectives of the compiled HLO by kind (ufm_jax.hlo_stats), the model FLOPs of the
-whole step (ufm_jax.flops: every loop body, grad_accum's microbatches and the scanned blocks, by
+chip's, the collectives of the compiled HLO by kind (ufm_jax.planning.hlo_stats), the model FLOPs of the
+whole step (ufm_jax.planning.flops: every loop body, grad_accum's microbatches and the scanned blocks, by
 its trip count) and, at --mfu of the chips' bf16 peak (an assumption), the step time, the days of
 the recipe's epochs (the mean over its training shapes) and the host CPU that feeding the chips
 at that pace needs (rows per second per host x --host_ms_per_row). The last line is one JSON
@@ -28,7 +28,7 @@ recipe's own batch with the fewest microbatches that fit, and prints the train.p
 JobSet overrides that run that plan. --topology A,B,... --time_only skips the compile (and
 libtpu): FLOPs, step time, days and host feed per slice, GPU nodes too (h100-8, h200-8, a100-8).
 --flops counts the step's FLOPs on its jaxpr (model FLOPs, and as executed with remat) beside
-the count from the model's dimensions (ufm_jax.flops.analytic_step_flops), by part.
+the count from the model's dimensions (ufm_jax.planning.flops.analytic_step_flops), by part.
 --estimate_only traces abstractly (no compile): params, AdamW state, and the activations the
 backward pass keeps (JAX's saved residuals) with and without remat at the per-device batch.
 Without any of these, random batches go through the compiled step and the step time is printed.
@@ -66,7 +66,7 @@ def parse_size(text: str):
 def load(args):
   """(config, global batch or None, (H, W) or None): the config with the flags' overrides; the
   batch and size only where the flags give them."""
-  from ufm_jax import config_lib
+  from ufm_jax.training import config_lib
   spec = args.config
   path, _, arg = spec.partition(":")
   if not pathlib.Path(path).suffix:
@@ -98,19 +98,19 @@ def config_spec(args) -> str:
 
 def emit(result: dict, hlo_out=None):
   """The plan in words, then its JSON as the last line (and the compiled HLO to `hlo_out`)."""
-  from ufm_jax import planning
+  from ufm_jax.planning import planner
   if hlo_out and "_text" in result:
     pathlib.Path(hlo_out).write_text(result["_text"])
-  planning.report(result)
-  print(planning.to_json(result), flush=True)
+  planner.report(result)
+  print(planner.to_json(result), flush=True)
 
 
 def aot(config, batch, hw, args):
   """--aot: the step compiled on the devices at hand (--devices fake CPU ones), as
   `train.py --compile_only` compiles it."""
-  from ufm_jax import planning
-  tgt = planning.target()
-  result = planning.plan(config, tgt, batch=batch, image_shape=hw, mfu=args.mfu,
+  from ufm_jax.planning import planner
+  tgt = planner.target()
+  result = planner.plan(config, tgt, batch=batch, image_shape=hw, mfu=args.mfu,
                          host_ms_per_row=args.host_ms_per_row)
   emit(result, args.hlo_out)
   return result
@@ -121,8 +121,8 @@ def aot(config, batch, hw, args):
 
 def _per_chip_batch(config, args, n: int) -> int:
   """--per_chip_batch, or --batch (else the recipe's) split over `n` chips."""
-  from ufm_jax import planning
-  quantum = planning.quantum(config)
+  from ufm_jax.planning import planner
+  quantum = planner.quantum(config)
   if args.per_chip_batch:
     per_chip = args.per_chip_batch
   elif args.batch:
@@ -146,8 +146,9 @@ def plan(config, hw, args):
   """--topology: the step compiled for a TPU slice from this host (libtpu, no TPU); --fit: the
   largest per-chip batch that fits and the plan of the recipe's batch, with the overrides that
   run it."""
-  from ufm_jax import planning, sharding, topologies
-  tgt = planning.target(args.topology)
+  from ufm_jax.planning import planner, topologies
+  from ufm_jax.training import sharding
+  tgt = planner.target(args.topology)
   slc = topologies.get(args.topology)
   n = sharding.batch_divisor(sharding.make_mesh(config.mesh, tgt.devices))
   per_chip = _per_chip_batch(config, args, n)
@@ -155,14 +156,14 @@ def plan(config, hw, args):
         f"{_gib(tgt.capacity)} HBM per chip, bf16 peak {tgt.peak_flops / 1e12:.0f} TFLOP/s, "
         f"{tgt.hosts} host(s); mesh {config.mesh}", flush=True)
   if args.fit:
-    result = planning.fit(config, tgt, per_chip, image_shape=hw, max_probes=args.max_probes,
+    result = planner.fit(config, tgt, per_chip, image_shape=hw, max_probes=args.max_probes,
                           mfu=args.mfu, host_ms_per_row=args.host_ms_per_row)
   else:
-    result = planning.plan(config, tgt, batch=per_chip * n, image_shape=hw, mfu=args.mfu,
+    result = planner.plan(config, tgt, batch=per_chip * n, image_shape=hw, mfu=args.mfu,
                            host_ms_per_row=args.host_ms_per_row)
   if args.fit:
     print("run this plan (docs/launch.md):")
-    for line in planning.launch_lines(result, config_spec(args)):
+    for line in planner.launch_lines(result, config_spec(args)):
       print(f"  {line}")
   emit(result, args.hlo_out)
   return result
@@ -171,20 +172,20 @@ def plan(config, hw, args):
 def time_only(config, hw, args):
   """--time_only: step time, recipe days and host feed for each of the --topology slices (a
   comma list, GPU nodes too), from the FLOP count alone: no compile, no libtpu."""
-  from ufm_jax import planning
-  shapes = planning.training_shapes(config)
-  hw = hw or planning.largest_shape(config)
+  from ufm_jax.planning import planner
+  shapes = planner.training_shapes(config)
+  hw = hw or planner.largest_shape(config)
   rows, counted = [], {}
   for name in args.topology.split(","):
-    tgt = planning.target(name, compile=False)
+    tgt = planner.target(name, compile=False)
     batch = _per_chip_batch(config, args, tgt.chips) * tgt.chips
     print(f"{name}: {tgt.chips} x {tgt.device_kind}, global batch {batch}", flush=True)
     if batch not in counted:   # slices with the same batch share the count (TPU and GPU alike)
-      counted[batch] = planning.model_flops_per_row(config, set(shapes) | {hw}, batch, "tpu")
+      counted[batch] = planner.model_flops_per_row(config, set(shapes) | {hw}, batch, "tpu")
     per_row = counted[batch]
     host_ms = (args.host_ms_per_row if args.host_ms_per_row is not None
-               else planning.default_host_ms_per_row(config))
-    est = planning.estimate(config, tgt, per_row, hw, batch, args.mfu, host_ms)
+               else planner.default_host_ms_per_row(config))
+    est = planner.estimate(config, tgt, per_row, hw, batch, args.mfu, host_ms)
     row = {"topology": name, "chips": tgt.chips, "hosts": tgt.hosts, "global_batch": batch,
            "grad_accum": int(config.grad_accum), "image_shape": list(hw), **est}
     print(f"  {est['flops_per_row'] / 1e12:.3f} TFLOP per row at {hw[0]}x{hw[1]}, "
@@ -201,12 +202,13 @@ def time_only(config, hw, args):
 
 
 def count_flops(config, batch, hw):
-  """--flops: the step's FLOPs counted on its jaxpr (ufm_jax.flops; model FLOPs without remat,
+  """--flops: the step's FLOPs counted on its jaxpr (ufm_jax.planning.flops; model FLOPs without remat,
   and as executed with it) beside the count from the model's dimensions, by part."""
   import copy
 
   import jax
-  from ufm_jax import flops, sharding, trainer
+  from ufm_jax.planning import flops
+  from ufm_jax.training import sharding, trainer
   mesh = sharding.make_mesh("data:1,fsdp:1", jax.devices()[:1])
   model_cfg = copy.deepcopy(config)
   if model_cfg.model.get("remat"):
@@ -236,7 +238,7 @@ def count_flops(config, batch, hw):
 
 def time_steps(config, batch, hw, steps):
   import jax
-  from ufm_jax import sharding, trainer
+  from ufm_jax.training import sharding, trainer
   mesh = sharding.make_mesh(config.mesh)
   ts = trainer.setup(config, mesh, hw, total_steps=1000)
   state = ts.init_state()
@@ -285,7 +287,7 @@ def saved_activation_bytes(model, abstract_params, per_device_batch: int, hw) ->
 
 
 def estimate(config, batch, hw):
-  from ufm_jax import sharding, trainer
+  from ufm_jax.training import sharding, trainer
   mesh = sharding.make_mesh(config.mesh)
   per_dev = batch // sharding.batch_divisor(mesh)
   print(f"config {config.model_name}: batch {batch} at {hw[0]}x{hw[1]}, dtype "
@@ -327,7 +329,7 @@ def main():
                   "step's rows; with --fit they come in multiples of 2 x grad_accum)")
   tpu = ap.add_argument_group("TPU planning (needs libtpu: pip install 'ufm_jax[tpu]')")
   tpu.add_argument("--topology", default=None,
-                   help="compile for this TPU slice (ufm_jax.topologies: v5e-8, v5p-128, ...)")
+                   help="compile for this TPU slice (ufm_jax.planning.topologies: v5e-8, v5p-128, ...)")
   tpu.add_argument("--per_chip_batch", type=int, default=None,
                    help="rows per chip (default: the recipe's batch over the chips)")
   tpu.add_argument("--fit", action="store_true",
@@ -339,7 +341,7 @@ def main():
                    "step time)")
   tpu.add_argument("--host_ms_per_row", type=float, default=None,
                    help="host CPU ms per training row for the host feed (default: "
-                   "ufm_jax.planning.HOST_MS_PER_ROW, measured by benchmarks/data_pipeline.py)")
+                   "ufm_jax.planning.planner.HOST_MS_PER_ROW, measured by benchmarks/data_pipeline.py)")
   tpu.add_argument("--time_only", action="store_true",
                    help="no compile: step time and days for each of --topology A,B,... (GPU "
                    "nodes too: h100-8, h200-8, a100-8) from the FLOP count")
@@ -363,9 +365,9 @@ def main():
   elif args.aot:
     aot(config, batch, hw, args)
   else:
-    from ufm_jax import planning
+    from ufm_jax.planning import planner
     batch = batch or int(config.input.batch_size)
-    hw = hw or planning.largest_shape(config)
+    hw = hw or planner.largest_shape(config)
     if args.flops:
       count_flops(config, batch, hw)
     elif args.estimate_only:

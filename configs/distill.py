@@ -7,7 +7,7 @@ r"""Distillation: a small student learns from a UFM teacher's predictions on unl
 The teacher (`teacher=`: anything `ufm_jax.load` takes, a converted checkpoint, a train.py
 workdir, a snapshot folder or a Hugging Face ID, or variant:NAME for a structure with random
 weights) runs inside the jitted train step on the same mesh, its variables sharded by the
-student's rules and never updated (ufm_jax.distill: why they are a step argument, neither
+student's rules and never updated (ufm_jax.training.distill: why they are a step argument, neither
 train state nor constants). It predicts on the un-augmented pair at its resolution; its flow,
 covisibility and (where it has one) flow covariance are warped into the student's crop. The
 student (`student=`: a ufm_jax/models/variants.py variant: ufm_small, ufm_tiny, synth_small, ...)
@@ -18,7 +18,7 @@ recordings, paired at `strides`, as `infer --frames` reads them), the latter two
 `data_root`. `labels=W` (W > 0) mixes a labelled source's labels back in: the official two
 terms at weight W beside the teacher's.
 
-Loss (each term a named key of config.loss, ufm_jax/distill_loss.py): teacher_robust, the
+Loss (each term a named key of config.loss, ufm_jax/training/distill_loss.py): teacher_robust, the
 official robust EPE (alpha 0.5, c 0.24) against the teacher's flow on the teacher's covisible
 pixels, each pixel weighted by the teacher's covariance where it has one
 (`--config.loss.teacher_robust.covariance=off` to ignore it); teacher_bce, the covisibility BCE
@@ -56,7 +56,8 @@ import os
 
 import ml_collections
 
-from ufm_jax import config_lib, model_io, optim
+from ufm_jax.runtime import model_io
+from ufm_jax.training import config_lib, optim
 from ufm_jax.data import augment, mixture, pipeline
 from ufm_jax.models import variants
 

@@ -37,7 +37,7 @@ covisibility head no negatives at all). The quirk keys of the loss are the offic
 
 import ml_collections
 
-from ufm_jax import config_lib, optim
+from ufm_jax.training import config_lib, optim
 from ufm_jax.data import mixture, pipeline
 
 _NO_AUGMENT = {"enabled": False, "supervise_out_of_view": True}

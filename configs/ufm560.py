@@ -19,13 +19,13 @@ ablation (same number of epochs). Arg `cov=True` adds a flow covariance to the u
 EPE supervises (`config_lib.add_flow_covariance`, docs/uncertainty.md): not in the official recipe.
 
 Each official quirk is one key below (`loss.*`, `optim.fractional_warmup`); the comment at its
-definition (ufm_jax/losses.py, ufm_jax/optim.py) says what switching it changes, e.g.
+definition (ufm_jax/training/losses.py, ufm_jax/training/optim.py) says what switching it changes, e.g.
 `--config.loss.robust_epe.invalid_gt=drop`.
 """
 
 import ml_collections
 
-from ufm_jax import config_lib, optim
+from ufm_jax.training import config_lib, optim
 from ufm_jax.data import augment, mixture, pipeline
 
 

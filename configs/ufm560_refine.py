@@ -10,7 +10,7 @@ optimizer state. Only the U-Net, classification head, combiners and the classifi
 train (official groups `classification_head` and `unet_feature`), with two terms summed in this
 order: the plain EPE of the regressed flow (multiplier 0, which the official code ignores: it adds
 a constant, the base being frozen) and 10 x the refinement cross-entropy
-(`ufm_jax.refine_training.RefinementCE`) on at most 400k pixels, only on rows whose dataset the
+(`ufm_jax.training.refine_training.RefinementCE`) on at most 400k pixels, only on rows whose dataset the
 official code marks suitable for refinement. 24 unique pairs per step (48 symmetrized rows), 30
 epochs, lr 1e-4 with 3 warmup epochs, cosine to 1%, clipping at 1.0. Data: BlendedMVS, MegaDepth,
 ScanNet++, StaticThings and Habitat with the official recipe's samples per epoch
@@ -29,7 +29,7 @@ megatraining_refinement_560.sh:46; a Hub ID or snapshot folder, or `ckpt:DIR560`
 official resume_model, the source's flow normalisation buffers (flow_mean, flow_std) replace the
 config's and base_shape / scale_strategy stay the config's (`model_init_flow_adaptor="buffers"`);
 any other difference that changes outputs stops the run before training, naming the --config
-override (`ufm_jax.model_init.check_structure`).
+override (`ufm_jax.training.model_init.check_structure`).
 
 Smoke run on a fresh machine (tiny recipe model, embedded synthetic pairs, random base):
   python train.py --config=configs/ufm560_refine.py:model=tiny_refine_recipe,data=synthetic,steps=20 \
@@ -39,7 +39,7 @@ Smoke run on a fresh machine (tiny recipe model, embedded synthetic pairs, rando
 
 import ml_collections
 
-from ufm_jax import config_lib, optim
+from ufm_jax.training import config_lib, optim
 from ufm_jax.data import augment, mixture, pipeline
 
 

@@ -8,7 +8,7 @@ Parameters from UFM-Base, as the official script (`resume_model=infinity1096/UFM
 megatraining_980.sh:41; `model_init`: a Hub ID or snapshot folder, or `ckpt:DIR560` for a 560
 run of ours), a fresh optimizer. As the official resume_model, the source's flow normalisation
 buffers (flow_mean, flow_std) replace the config's and its base_shape / scale_strategy stay the
-config's (`model_init_flow_adaptor="buffers"`, ufm_jax/model_init.py). The optical-flow datasets only, with the official recipe's samples per
+config's (`model_init_flow_adaptor="buffers"`, ufm_jax/training/model_init.py). The optical-flow datasets only, with the official recipe's samples per
 epoch (`mixture.RECIPES['ufm980']`), the official shapes (H in {644, 560, 490, 308} x 980) and
 augmentation. 16 unique pairs per step (32 symmetrized rows), 15 epochs. Peak lr 5e-7 (encoder)
 and 1e-5 (fusion transformer, flow head) with 2 warmup epochs, cosine to 1%; the covisibility head
@@ -25,7 +25,7 @@ which holds its covisibility channel while the layers it shares with the covaria
 
 import ml_collections
 
-from ufm_jax import config_lib, optim
+from ufm_jax.training import config_lib, optim
 from ufm_jax.data import augment, mixture, pipeline
 
 

@@ -23,7 +23,7 @@ megatraining_refinement_980.sh:47; a Hub ID or snapshot folder, or `ckpt:DIR560`
 official resume_model, the source's flow normalisation buffers (flow_mean, flow_std) replace the
 config's and base_shape / scale_strategy stay the config's (`model_init_flow_adaptor="buffers"`);
 any other difference that changes outputs stops the run before training, naming the --config
-override (`ufm_jax.model_init.check_structure`).
+override (`ufm_jax.training.model_init.check_structure`).
 
 Smoke run (tiny recipe model, embedded synthetic pairs, random base):
   python train.py --config=configs/ufm980_refine.py:model=tiny_refine_recipe,data=synthetic,steps=20 \
@@ -32,7 +32,7 @@ Smoke run (tiny recipe model, embedded synthetic pairs, random base):
 
 import ml_collections
 
-from ufm_jax import config_lib, optim
+from ufm_jax.training import config_lib, optim
 from ufm_jax.data import augment, mixture, pipeline
 
 

@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ufm_jax import accumulation, config_lib, hlo_stats, sharding, trainer
+from ufm_jax.planning import hlo_stats
+from ufm_jax.training import accumulation, config_lib, sharding, trainer
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 SYNTH = f"{REPO}/configs/synthetic.py:model=tiny,steps=4,loss=paper"
@@ -151,7 +152,9 @@ def test_train_py_accumulates_on_a_mesh_as_on_one_device(tmp_path):
   """train.py end to end with --config.grad_accum=2: the (data=4, fsdp=2) run of 8 fake devices
   trains the params of the one-device run (microbatch j is the same rows whatever the mesh), and
   a batch that does not split is refused before the pipeline starts."""
-  from ufm_jax import checkpoint, model_init, testing
+  from ufm_jax import testing
+  from ufm_jax.runtime import checkpoint
+  from ufm_jax.training import model_init
 
   def train(workdir, mesh, *extra):
     cmd = [sys.executable, str(REPO / "train.py"),

@@ -159,8 +159,8 @@ def test_resize_short_center_crop_scales_flow_and_tests_the_crop():
   np.testing.assert_array_equal(m["fov"], (yy >= 42) & nonocc_out)      # ANDed, before the test
   np.testing.assert_array_equal(m["occlusion_supervision"], nonocc_out)
   # the images: torch's antialiased bilinear, truncated to uint8 (not rounded)
-  from ufm_jax import inference
-  ref = inference.resize_bilinear_aa(img.astype(np.float32), (420, 560))
+  from ufm_jax.data import resize
+  ref = resize.resize_bilinear_aa(img.astype(np.float32), (420, 560))
   np.testing.assert_array_equal(i0, np.floor(ref).astype(np.uint8))
 
 

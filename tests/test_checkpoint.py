@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from safetensors.numpy import save_file
 
-from ufm_jax import checkpoint, model_init, optim
+from ufm_jax.runtime import checkpoint
+from ufm_jax.training import model_init, optim
 from ufm_jax.models import dinov2
 from ufm_jax.official import dinov2_weights
 from ufm_jax import testing

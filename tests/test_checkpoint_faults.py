@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from orbax.checkpoint._src.path import atomicity
 
-from ufm_jax import checkpoint, loop_control, optim
+from ufm_jax.runtime import checkpoint
+from ufm_jax.training import loop_control, optim
 
 
 def _iterator(n=40):

@@ -9,7 +9,8 @@ import pytest
 from safetensors.numpy import save_file
 
 from ufm_jax.models import variants as model_variants
-from ufm_jax import checkpoint, model_init, optim
+from ufm_jax.runtime import checkpoint
+from ufm_jax.training import model_init, optim
 from ufm_jax.models import ufm
 
 from ufm_jax import testing

@@ -8,7 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from ufm_jax import cli, model_io
+from ufm_jax.runtime import model_io
+from ufm_jax.tools import cli
 from ufm_jax.data.io import read_flo, read_image, write_image
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -89,7 +90,7 @@ def test_infer_cli_on_fixture_snapshot(io, reference_dir, pair_files, tmp_path):
 
 @pytest.mark.slow
 def test_convert_then_infer_from_converted_checkpoint(io, reference_dir, pair_files, tmp_path, capsys):
-  """`convert` writes our checkpoint (ufm_jax.model_io); `infer --checkpoint` then reads it."""
+  """`convert` writes our checkpoint (ufm_jax.runtime.model_io); `infer --checkpoint` then reads it."""
   ckpt = tmp_path / "ckpt"
   assert cli.main(["convert", str(reference_dir / "base"), str(ckpt)]) == 0
   assert cli.main(["infer", *map(str, pair_files), "--checkpoint", str(ckpt), "--out",
@@ -106,7 +107,7 @@ def test_load_train_workdir(tmp_path):
 
   import jax
 
-  from ufm_jax import checkpoint
+  from ufm_jax.runtime import checkpoint
 
   from ufm_jax.models import ufm
 

@@ -1,4 +1,4 @@
-"""The tools' persistent compilation cache (ufm_jax.compile_cache): a second `infer` process on
+"""The tools' persistent compilation cache (ufm_jax.runtime.compile_cache): a second `infer` process on
 the same shapes loads the forward from disk; `--compile_cache off` and a host's own cache dir."""
 
 import json
@@ -21,7 +21,7 @@ DRIVER = textwrap.dedent("""
     import jax
     events = []
     jax.monitoring.register_event_listener(lambda name, **kw: events.append(name))
-    from ufm_jax import cli
+    from ufm_jax.tools import cli
     rc = cli.main(sys.argv[1:])
     print(json.dumps({"rc": rc, "cache_dir": jax.config.jax_compilation_cache_dir,
                       "hits": events.count("/jax/compilation_cache/cache_hits"),

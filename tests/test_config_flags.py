@@ -6,7 +6,7 @@ import pathlib
 import ml_collections
 import pytest
 
-from ufm_jax import config_lib
+from ufm_jax.training import config_lib
 
 CONFIGS = pathlib.Path(__file__).resolve().parents[1] / "configs"
 

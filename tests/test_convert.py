@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from safetensors.numpy import load_file
 
-from ufm_jax import model_io, testing
+from ufm_jax import testing
+from ufm_jax.runtime import model_io
 from ufm_jax.models import dpt, ufm
 from ufm_jax.official import dinov2_weights
 from ufm_jax.official import config as official_config

@@ -10,7 +10,8 @@ import numpy as np
 import optax
 import pytest
 
-from ufm_jax import config_lib, losses, metrics, trainer
+from ufm_jax.evaluators import metrics
+from ufm_jax.training import config_lib, losses, trainer
 from ufm_jax.data import synthetic
 from ufm_jax.models import covariance
 
@@ -344,7 +345,8 @@ def test_model_init_adds_a_covariance_head_to_a_model_without_one(tmp_path):
   disagree (low_confidence_init) are refused by name."""
   from flax import traverse_util
 
-  from ufm_jax import model_init, testing
+  from ufm_jax import testing
+  from ufm_jax.training import model_init
   from ufm_jax.models import ufm
   from ufm_jax.official import config as official_config
   from ufm_jax.official import keymap

@@ -11,7 +11,10 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import cli, demo, export, matching, metrics, outputs, testing, viz
+from ufm_jax import testing
+from ufm_jax.evaluators import metrics
+from ufm_jax.runtime import outputs, viz
+from ufm_jax.tools import cli, demo, export, matching
 from ufm_jax.data import io
 from ufm_jax.models import covariance, ufm
 

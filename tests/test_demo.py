@@ -13,7 +13,8 @@ import urllib.request
 import numpy as np
 import pytest
 
-from ufm_jax import cli, testing
+from ufm_jax import testing
+from ufm_jax.tools import cli
 from ufm_jax.data import io, synthetic
 
 REPO = pathlib.Path(__file__).resolve().parents[1]

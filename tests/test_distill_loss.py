@@ -1,4 +1,4 @@
-"""The distillation terms (ufm_jax.distill_loss) by hand: the robust EPE against the teacher's
+"""The distillation terms (ufm_jax.training.distill_loss) by hand: the robust EPE against the teacher's
 flow on its covisible pixels, weighted by its covariance where it has one; the soft-target BCE
 with either rule for matches that leave the crop; both in a recipe whose batch holds no label."""
 
@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ufm_jax import losses
-from ufm_jax.distill_loss import TeacherCovisibility, TeacherFlow
+from ufm_jax.training import losses
+from ufm_jax.training.distill_loss import TeacherCovisibility, TeacherFlow
 
 
 def _robust(sq, alpha, c):

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import model_init, optim, testing
+from ufm_jax import testing
+from ufm_jax.training import model_init, optim
 from ufm_jax.models import ufm, variants
 from ufm_jax.official import config as official_config
 from ufm_jax.official import snapshot
@@ -79,8 +80,8 @@ def test_synth_small_starts_from_its_teacher(tmp_path):
   listed with both shapes; a plain ckpt: source of
   the other structure is still refused."""
   from flax import traverse_util
-  from ufm_jax import model_io
-  from ufm_jax import teacher as teacher_lib
+  from ufm_jax.runtime import model_io
+  from ufm_jax.training import teacher as teacher_lib
   teacher = variants.build_model("synth")
   tv = teacher_lib.random_variables(teacher, seed=3)
   model_io.save(tmp_path / "teacher", teacher, tv)

@@ -15,8 +15,10 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import checkpoint, config_lib, model_init, model_io, sharding, testing, trainer
-from ufm_jax import teacher as teacher_lib
+from ufm_jax import testing
+from ufm_jax.runtime import checkpoint, model_io
+from ufm_jax.training import config_lib, model_init, sharding, trainer
+from ufm_jax.training import teacher as teacher_lib
 from ufm_jax.data import io, synthetic
 from ufm_jax.models import variants
 
@@ -202,7 +204,7 @@ def test_a_student_is_an_ordinary_checkpoint_for_every_tool(frames_runs, tmp_pat
   analyser and to-official, unchanged: to-official refuses synth_small's 64-wide encoder as it
   refuses the synth teacher's (no DINOv2 hub size; ufm_small and ufm_tiny export:
   tests/test_distill_students.py)."""
-  from ufm_jax import cli, demo
+  from ufm_jax.tools import cli, demo
   tmp, _ = frames_runs
   student = tmp / "mesh"
   model, variables = ufm_jax.load(student)
@@ -261,15 +263,15 @@ def test_teacher_agreement_eval_scores_the_student_against_the_teacher(tmp_path)
 
 
 def test_the_planner_sets_up_the_distillation_step_with_its_teacher():
-  """planning.setup (train.py --compile_only) builds the distillation step from the config alone:
+  """planner.setup (train.py --compile_only) builds the distillation step from the config alone:
   the teacher's variables are counted beside the student's state, and the step's FLOPs are the
   same student's plain step plus the teacher's forward on the un-augmented pair (both counted on
   their jaxprs, traced only)."""
-  from ufm_jax import flops, planning
+  from ufm_jax.planning import flops, planner
   config = _config()
   devices = jax.devices()[:1]
-  _, ts, hw = planning.setup(config, devices)
-  info = planning.state_bytes(ts)
+  _, ts, hw = planner.setup(config, devices)
+  info = planner.state_bytes(ts)
   teacher_model = variants.build_model("synth")
   params = teacher_lib.random_variables(teacher_model)["params"]
   assert info["teacher_param_count"] == sum(x.size for x in jax.tree.leaves(params))
@@ -277,7 +279,7 @@ def test_the_planner_sets_up_the_distillation_step_with_its_teacher():
   assert info["teacher_resolution"] == [112, 112]
   plain = config_lib.load_config(f"{REPO}/configs/synthetic.py:model=synth_small,batch=4,"
                                  "eval=False")
-  _, ts_plain, hw_plain = planning.setup(plain, devices)
+  _, ts_plain, hw_plain = planner.setup(plain, devices)
   assert hw == hw_plain == (56, 56)
   x = jax.ShapeDtypeStruct((4, 112, 112, 3), jnp.uint8)
   forward = jax.make_jaxpr(lambda p, a, b: teacher_model.apply(

@@ -1,4 +1,4 @@
-"""The teacher's outputs warped into the student's crop (ufm_jax.distill.warp_to_crop) agree with
+"""The teacher's outputs warped into the student's crop (ufm_jax.training.distill.warp_to_crop) agree with
 the crop's own labels, the way the label-consistency tests check the pipeline's rows
 (tests/test_augment.py, tests/test_pipeline_label_grid.py): a stand-in teacher that predicts the
 true flow of the un-augmented pair gives the labels the flow pathway makes for the same crop, at
@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ufm_jax import distill
+from ufm_jax.training import distill
 from ufm_jax.data import augment, distill_rows, get_source, official_ops, pipeline
 from ufm_jax.data.official_ops import FlowCrop
 
@@ -231,7 +231,7 @@ def test_photometric_off_keeps_the_geometric_crop_only():
 
 def test_distill_config_colour_defaults_per_recipe():
   import pathlib
-  from ufm_jax import config_lib
+  from ufm_jax.training import config_lib
   config = pathlib.Path(__file__).resolve().parents[1] / "configs" / "distill.py"
   get = lambda a: config_lib.load_config(f"{config}:{a}")   # noqa: E731
   synth = "teacher=variant:synth,student=synth_small,data=synthetic"

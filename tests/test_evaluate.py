@@ -8,7 +8,8 @@ that is a known constant at the native resolution, so every metric is computable
 import numpy as np
 import pytest
 
-from ufm_jax import evaluators, metrics
+from ufm_jax import evaluators
+from ufm_jax.evaluators import metrics
 from ufm_jax.data.io import read_flo
 from ufm_jax.evaluators import base, report
 from ufm_jax.testing import wide_trees

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from ufm_jax.testing import bench_trees, wide_trees as trees
-from ufm_jax import evaluators, metrics
+from ufm_jax import evaluators
+from ufm_jax.evaluators import metrics
 from ufm_jax.data import get_source, io
 from ufm_jax.evaluators import base
 

@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from ufm_jax import metrics
+from ufm_jax.evaluators import metrics
 from ufm_jax.data import get_source, io
 from ufm_jax.evaluators import base
 from ufm_jax.testing import bench_trees, wide_trees

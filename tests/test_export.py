@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import cli, export, testing
+from ufm_jax import testing
+from ufm_jax.tools import cli, export
 from ufm_jax.models import ufm
 from ufm_jax.official import config as official_config
 from ufm_jax.official import snapshot

@@ -1,4 +1,4 @@
-"""FLOPs of a train step (ufm_jax.flops): the jaxpr count takes every loop body by its trip count
+"""FLOPs of a train step (ufm_jax.planning.flops): the jaxpr count takes every loop body by its trip count
 (so gradient accumulation does not shrink it) and agrees with the count from the model's
 dimensions; XLA's own count does not."""
 
@@ -9,7 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ufm_jax import config_lib, flops, hlo_stats, sharding, trainer
+from ufm_jax.planning import flops, hlo_stats
+from ufm_jax.training import config_lib, sharding, trainer
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""Per-layer FSDP gathers (config.fsdp_gather="layer", ufm_jax.sharding.layer_gather): on 8 fake
+"""Per-layer FSDP gathers (config.fsdp_gather="layer", ufm_jax.training.sharding.layer_gather): on 8 fake
 CPU devices (data 2 x fsdp 4) the tiny scanned model trains exactly as with every parameter
 gathered at the start of the step ("step"), and as with its gradients reduced in two stages (the
 path of 64+ chips, `sharding.TWO_STAGE_MIN_DEVICES`), while its compiled step gathers the scanned
@@ -20,7 +20,8 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 _SCRIPT = r"""
 import json, sys
 import jax, numpy as np
-from ufm_jax import config_lib, hlo_stats, sharding, trainer
+from ufm_jax.planning import hlo_stats
+from ufm_jax.training import config_lib, sharding, trainer
 from ufm_jax.models import scan
 
 remat = sys.argv[1] == "true"

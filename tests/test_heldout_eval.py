@@ -3,7 +3,7 @@
 import ml_collections
 import numpy as np
 
-from ufm_jax import sharding, trainer
+from ufm_jax.training import sharding, trainer
 from ufm_jax.evaluators import train_evals
 
 

@@ -97,9 +97,9 @@ def test_the_checker_finds_a_cycle_and_resolves_imports():
   assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
   assert _cycle({"a": {"b"}, "b": set()}) is None
   graph = _graph()
-  assert "ufm_jax.official.dinov2_weights" in graph["ufm_jax.model_init"]  # a function-level import
-  assert "ufm_jax.official" in graph["ufm_jax.model_init"]  # the package the import runs
-  assert "ufm_jax.cli" in graph["ufm_jax.__main__"]
+  assert "ufm_jax.official.dinov2_weights" in graph["ufm_jax.training.model_init"]  # a function-level import
+  assert "ufm_jax.official" in graph["ufm_jax.training.model_init"]  # the package the import runs
+  assert "ufm_jax.tools.cli" in graph["ufm_jax.__main__"]
 
 
 def test_no_import_cycles():
@@ -107,7 +107,7 @@ def test_no_import_cycles():
   assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
 
-@pytest.mark.parametrize("module", ["ufm_jax.cli"])
+@pytest.mark.parametrize("module", ["ufm_jax.tools.cli"])
 def test_library_code_never_imports_the_cli(module):
   importers = sorted(m for m, targets in _graph().items() if module in targets)
   assert set(importers) <= CLI_IMPORTERS, importers
@@ -120,3 +120,27 @@ def test_the_model_package_imports_only_itself():
   bad = {m: sorted(t for t in targets if not t.startswith("ufm_jax.models") and t != "ufm_jax")
          for m, targets in graph.items() if m.startswith("ufm_jax.models")}
   assert not {m: t for m, t in bad.items() if t}, bad
+
+
+# The floors of the house, bottom up (docs/architecture.md): a package imports only packages on its
+# own floor or below. `testing` (helpers of the tests and benchmarks) sits on top.
+FLOORS = [{"models", "geometry"}, {"data"}, {"official"}, {"runtime"}, {"training"},
+          {"evaluators"}, {"planning"}, {"tools"}, {"testing"}]
+
+
+def _package(module: str) -> str | None:
+  parts = module.split(".")
+  return parts[1] if len(parts) > 1 and (PACKAGE / parts[1]).is_dir() else None
+
+
+def test_every_module_lives_in_a_package():
+  """ufm_jax's top level holds the public API (__init__) and the entry point (__main__) only."""
+  assert sorted(p.name for p in PACKAGE.glob("*.py")) == ["__init__.py", "__main__.py"]
+  assert {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()} == set().union(*FLOORS)
+
+
+def test_no_import_runs_back_up_a_floor():
+  floor = {pkg: i for i, names in enumerate(FLOORS) for pkg in names}
+  up = sorted(f"{m} -> {t}" for m, targets in _graph().items() for t in targets
+              if _package(m) and _package(t) and floor[_package(t)] > floor[_package(m)])
+  assert not up, up

@@ -1,4 +1,4 @@
-"""`ufm_jax.inference` against the official `predict_correspondences_batched` fixtures.
+"""`ufm_jax.runtime.inference` against the official `predict_correspondences_batched` fixtures.
 
 The resize, the region bookkeeping and the unmap are checked on their own against the official
 arrays (no model needed); `test_predict_vs_reference` runs the whole thing with `load_official`.
@@ -7,7 +7,8 @@ arrays (no model needed); `test_predict_vs_reference` runs the whole thing with 
 import numpy as np
 import pytest
 
-from ufm_jax import inference
+from ufm_jax.data import resize
+from ufm_jax.runtime import inference
 
 PAIRS = ("hl0", "hl1", "hl2")
 INF_HW = (168, 224)  # config.json inference_resolution (W, H) = [224, 168]
@@ -25,7 +26,7 @@ def _hwc(x):  # [1, C, H, W] -> [H, W, C]
 @pytest.mark.parametrize("pair", PAIRS)
 @pytest.mark.parametrize("view,scaled", [("src", "src_scaled"), ("tgt", "tgt_scaled")])
 def test_normalised_antialiased_resize(io, pair, view, scaled):
-  got = inference.resize_bilinear_aa(inference.normalize(io[f"{pair}_{view}_uint8"]), INF_HW)
+  got = resize.resize_bilinear_aa(inference.normalize(io[f"{pair}_{view}_uint8"]), INF_HW)
   np.testing.assert_allclose(got, _hwc(io[f"{pair}_{scaled}"]), rtol=0, atol=5e-5)
 
 
@@ -66,14 +67,14 @@ def test_resize_hand_cases():
   # half-width 2, so input centres 0.5, 1.5, 2.5 get 0.75, 0.75, 0.25 (renormalised); output 1
   # mirrors it on 1.5, 2.5, 3.5.
   x = np.arange(4, dtype=np.float32).reshape(1, 4, 1)
-  got = inference.resize_bilinear_aa(x, (1, 2))[0, :, 0]
+  got = resize.resize_bilinear_aa(x, (1, 2))[0, :, 0]
   expect = [(0.75 * 0 + 0.75 * 1 + 0.25 * 2) / 1.75, (0.25 * 1 + 0.75 * 2 + 0.75 * 3) / 1.75]
   np.testing.assert_allclose(got, expect, atol=1e-6)
   # Upsampling 2 -> 4 is plain bilinear with edge clamping: 0, 0.25, 0.75, 1.
-  got = inference.resize_bilinear_aa(np.array([[[0.0], [1.0]]], np.float32), (1, 4))[0, :, 0]
+  got = resize.resize_bilinear_aa(np.array([[[0.0], [1.0]]], np.float32), (1, 4))[0, :, 0]
   np.testing.assert_allclose(got, [0, 0.25, 0.75, 1], atol=1e-7)
   # Legacy nearest: 3 -> 5 picks floor(i * 0.6).
-  np.testing.assert_array_equal(inference.resize_nearest(np.arange(3)[:, None], (5, 1))[:, 0],
+  np.testing.assert_array_equal(resize.resize_nearest(np.arange(3)[:, None], (5, 1))[:, 0],
                                 [0, 0, 1, 1, 2])
 
 
@@ -125,7 +126,7 @@ def test_predict_input_errors():
 def test_too_small_an_image_is_refused_by_every_tool(tmp_path, monkeypatch, capsys):
   """One rule (min_image_side: one image pixel per encoder patch at the inference resolution,
   30 px for 420x560) in predict, so the CLI refuses what the demo refuses."""
-  from ufm_jax import cli
+  from ufm_jax.tools import cli
   from ufm_jax.data import io as image_io
   model = _Replay(np.zeros((1, 420, 560, 2), np.float32), np.zeros((1, 420, 560), np.float32),
                   [(420, 560)])

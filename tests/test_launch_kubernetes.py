@@ -105,7 +105,7 @@ def test_the_plans_overrides_reach_train_py(path):
   """MESH, GLOBAL_BATCH and GRAD_ACCUM (what `benchmarks/train_step.py --fit` prints) arrive as
   train.py's --config overrides, and the example's values make a run train.py accepts on the
   example's chips: the mesh covers them, the batch splits into the microbatches on every chip."""
-  from ufm_jax import accumulation, config_lib, sharding
+  from ufm_jax.training import accumulation, config_lib, sharding
   jobset, params = _render(path)
   (container,) = jobset["spec"]["replicatedJobs"][0]["template"]["spec"]["template"]["spec"][
       "containers"]

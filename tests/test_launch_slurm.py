@@ -19,7 +19,8 @@ import time
 
 import pytest
 
-from ufm_jax import checkpoint, testing
+from ufm_jax import testing
+from ufm_jax.runtime import checkpoint
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 SBATCH = REPO / "launch" / "slurm" / "train.sbatch"

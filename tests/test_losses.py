@@ -9,7 +9,7 @@ import ml_collections
 import numpy as np
 import pytest
 
-from ufm_jax import losses
+from ufm_jax.training import losses
 
 
 def _rho(x, a=0.5, c=0.24):

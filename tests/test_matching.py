@@ -4,7 +4,8 @@ covisibility in place of a prediction) the matches obey the epipolar geometry an
 import numpy as np
 import pytest
 
-from ufm_jax import cli, matching, metrics
+from ufm_jax.evaluators import metrics
+from ufm_jax.tools import cli, matching
 from ufm_jax.data import io, synthetic
 
 

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ufm_jax import metrics
+from ufm_jax.evaluators import metrics
 from ufm_jax.testing import wide_trees
 
 

@@ -4,7 +4,7 @@ TensorBoard gets only finite scalars (tensorboardX warns on every NaN event othe
 import json
 import math
 
-from ufm_jax import trainer
+from ufm_jax.training import trainer
 
 
 def _strict(line):

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ufm_jax import trainer
+from ufm_jax.training import trainer
 from ufm_jax.models import dinov2, info_sharing, ufm, variants
 from ufm_jax.official import snapshot
 

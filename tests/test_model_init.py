@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from flax import traverse_util
 
-from ufm_jax import trainer
+from ufm_jax.training import trainer
 from ufm_jax.models import dpt, info_sharing, ufm, variants
 
 

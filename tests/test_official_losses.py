@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ufm_jax import losses, testing
+from ufm_jax import testing
+from ufm_jax.training import losses
 
 pytestmark = pytest.mark.official_training
 

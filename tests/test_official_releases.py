@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import model_io, testing
+from ufm_jax import testing
+from ufm_jax.runtime import model_io
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 V2 = pathlib.Path(os.environ.get("UFM_FIXTURES", REPO.parent / "shared" / "fixtures")) / \
@@ -170,7 +171,8 @@ def test_hub_ids_resolve_offline_from_the_standard_cache(tmp_path, reference_dir
   infer = ["infer", str(tmp_path / "src.png"), str(tmp_path / "tgt.png"), "--snapshot"]
   script = f"""
 import contextlib, io, jax, numpy as np, ufm_jax
-from ufm_jax import cli, model_init
+from ufm_jax.tools import cli
+from ufm_jax.training import model_init
 m, p = ufm_jax.load_official("infinity1096/UFM-Fixture")
 m2, p2 = ufm_jax.load_official({str(reference_dir / "base")!r})
 assert m.config == m2.config

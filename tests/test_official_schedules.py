@@ -14,7 +14,8 @@ import ml_collections
 import numpy as np
 import pytest
 
-from ufm_jax import config_lib, optim, testing
+from ufm_jax import testing
+from ufm_jax.training import config_lib, optim
 from ufm_jax.models import ufm, variants
 
 pytestmark = pytest.mark.official_training

@@ -8,7 +8,7 @@ import ml_collections
 import numpy as np
 import pytest
 
-from ufm_jax import optim
+from ufm_jax.training import optim
 
 
 def _params():

@@ -7,7 +7,7 @@ import ml_collections
 import numpy as np
 import pytest
 
-from ufm_jax import config_lib
+from ufm_jax.training import config_lib
 from ufm_jax.data import mixture, pipeline, register
 
 SYNTHETIC = pathlib.Path(__file__).resolve().parents[1] / "configs" / "synthetic.py"

@@ -1,4 +1,4 @@
-"""One program from plan to pod (ufm_jax.planning): `train.py --compile_only` and the planner
+"""One program from plan to pod (ufm_jax.planning.planner): `train.py --compile_only` and the planner
 (`benchmarks/train_step.py`) compile the same step for the same config and devices, the recipes
 default to the sharding the planner sizes, a plan's overrides reproduce it, and train.py's
 command line says what it takes."""
@@ -11,7 +11,9 @@ import sys
 import jax
 import pytest
 
-from ufm_jax import config_lib, planning, testing, topologies
+from ufm_jax import testing
+from ufm_jax.planning import planner, topologies
+from ufm_jax.training import config_lib
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 TINY = REPO / "ufm_jax" / "testing" / "train_support.py"
@@ -73,26 +75,26 @@ def test_recipes_default_to_the_planned_sharding():
   for name in RECIPES:
     config = config_lib.load_config(str(REPO / "configs" / f"{name}.py"))
     assert config.mesh == "data:1,fsdp:-1", name
-    assert planning.largest_shape(config) in planning.training_shapes(config)
+    assert planner.largest_shape(config) in planner.training_shapes(config)
   c560 = config_lib.load_config(str(REPO / "configs" / "ufm560.py"))
-  assert planning.largest_shape(c560) == (420, 560)      # 560_many_non_square_ar: no 560x560
+  assert planner.largest_shape(c560) == (420, 560)      # 560_many_non_square_ar: no 560x560
   c980 = config_lib.load_config(str(REPO / "configs" / "ufm980.py"))
-  assert planning.largest_shape(c980) == (644, 980)
-  assert planning.pairs_per_epoch(c560) == 2 * sum(d.quota for d in c560.input.datasets.values())
+  assert planner.largest_shape(c980) == (644, 980)
+  assert planner.pairs_per_epoch(c560) == 2 * sum(d.quota for d in c560.input.datasets.values())
 
 
 def test_a_step_over_the_chips_hbm_does_not_fit():
   config = config_lib.load_config(str(TINY))
-  tgt = planning.target()
-  small = planning.Target("tiny chip", tgt.devices[:1], 1, tgt.device_kind, 1024, None, 1,
+  tgt = planner.target()
+  small = planner.Target("tiny chip", tgt.devices[:1], 1, tgt.device_kind, 1024, None, 1,
                           tgt.platform)
-  r = planning.plan(config, small, batch=2, flops=False, log=lambda *a, **k: None)
+  r = planner.plan(config, small, batch=2, flops=False, log=lambda *a, **k: None)
   assert r["fits"] is False and r["hbm_bytes_per_chip"] > 1024
 
 
 def test_launch_lines_carry_the_overrides():
   result = {"mesh_config": "data:1,fsdp:-1", "global_batch": 96, "grad_accum": 6, "hosts": 2}
-  lines = planning.launch_lines(result, "configs/ufm560.py")
+  lines = planner.launch_lines(result, "configs/ufm560.py")
   flags = "--config.mesh=data:1,fsdp:-1 --config.input.batch_size=96 --config.grad_accum=6"
   assert lines[0] == f"python train.py --config=configs/ufm560.py --workdir=DIR {flags}"
   assert lines[1].startswith("sbatch --nodes=2 launch/slurm/train.sbatch configs/ufm560.py DIR")
@@ -103,10 +105,10 @@ def test_launch_lines_carry_the_overrides():
 def test_host_feed():
   """Rows per second per host from the step time, times the host's ms per row, as cores."""
   config = config_lib.load_config(str(REPO / "configs" / "ufm560.py"))
-  tgt = planning.target("v5e-64", compile=False)
-  shapes = planning.training_shapes(config)
+  tgt = planner.target("v5e-64", compile=False)
+  shapes = planner.training_shapes(config)
   per_row = {s: 1e12 for s in shapes}
-  est = planning.estimate(config, tgt, per_row, shapes[0], 128, 0.5, 10.0)
+  est = planner.estimate(config, tgt, per_row, shapes[0], 128, 0.5, 10.0)
   step_s = 1e12 * 128 / (64 * 197e12 * 0.5)
   assert est["step_s_estimate"] == pytest.approx(step_s)
   assert est["hosts"] == 16
@@ -114,15 +116,15 @@ def test_host_feed():
   assert est["host_cores_per_host"] == pytest.approx(128 / step_s / 16 * 0.010)
   assert est["host_vcpus"] == 112        # a 4-chip v5e VM
   assert est["hosts_feed_chips"] == (est["host_cores_per_host"] <= 112)
-  slow = planning.estimate(config, tgt, per_row, shapes[0], 128, 0.5, 1000.0)
+  slow = planner.estimate(config, tgt, per_row, shapes[0], 128, 0.5, 1000.0)
   assert slow["hosts_feed_chips"] is False   # a second per row cannot keep up
   # The recipe's image operations pick the figure: official by default, OpenCV's when asked.
-  assert planning.default_host_ms_per_row(config) == planning.HOST_MS_PER_ROW[(560, False)]
+  assert planner.default_host_ms_per_row(config) == planner.HOST_MS_PER_ROW[(560, False)]
   config.input.augment = {**dict(config.input.augment), "fast_image_ops": True}
-  assert planning.default_host_ms_per_row(config) == planning.HOST_MS_PER_ROW[(560, True)]
-  assert planning.HOST_MS_PER_ROW[(560, False)] > planning.HOST_MS_PER_ROW[(560, True)]
+  assert planner.default_host_ms_per_row(config) == planner.HOST_MS_PER_ROW[(560, True)]
+  assert planner.HOST_MS_PER_ROW[(560, False)] > planner.HOST_MS_PER_ROW[(560, True)]
   c980 = config_lib.load_config(str(REPO / "configs" / "ufm980.py"))
-  assert planning.default_host_ms_per_row(c980) is None      # never measured at 980
+  assert planner.default_host_ms_per_row(c980) is None      # never measured at 980
 
 
 def test_train_py_help_lists_its_flags():
@@ -164,5 +166,5 @@ def test_compile_only_and_the_planner_agree_on_a_tpu_slice():
 
 
 def test_target_of_the_devices_at_hand():
-  tgt = planning.target()
+  tgt = planner.target()
   assert tgt.chips == len(jax.devices()) and tgt.hosts == jax.process_count()

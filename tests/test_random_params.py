@@ -5,7 +5,7 @@ import functools
 import jax
 import numpy as np
 
-from ufm_jax import optim, trainer
+from ufm_jax.training import optim, trainer
 from ufm_jax.models import variants
 
 

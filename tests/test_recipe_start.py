@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 import ufm_jax
-from ufm_jax import config_lib, model_init, testing, trainer
+from ufm_jax import testing
+from ufm_jax.training import config_lib, model_init, trainer
 from ufm_jax.models import dinov2, dpt, scan, ufm
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -100,7 +101,7 @@ def test_a_hub_id_starts_the_refine_recipe_offline(snapshot, tmp_path):
   testing.hub_cache(tmp_path / "hub", "infinity1096/UFM-Base", snapshot, COMMIT)
   script = f"""
 import jax, numpy as np
-from ufm_jax import config_lib, model_init, trainer
+from ufm_jax.training import config_lib, model_init, trainer
 from ufm_jax.models import ufm
 config = config_lib.load_config({str(REPO / "configs" / "ufm560_refine.py")!r})
 config.model_fn = {RECIPES["ufm560_refine"]!r}

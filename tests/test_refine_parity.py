@@ -167,8 +167,8 @@ def test_convert_save_load_and_infer_cli(fx, full, tmp_path):
   """The converted checkpoint reloads as UFMRefine with equal params, and the infer CLI on it
   reproduces the official high-level output of pair hl1 (target smaller than the source)."""
   import cv2
-  from ufm_jax import cli
-  from ufm_jax.model_io import load_converted, save
+  from ufm_jax.tools import cli
+  from ufm_jax.runtime.model_io import load_converted, save
   model, params, _ = full
   save(tmp_path / "ckpt", model, params)
   model2, variables2 = load_converted(tmp_path / "ckpt")

@@ -72,7 +72,7 @@ def test_batch_norm_group_rows_takes_each_gpus_statistics():
 _PER_DEVICE = r"""
 import jax, jax.numpy as jnp, numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
-from ufm_jax import hlo_stats
+from ufm_jax.planning import hlo_stats
 from ufm_jax.models import refine
 assert jax.device_count() == 8
 mesh = Mesh(np.array(jax.devices()), ("data",))

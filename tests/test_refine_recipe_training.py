@@ -16,8 +16,11 @@ import pytest
 from flax import traverse_util
 
 import ufm_jax
-from ufm_jax import checkpoint, cli, config_lib, export, model_init, model_io, optim, outputs
-from ufm_jax import sharding, testing, trainer
+from ufm_jax.runtime import checkpoint, model_io, outputs
+from ufm_jax.tools import cli, export
+from ufm_jax.training import config_lib, model_init, optim
+from ufm_jax import testing
+from ufm_jax.training import sharding, trainer
 from ufm_jax.evaluators import dense, pose
 from ufm_jax.models import refine, ufm, variants
 
@@ -344,7 +347,7 @@ def test_consumers_of_predictions_without_covisibility(tmp_path):
   assert sorted(p.name for p in written) == ["p.flo", "p_flow.npy", "p_panel.png"]
   assert sorted(p.name for p in tmp_path.iterdir()) == ["p.flo", "p_flow.npy", "p_panel.png"]
 
-  from ufm_jax import matching
+  from ufm_jax.tools import matching
   with pytest.raises(ValueError, match="predicts none"):
     matching.matches_from_dense(pred["flow"], None)
 

@@ -10,8 +10,8 @@ import ml_collections
 import numpy as np
 import pytest
 
-from ufm_jax import losses, optim
-from ufm_jax import refine_training as rt
+from ufm_jax.training import losses, optim
+from ufm_jax.training import refine_training as rt
 
 
 def _bf16(x):
@@ -205,7 +205,7 @@ def test_eval_loss_window_and_gradients():
 def test_refine_stage_trains_only_the_refiner():
   """Tiny UFM-Refine, the refine-560 learning rates (base groups at 0): a few steps of the
   refinement loss on a fixed GT offset lower it, and the base parameters stay bitwise."""
-  from ufm_jax import trainer
+  from ufm_jax.training import trainer
   from ufm_jax.models import variants
   model = variants.build_model("tiny_refine", param_init="official")
   params = trainer.random_params(model, 0)

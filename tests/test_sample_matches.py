@@ -12,7 +12,7 @@ import statistics
 import numpy as np
 import pytest
 
-from ufm_jax import metrics
+from ufm_jax.evaluators import metrics
 
 
 def _definition(x, sigma):

@@ -11,7 +11,8 @@ import pytest
 from flax import traverse_util
 from safetensors.numpy import save_file
 
-from ufm_jax import checkpoint, model_init, model_io, trainer
+from ufm_jax.runtime import checkpoint, model_io
+from ufm_jax.training import model_init, trainer
 from ufm_jax.models import dinov2, layers, scan, ufm
 from ufm_jax.official import keymap, snapshot
 
@@ -127,7 +128,7 @@ def test_model_init_puts_any_layout_into_the_model(official, reference_dir, tmp_
   _assert_trees_equal(got["info_sharing"], template["info_sharing"])
 
   # A scan run's training checkpoint into the per-layer model.
-  from ufm_jax import optim
+  from ufm_jax.training import optim
   trained = jax.tree.map(lambda p: np.asarray(p) + 1.0, scan.stack_blocks(params, m.config))
   mngr = checkpoint.make_manager(tmp_path / "run", 1, 1, async_save=False)
   checkpoint.save(mngr, 5, optim.TrainState.create(trained, optim.optax.sgd(1.0)), force=True)

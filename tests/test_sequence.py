@@ -5,9 +5,10 @@ import json
 
 import numpy as np
 
-from ufm_jax import cli, sequence
+from ufm_jax.tools import cli, sequence
 from ufm_jax.data import io
 from ufm_jax.data.io import read_flo
+from ufm_jax.data.sources import frames
 
 
 class _Shift:
@@ -34,7 +35,7 @@ def _frames(folder, n):
 
 def test_natural_sort_and_pair_list(tmp_path):
   d = _frames(tmp_path / "fr", 12)
-  pairs = sequence.frame_pairs(d, stride=2)
+  pairs = frames.frame_pairs(d, stride=2)
   assert [tuple(p.rsplit("/", 1)[1] for p in pr) for pr in pairs[:3]] == [
       ("f0.png", "f2.png"), ("f1.png", "f3.png"), ("f2.png", "f4.png")]
   assert pairs[-1][1].endswith("f11.png") and len(pairs) == 10

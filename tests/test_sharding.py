@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from jax.sharding import PartitionSpec as P
 
-from ufm_jax import sharding
+from ufm_jax.training import sharding
 
 
 def test_fsdp_picks_largest_divisible_dim():

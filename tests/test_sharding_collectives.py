@@ -1,4 +1,4 @@
-"""The compiled FSDP train step moves weights, not activations (ufm_jax.hlo_stats on the HLO).
+"""The compiled FSDP train step moves weights, not activations (ufm_jax.planning.hlo_stats on the HLO).
 
 A batch-sharded FSDP step gathers each weight for the forward and the backward pass and reduces
 its gradient: a few times the parameter bytes per device, whatever the batch. Here activations
@@ -16,7 +16,8 @@ import sys
 import numpy as np
 import pytest
 
-from ufm_jax import hlo_stats, testing
+from ufm_jax import testing
+from ufm_jax.planning import hlo_stats
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 BATCH = 48  # 6 rows (3 symmetrized pairs) per device; 48 and 96 are no parameter dimension
@@ -168,7 +169,8 @@ _TWO_STAGE = r"""
 import json
 import os
 import jax, jax.numpy as jnp, numpy as np
-from ufm_jax import hlo_stats, sharding
+from ufm_jax.planning import hlo_stats
+from ufm_jax.training import sharding
 
 mesh = sharding.make_mesh("data:1,fsdp:8")
 rules = [(r".*", "fsdp")]
@@ -228,7 +230,9 @@ def test_gradients_reduce_in_two_stages_on_large_fsdp_axes():
 _WIDE_ON_V5E_64 = r"""
 import json, sys
 import jax
-from ufm_jax import hlo_stats, optim, sharding, testing, topologies, trainer
+from ufm_jax import testing
+from ufm_jax.planning import hlo_stats, topologies
+from ufm_jax.training import optim, sharding, trainer
 from ufm_jax.models import scan
 
 accum = int(sys.argv[1])
@@ -260,7 +264,7 @@ def test_v5e_64_step_reduce_scatters_gradients(grad_accum):
   reduce-scattered: per microbatch each layer is gathered twice in bf16 (forward and remat: 1.0x
   its float32 bytes) and its gradient reduce-scattered (1/8 of its bf16 bytes and less); a
   gradient all-reduced whole, as XLA:TPU does on one 64-way stage, would add 0.5x."""
-  from ufm_jax import topologies
+  from ufm_jax.planning import topologies
   if not topologies.has_libtpu():
     pytest.skip("libtpu is not installed: pip install 'ufm_jax[tpu]' (in its own virtualenv)")
   r = subprocess.run([sys.executable, "-c", _WIDE_ON_V5E_64, str(grad_accum)],

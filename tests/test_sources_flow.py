@@ -503,7 +503,7 @@ def test_flyingchairs_backward_rows_in_the_980_all_range(tmp_path, zero_flow):
   batches: the "all" range (loss/epe.py:63-69 reads no mask) supervises every pixel of those
   rows towards zero flow; `backward_zero_flow=False` drops them. HD1K's backward rows (official:
   4000 px flow, outside the range) supervise nothing either way."""
-  from ufm_jax import config_lib, losses
+  from ufm_jax.training import config_lib, losses
   from ufm_jax.data import pipeline
   h, w = 28, 42
   _chairs_tree(tmp_path / "chairs", n=4, h=h, w=w)

@@ -296,7 +296,7 @@ def test_synthetic_config_supervises_out_of_view_pixels_as_not_covisible():
   """configs/synthetic.py's shift pairs are non-covisible only where the match leaves the view.
   The official rule drops those pixels from covis_valid (the covisibility head would see no
   negative); the config keeps them supervised, and the official default is unchanged."""
-  from ufm_jax import config_lib
+  from ufm_jax.training import config_lib
   from ufm_jax.data import pipeline
   for keep in (True, False):
     c = config_lib.load_config(str(pathlib.Path(__file__).resolve().parents[1] / "configs" /

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ufm_jax.models import variants as models
-from ufm_jax import trainer
+from ufm_jax.training import trainer
 from ufm_jax.models import dinov2, ufm
 
 

@@ -14,7 +14,10 @@ import pytest
 from safetensors.numpy import load_file
 
 import ufm_jax
-from ufm_jax import checkpoint, cli, losses, optim, testing, trainer
+from ufm_jax import testing
+from ufm_jax.runtime import checkpoint
+from ufm_jax.tools import cli
+from ufm_jax.training import losses, optim, trainer
 from ufm_jax.data import synthetic
 from ufm_jax.models import dinov2, ufm
 from ufm_jax.official import config as official_config

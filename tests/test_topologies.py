@@ -1,4 +1,4 @@
-"""TPU planning from a CPU host (ufm_jax.topologies, benchmarks/train_step.py --topology): the
+"""TPU planning from a CPU host (ufm_jax.planning.topologies, benchmarks/train_step.py --topology): the
 slice table, the batch search, and (where libtpu is installed) the tiny model's step compiled for
 a v5e-4."""
 
@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from ufm_jax import topologies
+from ufm_jax.planning import topologies
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 GIB = 2 ** 30
@@ -85,7 +85,7 @@ def _libtpu_hbm_limit_gib(name):
   code = f"""
 import jax, jax.numpy as jnp, numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
-from ufm_jax import topologies
+from ufm_jax.planning import topologies
 devices = topologies.devices({name!r})
 s = NamedSharding(Mesh(np.array(devices), ("x",)), P("x"))
 f = jax.jit(lambda a: jnp.sin(a) + jnp.cos(a)[::-1], in_shardings=s, out_shardings=s)

@@ -14,7 +14,7 @@ import time
 
 import pytest
 
-from ufm_jax import checkpoint
+from ufm_jax.runtime import checkpoint
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 CONFIG = f"--config={REPO}/ufm_jax/testing/train_support.py"

@@ -8,7 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from ufm_jax import checkpoint, model_init, testing
+from ufm_jax import testing
+from ufm_jax.runtime import checkpoint
+from ufm_jax.training import model_init
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 

@@ -11,7 +11,8 @@ import tempfile
 import jax
 import numpy as np
 
-from ufm_jax import checkpoint, model_init
+from ufm_jax.runtime import checkpoint
+from ufm_jax.training import model_init
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 XLA_CACHE = pathlib.Path(tempfile.gettempdir()) / "ufm_jax_test_xla_cache"

@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from ufm_jax import checkpoint
+from ufm_jax.runtime import checkpoint
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 TOTAL = 34

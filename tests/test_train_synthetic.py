@@ -91,6 +91,6 @@ def test_synthetic_config_learns(tmp_path):
 
   # ufm_jax.load + predict on the workdir infer at the size it trained at, not at 420x560.
   import ufm_jax
-  from ufm_jax import inference
+  from ufm_jax.runtime import inference
   model, _ = ufm_jax.load(tmp_path)
   assert inference.inference_resolutions(model) == [(56, 56)]

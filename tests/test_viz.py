@@ -3,7 +3,7 @@
 import cv2
 import numpy as np
 
-from ufm_jax import viz
+from ufm_jax.runtime import viz
 from ufm_jax.data import io
 
 

@@ -19,11 +19,11 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "load_official": ("ufm_jax.official.snapshot", "load_official"),
-    "load": ("ufm_jax.model_io", "load_model"),
+    "load": ("ufm_jax.runtime.model_io", "load_model"),
     "save_official": ("ufm_jax.official.snapshot", "save_official"),
-    "predict": ("ufm_jax.inference", "predict"),
-    "load_exported": ("ufm_jax.export", "load_exported"),
-    "match": ("ufm_jax.matching", "match"),
+    "predict": ("ufm_jax.runtime.inference", "predict"),
+    "load_exported": ("ufm_jax.tools.export", "load_exported"),
+    "match": ("ufm_jax.tools.matching", "match"),
     "read_image": ("ufm_jax.data.io", "read_image"),
 }
 

@@ -1,7 +1,7 @@
-"""`python -m ufm_jax infer|convert|to-official ...`: see ufm_jax/cli.py."""
+"""`python -m ufm_jax infer|convert|to-official ...`: see ufm_jax/tools/cli.py."""
 
 import sys
 
-from ufm_jax.cli import main
+from ufm_jax.tools.cli import main
 
 sys.exit(main())

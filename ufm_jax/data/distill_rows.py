@@ -1,4 +1,4 @@
-"""Training rows for distillation (configs/distill.py; the teacher side: ufm_jax.distill).
+"""Training rows for distillation (configs/distill.py; the teacher side: ufm_jax.training.distill).
 
 `DistillPair` is the pipeline's per-record transform when the input block names a
 `teacher_shape`: each pair's two images (a source's labels are not read unless `keep_labels`)

@@ -44,7 +44,7 @@ INPUT_DEFAULTS = {
 def training_shapes(block) -> tuple[tuple[int, int], ...]:
   """The (H, W) training shapes of an input block, one drawn per global batch: `shapes` when it
   lists them (the recipes' official ones), else W = longest_side with H from aspect_ratios. The
-  one rule for the pipeline (`pipeline.create`) and the planner (`ufm_jax.planning`), which
+  one rule for the pipeline (`pipeline.create`) and the planner (`ufm_jax.planning.planner`), which
   compiles the step at the largest of them."""
   cfg = {**INPUT_DEFAULTS, **dict(block)}
   if cfg["shapes"]:

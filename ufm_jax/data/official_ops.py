@@ -24,9 +24,9 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from ufm_jax import inference
+from ufm_jax.data import resize
 # torch's legacy 'nearest' index, shared with the model's input and output resizing.
-from ufm_jax.inference import nearest_index
+from ufm_jax.data.resize import nearest_index
 
 
 # ----------------------------------------------------------------------------------- resampling
@@ -101,12 +101,12 @@ def flow_crop_images(image0, image1, crop: FlowCrop, exact: bool = False):
 
   exact=False (the training rows): `resize_bilinear_aa`, faster; its weights round differently
   from torch's, so a few pixels are one grey level off. exact=True (the benchmarks): torch's
-  weights to the last bit (`ufm_jax.inference.resize_bilinear_aa`) on the whole image, then the
+  weights to the last bit (`ufm_jax.data.resize.resize_bilinear_aa`) on the whole image, then the
   crop."""
   out = []
   for image, (top, left) in ((image0, crop.crop0), (image1, crop.crop1)):
     if exact:
-      full = inference.resize_bilinear_aa(np.asarray(image, np.float32), crop.resized_hw)
+      full = resize.resize_bilinear_aa(np.asarray(image, np.float32), crop.resized_hw)
       out.append(trunc_u8(full[top:top + crop.out_hw[0], left:left + crop.out_hw[1]]))
     else:
       out.append(resize_bilinear_aa(image, crop.resized_hw, (top, left) + crop.out_hw))

@@ -12,7 +12,8 @@ full-resolution data prepared by data/*/, labels by ufm_jax.geometry. Benches wi
 variant (synthetic, the pose benches) always run natively.
 
 `run_bench(name, runner, data_root, protocol=...)` returns the flat metric dict keyed
-`<bench>[_<split>]/<metric>`.
+`<bench>[_<split>]/<metric>`. The metrics themselves (EPE, thresholds, pose AUC, match sampling,
+calibration) live in `ufm_jax.evaluators.metrics`; `train_evals` runs them inside train.py.
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ufm_jax import inference, outputs
+from ufm_jax.runtime import inference, outputs
 
 
 class MissingDataError(FileNotFoundError):
@@ -108,7 +108,7 @@ def relpath_of(sample: dict, index: int) -> str:
 
 class PredictionWriter:
   """--save_predictions: flow (.flo) + covisibility PNG per pair (when the model predicts
-  covisibility) + the flow covariance (`<name>_flow_covariance.npy`, ufm_jax.outputs, when it
+  covisibility) + the flow covariance (`<name>_flow_covariance.npy`, ufm_jax.runtime.outputs, when it
   predicts one), panels for the first N pairs of each bench (with the uncertainty tile for a
   flow covariance model), under <root>/<bench>/<the dataset's GT relative path>."""
 
@@ -120,7 +120,7 @@ class PredictionWriter:
   def __call__(self, bench: str, sample: dict, index: int, pred: dict) -> None:
     if self.root is None:
       return
-    from ufm_jax import viz
+    from ufm_jax.runtime import viz
     from ufm_jax.data import io
 
     rel = pathlib.PurePosixPath(relpath_of(sample, index)).with_suffix("")

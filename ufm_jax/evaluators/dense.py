@@ -23,7 +23,7 @@ a model that matches must beat) and `covis_acc` (pixels with covis_valid whose t
 covisibility >= 0.5 is right) are added; `covis_acc` only for a model that predicts covisibility
 (the refinement recipe's has no uncertainty head: a warning says so once).
 A model that predicts a flow covariance adds its calibration over the `epe` pixels
-(ufm_jax.metrics.add_calibration): nll, coverage_1sigma / 2sigma / 3sigma, ause and ause_random
+(ufm_jax.evaluators.metrics.add_calibration): nll, coverage_1sigma / 2sigma / 3sigma, ause and ause_random
 pooled over pixels like `epe`, ause_per_image and ause_per_image_random.
 """
 
@@ -32,7 +32,8 @@ from __future__ import annotations
 import numpy as np
 from absl import logging
 
-from ufm_jax import geometry, metrics
+from ufm_jax import geometry
+from ufm_jax.evaluators import metrics
 
 
 class DenseMetrics:

@@ -8,13 +8,13 @@ Pooling, stated once:
     Breakdowns: `epe_matched`/`epe_unmatched` (meta["matched"], unimatch's approximation of
     the official split), `epe_s0-10`/`epe_s10-40`/`epe_s40+` (GT speed s < 10, 10 <= s <= 40,
     s > 40), `epe_d0-10`/`epe_d10-60`/`epe_d60-140` (distance to an occlusion boundary, an
-    approximation; see ufm_jax.metrics.boundary_distance_masks).
+    approximation; see ufm_jax.evaluators.metrics.boundary_distance_masks).
   * KITTI: `epe_all` (valid GT of flow_occ) and `epe_covis` (covisible valid pixels) are means of
     per-image means (RAFT/SEA-RAFT); `fl_all` = 100 * (EPE > 3 and EPE/|gt| > 5%) pooled over all
     valid pixels of all images (KITTI devkit, RAFT); `fl_bg`/`fl_fg` likewise over background /
     foreground (meta["foreground"], from obj_map) when the source provides it.
   * A model that predicts a flow covariance adds its calibration over the `epe_covis` pixels, the
-    ones UFM is trained on (ufm_jax.metrics.add_calibration: nll, coverage_{1,2,3}sigma and
+    ones UFM is trained on (ufm_jax.evaluators.metrics.add_calibration: nll, coverage_{1,2,3}sigma and
     ause / ause_random pooled over pixels, ause_per_image / ause_per_image_random per image),
     on both kinds.
 """
@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ufm_jax import metrics
+from ufm_jax.evaluators import metrics
 
 
 class FlowMetrics:

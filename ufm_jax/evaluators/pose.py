@@ -1,7 +1,7 @@
 """Relative pose benchmarks (ETH3D, ScanNet-1500, TA-WB): the paper's Table 4.
 
 Per pair: sample 5000 matches once from the predicted flow weighted by the predicted covisibility
-(threshold-balanced, KDE-balanced; ufm_jax.metrics.sample_matches), then `runs` times (DKM: 5)
+(threshold-balanced, KDE-balanced; ufm_jax.evaluators.metrics.sample_matches), then `runs` times (DKM: 5)
 on a reshuffled order: essential matrix by RANSAC (0.5 px threshold normalised by the mean focal
 length, confidence 0.99999), recoverPose; error = max(rotation angle error, translation direction
 error) in degrees, 90 on failure. Every run's error is one entry of the AUC (`auc<T>` in percent, standard
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ufm_jax import metrics
+from ufm_jax.evaluators import metrics
 
 
 class NoCovisibilityError(ValueError):

@@ -6,7 +6,7 @@ import math
 
 from ufm_jax import evaluators
 
-# A model with a flow covariance (ufm_jax.metrics.add_calibration); absent columns are dropped.
+# A model with a flow covariance (ufm_jax.evaluators.metrics.add_calibration); absent columns are dropped.
 CALIBRATION_COLUMNS = ["nll", "nll_laplace", "coverage_1sigma", "coverage_2sigma",
                        "coverage_3sigma", "ause", "ause_random", "ause_per_image",
                        "ause_per_image_random"]

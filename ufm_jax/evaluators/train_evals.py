@@ -40,7 +40,7 @@ class HeldoutEval:
   KEYS = ("image0", "image1", "flow", "covisibility", "flow_valid", "covis_valid")
 
   def __init__(self, cfg, mesh):
-    from ufm_jax import sharding
+    from ufm_jax.training import sharding
     from ufm_jax.data import get_source
     self.every = int(cfg.get("every", 0))
     self.mesh = mesh
@@ -62,7 +62,8 @@ class HeldoutEval:
 
   def run(self, predict, params) -> EvalResult:
     import jax
-    from ufm_jax import sharding, viz
+    from ufm_jax.runtime import viz
+    from ufm_jax.training import sharding
     n, bs = len(self.samples), self.batch_size
     P, pid = jax.process_count(), jax.process_index()
     acc = DenseMetrics(thresholds=(1, 3, 5), baselines=True)
@@ -116,8 +117,8 @@ class TeacherAgreementEval(HeldoutEval):
   """
 
   def load_samples(self, cfg, src) -> list:
-    from ufm_jax import inference
-    from ufm_jax import teacher as teacher_lib
+    from ufm_jax.runtime import inference
+    from ufm_jax.training import teacher as teacher_lib
     from ufm_jax.data import distill_rows
     from ufm_jax.models import ufm
     model, variables, _, _ = teacher_lib.load_spec(dict(cfg.teacher))

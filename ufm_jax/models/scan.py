@@ -12,7 +12,7 @@ and the tap is that segment's final carry. When the "intermediates" collection i
 parity tests), each segment also returns its per-block outputs as scan ys and they are sown as
 `block{i}_out`, as the unrolled model does; training never pays for them.
 
-FSDP: with a `layer_gather` hook (`ufm_jax.sharding.layer_gather`) the stacked params stay sharded
+FSDP: with a `layer_gather` hook (`ufm_jax.training.sharding.layer_gather`) the stacked params stay sharded
 and each block's weights are all-gathered inside the scan body, and its gradient reduce-scattered
 there, so a device holds one or two gathered layers at a time instead of the whole model, with
 remat or without it.

@@ -278,10 +278,10 @@ def split_views(x, symmetrized: bool):
 
 
 class UFM(nn.Module):
-  """UniFlowMatchConfidence. `activation_sharding` (optional, `ufm_jax.sharding.
+  """UniFlowMatchConfidence. `activation_sharding` (optional, `ufm_jax.training.sharding.
   activation_constraint`) is applied to every batch-leading activation at block boundaries:
   images, encoder and fusion blocks, DPT stages, outputs. `layer_gather` (optional,
-  `ufm_jax.sharding.layer_gather`) gathers the scanned blocks' weights one layer at a time."""
+  `ufm_jax.training.sharding.layer_gather`) gathers the scanned blocks' weights one layer at a time."""
   config: UFMConfig
   activation_sharding: layers.ActivationHook = None
   layer_gather: scan.LayerGather = None

@@ -253,3 +253,20 @@ def get(name: str, **kw) -> ufm.UFMConfig:
 def build_model(name: str, **overrides):
   """The flax module of variant `name` (UFM, or UFMRefine for refine variants), no params."""
   return ufm.model_from_config(get(name, **overrides))
+
+
+def from_config(config, activation_sharding=None, layer_gather=None):
+  """The flax module of a training config: `config.model_fn` ("module:fn", called with
+  config.model) or the named variant `config.model_name` with `config.model` overrides.
+
+  `activation_sharding`: the hook the model applies at block boundaries (from
+  `ufm_jax.training.sharding.activation_constraint`), None on one device. `layer_gather`: FSDP's
+  per-layer gather of the scanned blocks (`ufm_jax.training.sharding.layer_gather`).
+  """
+  if config.get("model_fn"):
+    import importlib
+    module, attr = config.model_fn.split(":")
+    return getattr(importlib.import_module(module), attr)(config.model)
+  cfg = get(config.model_name, **config.model.to_dict())
+  return ufm.model_from_config(cfg, activation_sharding=activation_sharding,
+                               layer_gather=layer_gather)

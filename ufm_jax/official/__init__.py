@@ -8,7 +8,7 @@
     model, variables = ufm_jax.load_official("path/to/UFM-Base")   # a snapshot folder
     ufm_jax.save_official(model, variables, "path/to/export")       # a new snapshot + model card
 
-Our own checkpoint format (`python -m ufm_jax convert`) is `ufm_jax.model_io`. The names below
+Our own checkpoint format (`python -m ufm_jax convert`) is `ufm_jax.runtime.model_io`. The names below
 are imported on first use, so that importing the key map alone stays cheap.
 """
 

@@ -191,7 +191,7 @@ def assert_exact_official_round_trip(snapshot_dir, model, variables, tmp_path) -
   as source): config.json and model.safetensors byte for byte (the header as the source file has
   it, alias order included)."""
   import ufm_jax
-  from ufm_jax import model_io
+  from ufm_jax.runtime import model_io
   d, tmp = pathlib.Path(snapshot_dir), pathlib.Path(tmp_path)
   model_io.save(tmp / "ckpt", model, variables)
   back_model, back_variables = ufm_jax.load(tmp / "ckpt")
@@ -397,7 +397,7 @@ def wide_scanned_config(grad_accum: int = 1):
   (tests/test_sharding_collectives.py). Its 64-way shards are large enough for XLA:TPU to reduce
   them as it reduces UFM-Base's (the tiny model's 64-wide blocks are all-reduced whatever is
   asked)."""
-  from ufm_jax import config_lib
+  from ufm_jax.training import config_lib
   c = config_lib.load_config(str(pathlib.Path(__file__).resolve().parents[2] / "configs" /
                                  "synthetic.py") + ":eval=false")
   c.unlock()

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from ufm_jax import config_lib
+from ufm_jax.training import config_lib
 
 
 class TinyFlow(nn.Module):

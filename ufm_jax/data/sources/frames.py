@@ -4,7 +4,7 @@
   src.images(i)   -> (image0, image1) HWC uint8 RGB
 
 `root` is a folder of frames read as `python -m ufm_jax infer --frames` reads one
-(`ufm_jax.sequence.frame_pairs`: image files in natural sort order, frame k paired with frame
+(`frame_pairs`: image files in natural sort order, frame k paired with frame
 k + stride), or a folder of such folders (one recording each). Every stride of `strides` pairs
 every frame with the one that many frames later; pair i is (recording, stride, k) in that order.
 There are no labels: `src[i]` refuses, so only a run that reads images alone (distillation rows,
@@ -15,10 +15,22 @@ ufm_jax.data.distill_rows) can train on it. An unreadable frame raises ValueErro
 from __future__ import annotations
 
 import pathlib
+import re
 
 from ufm_jax.data import io
 from ufm_jax.data.registry import register
-from ufm_jax.sequence import frame_pairs
+
+
+def natural_key(name: str):
+  return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", str(name))]
+
+
+def frame_pairs(folder, stride: int = 1) -> list[tuple[str, str]]:
+  files = sorted((p for p in pathlib.Path(folder).iterdir() if p.suffix.lower() in io.IMAGE_SUFFIXES),
+                 key=lambda p: natural_key(p.name))
+  if len(files) < stride + 1:
+    raise ValueError(f"{folder}: {len(files)} images; need at least {stride + 1} for --stride {stride}")
+  return [(str(files[i]), str(files[i + stride])) for i in range(len(files) - stride)]
 
 
 def _has_frames(folder: pathlib.Path) -> bool:

@@ -1,6 +1,6 @@
 """Collectives of a compiled XLA program, read from its HLO text (`compiled.as_text()`), and
 XLA's own FLOP count of a program (`flops`; it counts a loop body once: the FLOPs of a train step
-are counted on its jaxpr, `ufm_jax.flops`).
+are counted on its jaxpr, `ufm_jax.planning.flops`).
 
 What a step moves between devices decides whether it scales, and none of it shows on one device:
 an FSDP step should gather each weight for the forward and backward pass and reduce-scatter its

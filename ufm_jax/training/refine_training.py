@@ -11,7 +11,7 @@ window.
   RefinementCEEval  RefinementCrossEntropyLoss, their test loss (loss/refinement_cross_entropy.py):
                     reads the model's log-softmax windows.
 
-Both are terms of a `ufm_jax.losses.Recipe`; the windows are row-major over (dy, dx), index
+Both are terms of a `ufm_jax.training.losses.Recipe`; the windows are row-major over (dy, dx), index
 dy_index * P + dx_index, offset = index - P // 2.
 """
 
@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ufm_jax import loss_common
+from ufm_jax.training import loss_common
 
 _DTYPES = {"bfloat16": jnp.bfloat16, "float32": jnp.float32}
 

@@ -22,11 +22,12 @@ unmapped like covisibility and rescaled to the source's pixels as the official p
 
 from __future__ import annotations
 
-import functools
 import time
 from typing import Any, Sequence
 
 import numpy as np
+
+from ufm_jax.data.resize import resize_bilinear, resize_bilinear_aa, resize_nearest
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -47,93 +48,6 @@ def normalize(image: np.ndarray) -> np.ndarray:
 def denormalize(image: np.ndarray) -> np.ndarray:
   """Inverse of `normalize` (float32 in 0..255 up to rounding), for models that normalise inside."""
   return (np.asarray(image, np.float32) * IMAGENET_STD + IMAGENET_MEAN) * _f32(255.0)
-
-
-# ----------------------------------------------------------------------------------------------
-# PyTorch-exact resampling (CPU float32 kernels)
-# ----------------------------------------------------------------------------------------------
-@functools.lru_cache(maxsize=64)
-def aa_linear_weights(in_size: int, out_size: int) -> np.ndarray:
-  """[out, in] float32 matrix of `F.interpolate(bilinear, align_corners=False, antialias=True)`.
-
-  Mirrors ATen's `_compute_indices_min_size_weights_aa` for the linear (triangle) filter: the
-  support is `scale` when downsampling (filter stretched by `scale`), 1 when upsampling (plain
-  bilinear with edge clamping); weights normalised to sum 1. float32 like the CPU kernel.
-  """
-  scale = _f32(in_size) / _f32(out_size)
-  support = _f32(1.0) * scale if scale >= 1.0 else _f32(1.0)
-  invscale = _f32(1.0 / float(scale)) if scale >= 1.0 else _f32(1.0)
-  mat = np.zeros((out_size, in_size), np.float32)
-  for i in range(out_size):
-    center = _f32(float(scale) * (i + 0.5))
-    xmin = max(int(float(center - support) + 0.5), 0)
-    xmax = min(int(float(center + support) + 0.5), in_size)
-    j = np.arange(xmin, xmax)
-    # (j + xmin - center + 0.5) in float32 then times invscale
-    arg = ((j.astype(np.float32) - center).astype(np.float64) + 0.5) * float(invscale)
-    w = np.maximum(_f32(1.0) - np.abs(arg.astype(np.float32)), _f32(0.0)).astype(np.float32)
-    total = _f32(0.0)
-    for v in w:
-      total = _f32(total + v)
-    if total != 0:
-      w = (w / total).astype(np.float32)
-    mat[i, xmin:xmax] = w
-  return mat
-
-
-def resize_bilinear_aa(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-  """[..., H, W, C] float -> [..., h, w, C] float32: torch bilinear antialias resize.
-
-  Separable like ATen: the width pass first, then the height pass (a dim whose size does not
-  change is copied, not filtered).
-  """
-  x = np.asarray(image, np.float32)
-  h_in, w_in = x.shape[-3], x.shape[-2]
-  h, w = size
-  if w != w_in:  # [..., H, W, C] x [w, W] -> [..., H, C, w] -> [..., H, w, C]
-    x = np.moveaxis(np.tensordot(x, aa_linear_weights(w_in, w), axes=([-2], [1])), -1, -2)
-  if h != h_in:
-    x = np.moveaxis(np.tensordot(x, aa_linear_weights(h_in, h), axes=([-3], [1])), -1, -3)
-  return np.ascontiguousarray(x, np.float32)
-
-
-def _linear_indices(in_size: int, out_size: int):
-  """Indices/weights of torch bilinear (align_corners=False, no antialias) along one axis."""
-  scale = _f32(in_size) / _f32(out_size)
-  dst = np.arange(out_size, dtype=np.float32)
-  src = np.maximum(scale * (dst + _f32(0.5)) - _f32(0.5), _f32(0.0)).astype(np.float32)
-  i0 = np.minimum(np.floor(src).astype(np.int64), in_size - 1)
-  lam = np.clip(src - i0.astype(np.float32), 0.0, 1.0).astype(np.float32)
-  i1 = i0 + (i0 < in_size - 1)
-  return i0, i1, lam
-
-
-def resize_bilinear(x: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-  """[H, W, C] -> [h, w, C] float32, torch `bilinear`, align_corners=False, no antialias."""
-  x = np.asarray(x, np.float32)
-  y0, y1, ly = _linear_indices(x.shape[0], size[0])
-  x0, x1, lx = _linear_indices(x.shape[1], size[1])
-  ly, lx = ly[:, None, None], lx[None, :, None]
-  top = (_f32(1) - lx) * x[y0][:, x0] + lx * x[y0][:, x1]
-  bot = (_f32(1) - lx) * x[y1][:, x0] + lx * x[y1][:, x1]
-  return ((_f32(1) - ly) * top + ly * bot).astype(np.float32)
-
-
-def nearest_index(in_size: int, out_size: int) -> np.ndarray:
-  """torch legacy 'nearest': floor(dst * float32(in / out)), with ATen's exact-ratio shortcuts."""
-  dst = np.arange(out_size)
-  if out_size == in_size:
-    return dst
-  if out_size == 2 * in_size:
-    return dst >> 1
-  scale = _f32(in_size) / _f32(out_size)
-  return np.minimum(np.floor(dst.astype(np.float32) * scale).astype(np.int64), in_size - 1)
-
-
-def resize_nearest(x: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-  """[H, W, ...] -> [h, w, ...], torch legacy `nearest`."""
-  x = np.asarray(x)
-  return x[nearest_index(x.shape[0], size[0])][:, nearest_index(x.shape[1], size[1])]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -234,7 +148,7 @@ def _forward_fn(model):
 
   entry = _FORWARDS.get(id(model))
   if entry is None or entry[0] is not model:
-    from ufm_jax import compile_cache
+    from ufm_jax.runtime import compile_cache
     compile_cache.enable()  # a new process on the same shapes loads the executable from disk
 
     def fwd(variables, source, target):
@@ -254,7 +168,7 @@ def _check_image(x, what: str, smallest: int = 1) -> np.ndarray:
   if min(x.shape[:2]) < smallest:
     raise ValueError(f"{what} is {x.shape[0]}x{x.shape[1]} px (HxW), under this model's minimum "
                      f"of {smallest} px per side (one image pixel per encoder patch at its "
-                     f"inference resolution, ufm_jax.inference.min_image_side); use a larger image")
+                     f"inference resolution, ufm_jax.runtime.inference.min_image_side); use a larger image")
   if x.dtype != np.uint8 and not np.issubdtype(x.dtype, np.floating):
     raise ValueError(f"{what}: expected uint8 (or float 0..255), got dtype {x.dtype}")
   if min(x.shape[:2]) < 1:

@@ -7,10 +7,10 @@ terms summed in config order (the official YAML order, `configs/loss/*.yaml`):
   type "robust"         RobustRegressionLoss: Barron's robust loss of the flow error (paper eq. 2)
   type "epe"            FlowEPELoss: the end-point error itself
   type "bce"            CrossEntropyLoss: covisibility BCE on logits (paper eq. 3)
-  type "refinement_ce"  RefinementCrossEntropyLossEfficient (ufm_jax.refine_training)
+  type "refinement_ce"  RefinementCrossEntropyLossEfficient (ufm_jax.training.refine_training)
   type "refinement_ce_eval"  RefinementCrossEntropyLoss, the refine recipes' test loss
   type "teacher_robust", "teacher_bce"  distillation: the same two losses against a teacher's
-                        outputs instead of labels (ufm_jax.distill_loss, configs/distill.py)
+                        outputs instead of labels (ufm_jax.training.distill_loss, configs/distill.py)
   type "flow_nll"       FlowCovarianceNLL: the flow's negative log-likelihood under the predicted
                         covariance (ours: the official code has the head but no loss for it)
 
@@ -38,8 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ufm_jax import distill_loss, refine_training
-from ufm_jax.loss_common import (MAX_GT, check_choice, invalid_gt_mask, masked_mean,
+from ufm_jax.training import distill_loss, refine_training
+from ufm_jax.training.loss_common import (MAX_GT, check_choice, invalid_gt_mask, masked_mean,
                                  pixel_grid, robust_of_squared)
 from ufm_jax.models import covariance
 
@@ -362,7 +362,7 @@ class Recipe:
 
   def _pooled(self, outputs, batch, rng, suitable_rows):
     pred = outputs.get("flow_before_refinement", outputs.get("flow"))
-    # A distillation batch may carry no labels at all (ufm_jax.distill_loss reads the teacher's).
+    # A distillation batch may carry no labels at all (ufm_jax.training.distill_loss reads the teacher's).
     gt = batch.get("flow")
     shared = {"gt": None if gt is None else gt.astype(jnp.float32),
               "pred": None if pred is None else pred.astype(jnp.float32)}

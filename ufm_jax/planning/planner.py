@@ -5,9 +5,9 @@ grad_accum, the jitted step: `trainer.setup`) with every input the data would gi
 the config instead: the image size is the largest of the recipe's training shapes (the most
 memory), the epoch is the sum of the quotas, the dataset order is the config's. `plan` compiles
 that step at a global batch, on the devices at hand or on the abstract devices of a TPU slice
-(`ufm_jax.topologies`, through libtpu: no TPU needed), and returns the figures a team needs
+(`ufm_jax.planning.topologies`, through libtpu: no TPU needed), and returns the figures a team needs
 before renting: HBM per chip against the chip's, the collectives per step, the FLOPs of the
-whole step (`ufm_jax.flops`), the step time at an assumed MFU, the days of the recipe's epochs,
+whole step (`ufm_jax.planning.flops`), the step time at an assumed MFU, the days of the recipe's epochs,
 and the host CPU that feeding the chips at that speed takes. `fit` searches the largest per-chip
 batch that fits and the plan that trains the recipe's own batch.
 
@@ -86,7 +86,7 @@ def dataset_names(config):
 def quantum(config) -> int:
   """Rows per device come in multiples of this: a symmetrized pair's (a, b), (b, a) rows stay on
   one device, and each of grad_accum microbatches takes whole pairs from every device."""
-  from ufm_jax import accumulation
+  from ufm_jax.training import accumulation
   return accumulation.pair_rows(config.get("apply_kwargs")) * int(config.get("grad_accum", 1))
 
 
@@ -113,7 +113,7 @@ def target(topology: str | None = None, compile: bool = True) -> Target:  # noqa
   slice through libtpu; `compile=False`: only its chips, for an estimate without a compile, GPU
   nodes too)."""
   import jax
-  from ufm_jax import topologies
+  from ufm_jax.planning import topologies
   if topology:
     slc = topologies.get(topology)
     chip = topologies.CHIPS[slc.chip]
@@ -137,11 +137,11 @@ def target(topology: str | None = None, compile: bool = True) -> Target:  # noqa
 def setup(config, devices, image_shape=None):
   """(mesh, trainer.TrainSetup, image shape): train.py's mesh and step for `config` on `devices`,
   at `image_shape` (default: the largest training shape), from the config alone."""
-  from ufm_jax import sharding, trainer
+  from ufm_jax.training import sharding, trainer
   mesh = sharding.make_mesh(config.mesh, devices)
   hw = tuple(image_shape or largest_shape(config))
   total_steps, steps_per_epoch = trainer.schedule_steps(config, pairs_per_epoch(config))
-  from ufm_jax import teacher as teacher_lib
+  from ufm_jax.training import teacher as teacher_lib
   ts = trainer.setup(config, mesh, hw, total_steps, steps_per_epoch=steps_per_epoch,
                      dataset_names=dataset_names(config),
                      teacher=teacher_lib.from_config(config, mesh))
@@ -184,9 +184,9 @@ def state_bytes(ts) -> dict:
 def compile_step(ts, batch: int, image_shape, row_ids: bool = True) -> dict:
   """Compile (never run) the train step at global `batch`: XLA's memory analysis per device
   (HBM = temp + arguments + outputs - aliases), the collectives of the compiled HLO
-  (ufm_jax.hlo_stats), compile time. "refused" (and no figures but the error) when XLA:TPU
+  (ufm_jax.planning.hlo_stats), compile time. "refused" (and no figures but the error) when XLA:TPU
   refuses the program for want of HBM. "_text" is the compiled HLO."""
-  from ufm_jax import hlo_stats
+  from ufm_jax.planning import hlo_stats
   t0 = time.perf_counter()
   lowered = ts.train_step.lower(ts.sharded_abstract_state(),
                                 ts.abstract_batch(batch, image_shape, row_ids=row_ids))
@@ -220,7 +220,7 @@ def compile_step(ts, batch: int, image_shape, row_ids: bool = True) -> dict:
 def check_batch(config, mesh, batch: int):
   """ValueError naming the sizes unless `batch` splits over the mesh's batch shards (and into
   config.grad_accum microbatches of whole pairs on every device), as train.py refuses it."""
-  from ufm_jax import accumulation, sharding
+  from ufm_jax.training import accumulation, sharding
   shards = sharding.batch_divisor(mesh)
   if batch % shards:
     raise ValueError(f"global batch {batch} does not split over the mesh's {shards} batch "
@@ -234,9 +234,9 @@ def check_batch(config, mesh, batch: int):
 
 def model_flops_per_row(config, shapes, rows: int, platform: str) -> dict:
   """{(H, W): model FLOPs of the whole step per row} at `rows` global rows: the jaxpr count of
-  `ufm_jax.flops` (every loop body times its trip count, so grad_accum's K microbatches and the
+  `ufm_jax.planning.flops` (every loop body times its trip count, so grad_accum's K microbatches and the
   scanned blocks all count), remat's recomputation left out (MFU counts model FLOPs)."""
-  from ufm_jax import flops
+  from ufm_jax.planning import flops
   return {s: flops.model_flops(config, s, rows, platform).flops / rows for s in shapes}
 
 
@@ -292,7 +292,7 @@ def plan(config, tgt: Target, *, batch: int | None = None, image_shape=None, mfu
   mesh, ts, hw = setup(config, tgt.devices, image_shape)
   batch = int(batch or config.input.batch_size)
   check_batch(config, mesh, batch)
-  from ufm_jax import sharding
+  from ufm_jax.training import sharding
   shards = sharding.batch_divisor(mesh)
   info = state_bytes(ts)
   log(f"config {config.get('model_name', config.get('model_fn'))}: "
@@ -324,7 +324,7 @@ def add_estimates(result: dict, config, tgt: Target, ts=None, mfu: float = MFU,
   """Adds to a compiled plan (`plan`) the model FLOPs of its step at every training shape, the
   FLOPs the compiled step executes (remat included: its TrainSetup `ts`, set up again if None),
   and `estimate`."""
-  from ufm_jax import flops
+  from ufm_jax.planning import flops
   config = copy.deepcopy(config)
   config.grad_accum = result["grad_accum"]
   hw, batch = tuple(result["image_shape"]), result["global_batch"]
@@ -339,7 +339,7 @@ def add_estimates(result: dict, config, tgt: Target, ts=None, mfu: float = MFU,
 
 def report(result: dict, log=print):
   """The plan in words (the JSON line follows it)."""
-  from ufm_jax import hlo_stats
+  from ufm_jax.planning import hlo_stats
   r = result
   if "refused" in r:
     log(f"  XLA refused the step: {r['refused']}; compile {r['compile_s']:.0f} s")
@@ -404,7 +404,8 @@ def fit(config, tgt: Target, start_per_chip: int, *, image_shape=None, max_probe
   compiles). Where the recipe's batch does not split so, the plan is the largest batch that fit.
   Returns that plan, with FLOPs and estimates, plus "max_per_chip_batch", "search_exact" and
   "probes"."""
-  from ufm_jax import sharding, topologies
+  from ufm_jax.planning import topologies
+  from ufm_jax.training import sharding
   mesh = sharding.make_mesh(config.mesh, tgt.devices)
   shards = sharding.batch_divisor(mesh)
   q = quantum(config)

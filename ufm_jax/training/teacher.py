@@ -1,6 +1,6 @@
 """The teacher of a distillation run (configs/distill.py): loaded from anything `ufm_jax.load`
 takes, rebuilt for the run's mesh with the student's compute options, its variables sharded by
-the student's rules. The step that runs it: ufm_jax.distill.
+the student's rules. The step that runs it: ufm_jax.training.distill.
 
 `config.teacher` (configs/distill.py):
   checkpoint  anything `ufm_jax.load` takes: a converted checkpoint, a train.py workdir, an
@@ -24,7 +24,7 @@ from typing import Optional
 
 import numpy as np
 
-from ufm_jax.distill import INTERPOLATIONS, Teacher
+from ufm_jax.training.distill import INTERPOLATIONS, Teacher
 
 VARIANT_PREFIX = "variant:"
 
@@ -42,7 +42,7 @@ def load_spec(spec) -> tuple:
     from ufm_jax.models import variants
     model = variants.build_model(checkpoint[len(VARIANT_PREFIX):])
     return model, lambda: random_variables(model), None, checkpoint
-  from ufm_jax import model_io
+  from ufm_jax.runtime import model_io
   model, variables = model_io.load_model(checkpoint, snapshot=bool(spec.get("snapshot")),
                                          revision=spec.get("revision"), step=spec.get("step"))
   shape = None
@@ -84,7 +84,7 @@ def load_teacher(config, mesh) -> Teacher:
   remat, attention) and the mesh's activation constraint and FSDP gathers, its variables sharded
   by the student's rules. Loads nothing onto the devices."""
   import jax
-  from ufm_jax import sharding
+  from ufm_jax.training import sharding
   from ufm_jax.models import scan, ufm
 
   spec = dict(config.teacher)
@@ -115,7 +115,7 @@ def load_teacher(config, mesh) -> Teacher:
                           abstract, shardings)
   resolution = spec.get("resolution") or trained_shape
   if not resolution:
-    from ufm_jax import inference
+    from ufm_jax.runtime import inference
     resolution = inference.inference_resolutions(model)[0]
   resolution = tuple(int(v) for v in resolution)
   p = cfg.encoder.patch_size

@@ -1,6 +1,6 @@
 """The distillation loss terms: UFM's two training losses with the teacher's outputs as targets.
 
-The teacher runs inside the train step (ufm_jax.distill) and its outputs, warped into the
+The teacher runs inside the train step (ufm_jax.training.distill) and its outputs, warped into the
 student's crop, reach the loss as batch keys:
 
   teacher_flow            [B,H,W,2] float32  the teacher's flow in the student's crop (px)
@@ -12,7 +12,7 @@ student's crop, reach the loss as batch keys:
   teacher_flow_covariance [B,H,W,3] float32  (var_x, var_y, cov_xy) in crop px^2, from a
                                              teacher with a flow covariance head
 
-Both terms are registered in `ufm_jax.losses.term_types` ("teacher_robust", "teacher_bce") and
+Both terms are registered in `ufm_jax.training.losses.term_types` ("teacher_robust", "teacher_bce") and
 sum with any other term of a recipe (configs/distill.py mixes in the label terms when a source's
 labels are wanted). Neither reads a label key.
 """
@@ -25,7 +25,7 @@ from typing import Optional
 import jax
 import jax.numpy as jnp
 
-from ufm_jax.loss_common import check_choice, masked_mean, robust_of_squared
+from ufm_jax.training.loss_common import check_choice, masked_mean, robust_of_squared
 
 
 def _sum(x):

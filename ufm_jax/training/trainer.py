@@ -22,19 +22,9 @@ def import_attr(spec: str):
 
 
 def build_model(config, activation_sharding=None, layer_gather=None):
-  """The flax module from config: `config.model_fn` ("module:fn", called with config.model) or
-  the named variant of ufm_jax.models.variants with `config.model` overrides.
-
-  `activation_sharding`: the hook the model applies at block boundaries (from
-  `ufm_jax.sharding.activation_constraint`), None on one device. `layer_gather`: FSDP's
-  per-layer gather of the scanned blocks (`ufm_jax.sharding.layer_gather`).
-  """
-  if config.get("model_fn"):
-    return import_attr(config.model_fn)(config.model)
-  from ufm_jax.models import ufm, variants
-  cfg = variants.get(config.model_name, **config.model.to_dict())
-  return ufm.model_from_config(cfg, activation_sharding=activation_sharding,
-                               layer_gather=layer_gather)
+  """The flax module of a training config (ufm_jax.models.variants.from_config)."""
+  from ufm_jax.models import variants
+  return variants.from_config(config, activation_sharding, layer_gather)
 
 
 # The variable collections a training run keeps: parameters, and BatchNorm running statistics
@@ -77,7 +67,7 @@ def random_params(model, seed: int = 0, image_shape=None):
   from scratch of tests, benchmarks and tools. The parameter shapes do not depend on the image
   size; the default is two patches square, the smallest the model accepts."""
   import jax
-  from ufm_jax import optim
+  from ufm_jax.training import optim
   if image_shape is None:
     image_shape = (2 * model.config.encoder.patch_size,) * 2
   key = jax.random.PRNGKey(seed)
@@ -88,7 +78,7 @@ def random_params(model, seed: int = 0, image_shape=None):
 
 def build_input(config, process_batch: int, seed: int, teacher=None):
   """(iterator of numpy batches, info) from config.input (grain pipeline of ufm_jax.data).
-  `teacher` (ufm_jax.distill.Teacher): distillation rows with the teacher's view of each pair at
+  `teacher` (ufm_jax.training.distill.Teacher): distillation rows with the teacher's view of each pair at
   its resolution (ufm_jax.data.distill_rows)."""
   if config.input.get("data_fn"):
     return import_attr(config.input.data_fn)(config.input, process_batch, seed)
@@ -119,9 +109,9 @@ def schedule_steps(config, pairs_per_epoch):
 
 def build_loss(config, model=None, dataset_names=None):
   """loss(model outputs, batch, rng) -> (loss, aux dict of scalars): the recipe of config.loss
-  (`ufm_jax.losses.recipe_from_config`). `model` supplies the refinement temperature,
+  (`ufm_jax.training.losses.recipe_from_config`). `model` supplies the refinement temperature,
   `dataset_names` (the pipeline's, in dataset_id order) the rows that may train the refiner."""
-  from ufm_jax import losses
+  from ufm_jax.training import losses
   if not config.get("loss"):
     raise ValueError("config.loss is missing: the loss terms of the recipe (see configs/ufm560.py)")
   temperature = getattr(getattr(model, "config", None), "temperature", None)
@@ -138,7 +128,7 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
                     skip_advances_schedule: bool = True):
   """train_step(state, batch[, teacher_variables]) -> (state, metrics): one optimizer update.
 
-  `targets_fn(teacher_variables, batch) -> batch` (distillation, ufm_jax.distill): the frozen
+  `targets_fn(teacher_variables, batch) -> batch` (distillation, ufm_jax.training.distill): the frozen
   teacher's targets, computed per microbatch before the student's forward; its outputs leave
   through stop_gradient and its variables are no argument of the gradient.
 
@@ -166,7 +156,7 @@ def make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params=None
   import jax
   import jax.numpy as jnp
   import optax
-  from ufm_jax import accumulation, optim
+  from ufm_jax.training import accumulation, optim
 
   if grad_accum < 1:
     raise ValueError(f"grad_accum={grad_accum}: the microbatches per step must be 1 or more")
@@ -263,7 +253,7 @@ class TrainSetup:
   train_step: Callable         # jitted (state, batch) -> (state, metrics); state donated
   predict: Callable            # jitted (state.variables(), batch) -> {"flow"[, "covisibility"]}
   variables_sh: Any = None     # shardings of init_fn's output
-  teacher: Any = None          # ufm_jax.distill.Teacher of a distillation run
+  teacher: Any = None          # ufm_jax.training.distill.Teacher of a distillation run
   labelled: bool = True        # the batches carry labels (a distillation run: keep_labels)
 
   def row_shapes(self, image_shape) -> dict:
@@ -300,7 +290,7 @@ class TrainSetup:
   def create_state(self, variables):
     """The sharded TrainState (step 0, fresh optimizer state) of {"params"[, "batch_stats"]}."""
     import jax
-    from ufm_jax import optim
+    from ufm_jax.training import optim
     return jax.jit(lambda v: optim.TrainState.create(v["params"], self.tx, v.get("batch_stats")),
                    out_shardings=self.state_sh)(variables)
 
@@ -309,7 +299,7 @@ class TrainSetup:
     distillation run the teacher's view of each row is its crop stretched to the teacher's
     resolution."""
     import numpy as np
-    from ufm_jax import sharding
+    from ufm_jax.training import sharding
     rng = np.random.default_rng(seed)
     b, (h, w) = batch_size, image_shape
     host = {"image0": rng.integers(0, 256, (b, h, w, 3), dtype=np.uint8),
@@ -344,11 +334,11 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   steps_per_epoch: optimizer steps per epoch (for warmup counted in epochs; default
   total_steps / config.num_epochs). dataset_names: the pipeline's, in dataset_id order.
   A distillation config (`config.teacher`): the step runs `teacher` (required there:
-  ufm_jax.teacher.from_config(config, mesh), which puts nothing on the devices) before the
+  ufm_jax.training.teacher.from_config(config, mesh), which puts nothing on the devices) before the
   student, its variables an argument the step binds on its first call (distill.BoundStep); the
   planner and the FLOP count lower it with the teacher's abstract variables."""
   import jax
-  from ufm_jax import optim, sharding
+  from ufm_jax.training import optim, sharding
   gather_params, layer_gather = sharding.fsdp_gathers(mesh, config)
   model = build_model(config, sharding.activation_constraint(mesh), layer_gather)
   apply_kwargs = dict(config.apply_kwargs)
@@ -377,10 +367,10 @@ def setup(config, mesh, image_shape, total_steps: int, steps_per_epoch=None,
   if config.get("teacher") and teacher is None:
     # Loading it here would import model_io, which imports this module (a cycle): the callers
     # (train.py, the planner, flops.model_flops) load it.
-    raise ValueError("config.teacher is set: pass setup(..., teacher=ufm_jax.teacher."
+    raise ValueError("config.teacher is set: pass setup(..., teacher=ufm_jax.training.teacher."
                      "from_config(config, mesh))")
   if teacher is not None:
-    from ufm_jax import distill
+    from ufm_jax.training import distill
     targets_fn = distill.make_targets_fn(teacher, gather_params,
                                          symmetrized=bool(apply_kwargs.get("symmetrized")))
   step = make_train_step(model, loss_fn, tx, labels, apply_kwargs, gather_params,

@@ -59,9 +59,9 @@ def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
   c.sharding_rules = [(r".*", "fsdp")]
   c.sharding_min_size = 2 ** 14
   # "layer": the scanned blocks are gathered a layer at a time inside the scan; "step": every
-  # param is gathered at the start of the step (ufm_jax.sharding.fsdp_gathers).
+  # param is gathered at the start of the step (ufm_jax.training.sharding.fsdp_gathers).
   c.fsdp_gather = "layer"
-  # Microbatches per optimizer step (gradient accumulation, ufm_jax.accumulation): the recipe's
+  # Microbatches per optimizer step (gradient accumulation, ufm_jax.training.accumulation): the recipe's
   # batch on a slice whose chips hold only a 1/grad_accum share of it. 1: the whole batch at once.
   c.grad_accum = 1
   c.ckpt_steps = 1000
@@ -98,7 +98,7 @@ def add_flow_covariance(c: ml_collections.ConfigDict, pixels: str, head: str = "
   in the uncertainty head before its covisibility channel, or with head="main" in the flow head
   after the flow (the sorted orders an official snapshot reloads in; the head's output_dim grows
   by 3 from `head_output_dim`, default 1 for the uncertainty head and 2 for the main), and the
-  Gaussian NLL term `flow_nll` (ufm_jax.losses.FlowCovarianceNLL; `likelihood` "laplace" for
+  Gaussian NLL term `flow_nll` (ufm_jax.training.losses.FlowCovarianceNLL; `likelihood` "laplace" for
   the elliptical Laplace) on the pixels of the flow term `pixels`, added after the recipe's
   terms. Returns `c`."""
   if head == "uncertainty":

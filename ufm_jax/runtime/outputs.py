@@ -1,5 +1,5 @@
 """The files `python -m ufm_jax infer` writes for one prediction: one suffix table, one writer,
-shared by the single pair (`infer SOURCE TARGET`) and the many-pair runs (`ufm_jax.sequence`).
+shared by the single pair (`infer SOURCE TARGET`) and the many-pair runs (`ufm_jax.tools.sequence`).
 
   <name>.flo                Middlebury flow at the source image's size (always)
   <name>_flow.npy           the same flow, [H, W, 2] float32                     (--save npy)
@@ -66,7 +66,7 @@ def write(files: dict[str, pathlib.Path], source, target, pred) -> list[pathlib.
   atomically; returns their paths. `pred`: {"flow": [H, W, 2], "covisibility": [H, W]
   (absent for a model without an uncertainty head), "flow_covariance": [H, W, 3] (only from a
   model with a flow covariance)} at the source image's size."""
-  from ufm_jax import viz
+  from ufm_jax.runtime import viz
   from ufm_jax.data import io
   files = written(files, pred)
   flow = np.asarray(pred["flow"], np.float32)

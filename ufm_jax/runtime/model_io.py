@@ -7,8 +7,8 @@ checkpoint format.
     model_io.save(out_dir, model, variables)        # -> params/ (orbax) + model_config.json
 
 Every loader returns the Flax variables {"params"[, "batch_stats"]}: `model.apply(variables, ...)`.
-The command line, the demo, evaluate.py and `ufm_jax.sequence` load through `load_model`;
-`model_init` (ufm_jax.model_init) asks `what_is` too. The official format itself is
+The command line, the demo, evaluate.py and `ufm_jax.tools.sequence` load through `load_model`;
+`model_init` (ufm_jax.training.model_init) asks `what_is` too. The official format itself is
 `ufm_jax.official`.
 """
 
@@ -112,12 +112,12 @@ def official_hub_id(name: str) -> bool:
 
 def load_workdir(path: str | os.PathLike, step: int | None = None):
   """(model, variables) of the latest (or given) checkpoint step of a train.py workdir; the model
-  is rebuilt from the workdir's config.json by `trainer.build_model`, as training built it."""
+  is rebuilt from the workdir's config.json by `ufm_jax.models.variants.from_config`, as training built it."""
   return _load_workdir(path, step)[:2]
 
 
 def _load_workdir(path, step):
-  from ufm_jax import checkpoint
+  from ufm_jax.runtime import checkpoint
 
   model = workdir_model(path)
   state, step = checkpoint.read_state_numpy(path, step)
@@ -128,7 +128,7 @@ def workdir_model(path: str | os.PathLike):
   """The model a train.py workdir trained, rebuilt from its config.json (no parameters)."""
   import ml_collections
 
-  from ufm_jax import trainer
+  from ufm_jax.models import variants
 
   cfg_path = pathlib.Path(path) / "config.json"
   if not cfg_path.is_file():
@@ -138,7 +138,7 @@ def workdir_model(path: str | os.PathLike):
   if not cfg.get("model_fn") and not cfg.get("model_name"):
     raise ValueError(f"{cfg_path}: neither model_fn nor model_name; cannot rebuild the model")
   cfg["model"] = cfg.get("model") or {}
-  return trainer.build_model(ml_collections.ConfigDict(cfg))
+  return variants.from_config(ml_collections.ConfigDict(cfg))
 
 
 def state_variables(state: dict):

@@ -53,7 +53,7 @@ import numpy as np
 from absl import logging
 from flax import traverse_util
 
-from ufm_jax import model_io
+from ufm_jax.runtime import model_io
 
 KINDS = ("ckpt", "snapshot", "dinov2", "teacher")
 
@@ -210,7 +210,7 @@ def _read_source(kind: str, path: str, want_config: bool):
     name, revision, shown = _snapshot_source(path)
     model, variables = snapshot.load_official(name, revision)
   elif model_io.what_is(path) == model_io.WORKDIR:
-    from ufm_jax import checkpoint
+    from ufm_jax.runtime import checkpoint
     state, step = checkpoint.read_state_numpy(path)
     variables = model_io.state_variables(state)
     root = _workdir_root(path)

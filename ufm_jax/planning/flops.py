@@ -140,12 +140,12 @@ def model_flops(config, image_shape, batch: int, platform: str = "tpu") -> Count
   count does not depend on the mesh: the jaxpr is the global program)."""
   import copy
 
-  from ufm_jax import sharding, trainer
+  from ufm_jax.training import sharding, trainer
   config = copy.deepcopy(config)
   if config.model.get("remat"):
     config.model.remat = False
   mesh = sharding.make_mesh("data:1,fsdp:1", jax.devices()[:1])
-  from ufm_jax import teacher as teacher_lib
+  from ufm_jax.training import teacher as teacher_lib
   ts = trainer.setup(config, mesh, image_shape, total_steps=1000,
                      teacher=teacher_lib.from_config(config, mesh))
   return step_flops(ts, batch, image_shape, platform)
@@ -341,7 +341,7 @@ def trainable_parts(labels) -> set:
   (optim.param_labels: "frozen" or a group name per leaf)."""
   from flax import traverse_util
 
-  from ufm_jax import optim
+  from ufm_jax.training import optim
   parts = set()
   for path, label in traverse_util.flatten_dict(labels, sep="/").items():
     if label == optim.FROZEN:
@@ -362,7 +362,7 @@ def analytic_step_flops(config, ts, image_shape, batch: int) -> dict:
   """`analytic_train_flops` of the train step `ts` (trainer.setup of `config`) at global `batch`:
   config.grad_accum microbatches, the trainable parts from its optimizer, the loss terms of
   config.loss. By part, and "total"."""
-  from ufm_jax import refine_training
+  from ufm_jax.training import refine_training
   k = int(config.get("grad_accum", 1))
   rows = batch // k
   terms = {name: dict(config.loss[name]) for name in config.loss.terms}

@@ -5,8 +5,8 @@ Layout of a workdir:
   checkpoints/<step>/state   the TrainState (orbax, sharded arrays, written asynchronously)
   checkpoints/<step>/data    the grain iterator state (one JSON per process)
 
-When to save and stop is `ufm_jax.loop_control`; parameters from elsewhere (`model_init`) are
-`ufm_jax.model_init`.
+When to save and stop is `ufm_jax.training.loop_control`; parameters from elsewhere (`model_init`) are
+`ufm_jax.training.model_init`.
 """
 
 from __future__ import annotations

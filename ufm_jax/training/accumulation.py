@@ -38,7 +38,7 @@ def microbatches(batch: dict, grad_accum: int, mesh=None, pair_rows: int = 2) ->
   """{key: [B, ...]} -> {key: [grad_accum, B / grad_accum, ...]}, microbatch j in row j of the
   leading axis (pair slots j mod grad_accum of each device's rows). `mesh`: the batch's, whose
   batch axes shard the microbatch rows (None: no constraint, one device)."""
-  from ufm_jax import sharding
+  from ufm_jax.training import sharding
   sizes = {k: v.shape[0] for k, v in batch.items()}
   b = next(iter(sizes.values()))
   if any(s != b for s in sizes.values()):

@@ -12,7 +12,7 @@ inference shape); a changed threshold re-samples the cached prediction without r
 
 It binds 127.0.0.1 unless --host says otherwise, refuses uploads over --max-file-size, files that
 are no image, and images with a side over --max-side or under the model's minimum
-(`ufm_jax.inference.min_image_side`, the rule of every tool),
+(`ufm_jax.runtime.inference.min_image_side`, the rule of every tool),
 with a message naming the limit and the image's size, and makes a public share link only with
 --share. Its API (`gradio_client`): `Client(url).predict(source,
 target, threshold, num, api_name="/analyse")` -> (flow colours, covisibility, warped target,
@@ -80,7 +80,7 @@ def example_pair(folder) -> list[str]:
 
 def colour_key(side: int = 96) -> np.ndarray:
   """The flow colour wheel as an image: the colour of a flow pointing from the centre to a pixel."""
-  from ufm_jax import viz
+  from ufm_jax.runtime import viz
   r = np.linspace(-1.0, 1.0, side, dtype=np.float32)
   u, v = np.meshgrid(r, r)
   key = viz.flow_to_color(np.stack([u, v], -1), max_flow=1.0)
@@ -92,7 +92,7 @@ class Analyser:
   """Prediction (cached by image content) -> the demo's views; no gradio in here."""
 
   def __init__(self, model, variables, out_dir, max_side: int = DEFAULT_MAX_SIDE, cache_size: int = 8):
-    from ufm_jax import inference
+    from ufm_jax.runtime import inference
     self.model, self.variables = model, variables
     self.out_dir = pathlib.Path(out_dir)
     self.max_side = max_side
@@ -103,7 +103,7 @@ class Analyser:
 
   def predict(self, source: np.ndarray, target: np.ndarray) -> tuple[str, dict, float]:
     """(content key, prediction at the source size, forward ms; 0 when it came from the cache)."""
-    from ufm_jax import inference
+    from ufm_jax.runtime import inference
     key = hashlib.sha1(b"".join(np.ascontiguousarray(x).tobytes() + str(x.shape).encode()
                                 for x in (source, target))).hexdigest()[:16]
     with self._lock:  # gradio runs events in threads; one forward at a time on one model
@@ -121,7 +121,8 @@ class Analyser:
   def __call__(self, source, target, threshold: float = 0.5, num: int = DEFAULT_NUM):
     """-> (flow colours, covisibility, warped target, matches drawing, matches .npz path, summary,
     uncertainty view or None)."""
-    from ufm_jax import matching, viz
+    from ufm_jax.runtime import viz
+    from ufm_jax.tools import matching
     source, target = read_upload(source, "source"), read_upload(target, "target")
     if source is None or target is None:
       raise ValueError("upload a source and a target image (or pick the example pair)")

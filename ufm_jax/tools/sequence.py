@@ -4,7 +4,7 @@ Pairs come from `--frames DIR` (consecutive frames in natural sort order, `--str
 `--pairs LIST.txt` (two paths per line, relative to the list) or a video file (OpenCV). They go
 through `ufm_jax.predict` `--batch` at a time; the last batch is padded with its last pair so the
 compiled forward sees one shape. Reading and writing run in a small thread pool beside the
-device. Outputs per pair under OUT/<name> (`ufm_jax.outputs`): `.flo` always, `--save
+device. Outputs per pair under OUT/<name> (`ufm_jax.runtime.outputs`): `.flo` always, `--save
 npy,covis,panel` adds more; OUT/manifest.jsonl gets one line per pair (pair, files, mean covisibility, ms, or the error of an
 unreadable image, which is skipped). Existing outputs are skipped unless `overwrite`.
 """
@@ -16,28 +16,15 @@ import concurrent.futures
 import itertools
 import json
 import pathlib
-import re
 import time
 
 import numpy as np
 
-from ufm_jax import outputs
+from ufm_jax.runtime import outputs
 from ufm_jax.data import io
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
 SAVE_CHOICES = tuple(outputs.SAVE_CHOICES)
-
-
-def natural_key(name: str):
-  return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", str(name))]
-
-
-def frame_pairs(folder, stride: int = 1) -> list[tuple[str, str]]:
-  files = sorted((p for p in pathlib.Path(folder).iterdir() if p.suffix.lower() in io.IMAGE_SUFFIXES),
-                 key=lambda p: natural_key(p.name))
-  if len(files) < stride + 1:
-    raise ValueError(f"{folder}: {len(files)} images; need at least {stride + 1} for --stride {stride}")
-  return [(str(files[i]), str(files[i + stride])) for i in range(len(files) - stride)]
 
 
 def list_pairs(list_file) -> list[tuple[str, str]]:
@@ -89,7 +76,7 @@ def run(model, variables, pairs, out_dir, *, batch: int = 1, save=(), overwrite=
   (a video is never decoded whole). Returns counts (done/skipped/failed) and seconds."""
   from tqdm import tqdm
 
-  from ufm_jax import inference
+  from ufm_jax.runtime import inference
 
   out_dir = pathlib.Path(out_dir)
   out_dir.mkdir(parents=True, exist_ok=True)

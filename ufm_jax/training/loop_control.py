@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import logging
 
-from ufm_jax import checkpoint
+from ufm_jax.runtime import checkpoint
 
 class PreemptionGuard:
   """Turns SIGTERM into a flag the loop polls, so it can save and exit cleanly.

@@ -6,7 +6,7 @@
   m["confidence"]                    # [N] predicted covisibility of each match
   m["eligible"]                      # source pixels it could draw from: N < num when fewer
 
-The sampling is the pose benchmark's (ufm_jax.metrics.sample_matches: covisibility-weighted,
+The sampling is the pose benchmark's (ufm_jax.evaluators.metrics.sample_matches: covisibility-weighted,
 KDE-balanced), so matches fed to a solver here are distributed as in the paper's Table 4.
 
 A model with a flow covariance also gives each match the uncertainty of keypoints1, in the
@@ -28,7 +28,7 @@ import pathlib
 
 import numpy as np
 
-from ufm_jax import metrics
+from ufm_jax.evaluators import metrics
 from ufm_jax.data import io
 
 
@@ -125,7 +125,7 @@ def match(model, variables, source, target, num=5000, min_covisibility=0.5, bidi
   """Matches between two HWC uint8 RGB images (any sizes) in their original pixel coordinates;
   `variables` as the loaders return them. With a flow covariance model also their covariance,
   precision and sigma, most certain first (`max_sigma` px drops the others)."""
-  from ufm_jax import inference
+  from ufm_jax.runtime import inference
   source, target = np.asarray(source), np.asarray(target)
   if bidirectional:
     fwd, bwd = inference.predict(model, variables, [source, target], [target, source])

@@ -2,7 +2,7 @@
 what JAX needs to compile for a TPU slice on a machine without one, and each chip's memory and
 peak speed, for planning a run before renting it (benchmarks/train_step.py --topology).
 
-  from ufm_jax import topologies
+  from ufm_jax.planning import topologies
   devices = topologies.devices("v5e-8")     # 8 abstract TPU v5e devices (needs libtpu)
   mesh = sharding.make_mesh("data:1,fsdp:-1", devices)
 
@@ -35,7 +35,7 @@ class Chip:
 # TPU HBM: the limit XLA:TPU compiles against (libtpu 0.0.42 names it when a program does not
 # fit: "exceeds available HBM (15.75G)"), a little under the datasheet's 16/32/95 GB.
 # GPU HBM: the datasheet's. Peaks: Cloud TPU and NVIDIA datasheets.
-# Host vCPUs (what feeds the chips, ufm_jax.planning): Cloud TPU's VM tables, v5e 112 per 4-chip
+# Host vCPUs (what feeds the chips, ufm_jax.planning.planner): Cloud TPU's VM tables, v5e 112 per 4-chip
 # VM (ct5lp-hightpu-4t; 224 per 8-chip VM), v5p 208 per 4-chip VM (half of them within one NUMA
 # node); Google Cloud's a3-highgpu-8g, 208 for 8 H100s.
 CHIPS = {

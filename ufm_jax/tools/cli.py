@@ -12,18 +12,18 @@ as `ufm-jax`).
         <dir>_panel.png          source | target | flow colours | target warped into the source
                                  (| uncertainty, sigma_max in px over a legend, with a covariance)
   python -m ufm_jax infer (--frames DIR [--stride k] | --pairs LIST.txt | VIDEO.mp4) --checkpoint DIR
-      --out DIR [--batch N] [--save npy,covis,panel] [--overwrite]   (see `ufm_jax.sequence`)
+      --out DIR [--batch N] [--save npy,covis,panel] [--overwrite]   (see `ufm_jax.tools.sequence`)
   python -m ufm_jax export --checkpoint DIR --size HxW --out PATH [--batch N|dynamic]
       [--dtype float32|bfloat16] [--format stablehlo|onnx] [--outputs flow,covisibility]
-      A deployable artifact of the forward pass plus PATH.json (see `ufm_jax.export`).
+      A deployable artifact of the forward pass plus PATH.json (see `ufm_jax.tools.export`).
   python -m ufm_jax match SOURCE TARGET --checkpoint DIR --out matches.npz [--draw m.png]
       [--num 5000] [--min-covisibility 0.5] [--bidirectional] [--max-sigma PX]
-      (see `ufm_jax.matching`; a flow covariance model adds each match's covariance and
+      (see `ufm_jax.tools.matching`; a flow covariance model adds each match's covariance and
       precision and ranks the matches, most certain first)
   python -m ufm_jax demo --checkpoint DIR [--port 7860] [--host 127.0.0.1] [--max-side 2048] [--share]
-      A local Gradio page: flow, covisibility, warp and matches (see `ufm_jax.demo`; [demo] extra).
+      A local Gradio page: flow, covisibility, warp and matches (see `ufm_jax.tools.demo`; [demo] extra).
   python -m ufm_jax convert SNAPSHOT_DIR OUT_DIR ...
-      Converts an official Hugging Face snapshot into our checkpoint (see `ufm_jax.model_io`).
+      Converts an official Hugging Face snapshot into our checkpoint (see `ufm_jax.runtime.model_io`).
   python -m ufm_jax to-official CHECKPOINT OUT_DIR [--step N]
       The inverse: a converted checkpoint or a train.py workdir (newest step, or step N) -> an
       official snapshot (config.json, model.safetensors, README.md; `ufm_jax.save_official`).
@@ -44,13 +44,13 @@ import sys
 
 import numpy as np
 
-from ufm_jax import compile_cache, model_io
-from ufm_jax.model_io import load_model
+from ufm_jax.runtime import compile_cache, model_io
+from ufm_jax.runtime.model_io import load_model
 
 
 def _to_official_main(args) -> int:
   import ufm_jax
-  from ufm_jax import checkpoint
+  from ufm_jax.runtime import checkpoint
 
   p = pathlib.Path(args.checkpoint)
   if pathlib.Path(args.out_dir).exists():  # before loading: the export never overwrites
@@ -68,9 +68,9 @@ def _to_official_main(args) -> int:
 
 
 def run_infer(model, variables, source_path, target_path, out_dir, bidirectional=False):
-  """Reads the two images, predicts, writes every output of `ufm_jax.outputs`; returns their
+  """Reads the two images, predicts, writes every output of `ufm_jax.runtime.outputs`; returns their
   paths."""
-  from ufm_jax import inference, outputs
+  from ufm_jax.runtime import inference, outputs
   from ufm_jax.data import io
 
   source, target = io.read_image(source_path), io.read_image(target_path)
@@ -87,7 +87,7 @@ def run_infer(model, variables, source_path, target_path, out_dir, bidirectional
 
 
 def _infer_many(args) -> int:
-  from ufm_jax import sequence
+  from ufm_jax.tools import sequence
   save = [k for k in args.save.split(",") if k]
   bad = sorted(set(save) - set(sequence.SAVE_CHOICES))
   if bad:
@@ -97,7 +97,8 @@ def _infer_many(args) -> int:
   if args.frames:
     if not os.path.isdir(args.frames):
       raise FileNotFoundError(f"--frames folder not found: {args.frames}")
-    pairs = sequence.frame_pairs(args.frames, args.stride)
+    from ufm_jax.data.sources import frames
+    pairs = frames.frame_pairs(args.frames, args.stride)
   elif args.pairs:
     if not os.path.isfile(args.pairs):
       raise FileNotFoundError(f"--pairs list not found: {args.pairs}")
@@ -114,7 +115,7 @@ def _infer_many(args) -> int:
 
 
 def _infer_main(args) -> int:
-  from ufm_jax import sequence
+  from ufm_jax.tools import sequence
   if args.frames or args.pairs or (args.source and args.target is None and
                                    pathlib.Path(args.source).suffix.lower() in sequence.VIDEO_SUFFIXES):
     return _infer_many(args)
@@ -165,7 +166,7 @@ def _add_infer_parser(sub) -> None:
   _add_checkpoint_args(p)
   p.add_argument("--out", required=True, help="output folder (created)")
   p.add_argument("--bidirectional", action="store_true", help="also write target -> source")
-  g = p.add_argument_group("many pairs (see ufm_jax.sequence)")
+  g = p.add_argument_group("many pairs (see ufm_jax.tools.sequence)")
   g.add_argument("--frames", help="folder of frames: consecutive pairs in natural sort order")
   g.add_argument("--pairs", help="text file, two image paths per line (relative to the file)")
   g.add_argument("--stride", type=int, default=1, help="frame i is paired with frame i + stride")
@@ -176,7 +177,7 @@ def _add_infer_parser(sub) -> None:
 
 
 def _add_export_parser(sub) -> None:
-  from ufm_jax import export
+  from ufm_jax.tools import export
   p = sub.add_parser("export", help="StableHLO (jax.export) or ONNX artifact of the forward pass",
                      description=export.__doc__.split("\n")[0])
   _add_checkpoint_args(p)
@@ -196,7 +197,7 @@ def _add_export_parser(sub) -> None:
 
 
 def _export_main(args) -> int:
-  from ufm_jax import export
+  from ufm_jax.tools import export
   model, variables = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
   outputs = (None if args.outputs is None else
              [k.strip() for k in args.outputs.split(",") if k.strip()])
@@ -230,7 +231,7 @@ def _add_match_parser(sub) -> None:
 
 
 def _match_main(args) -> int:
-  from ufm_jax import matching
+  from ufm_jax.tools import matching
   from ufm_jax.data import io
   source, target = io.read_image(args.source), io.read_image(args.target)
   model, variables = load_model(args.checkpoint, snapshot=args.snapshot, revision=args.revision)
@@ -249,7 +250,7 @@ def _match_main(args) -> int:
 
 
 def _add_demo_parser(sub) -> None:
-  from ufm_jax import demo
+  from ufm_jax.tools import demo
   p = sub.add_parser("demo", help="local Gradio page: flow, covisibility, warp and matches of two "
                      "images (the [demo] extra)", description=demo.__doc__.split("\n")[0])
   _add_checkpoint_args(p)
@@ -269,7 +270,7 @@ def _add_demo_parser(sub) -> None:
 
 def _demo_main(args) -> int:
   """Load the model, then serve the page until Ctrl-C (the [demo] extra checked first)."""
-  from ufm_jax import demo
+  from ufm_jax.tools import demo
   try:
     import gradio  # noqa: F401
   except ImportError:
@@ -289,7 +290,7 @@ def _convert_main(args) -> int:
 
 
 def _add_convert_parser(sub) -> None:
-  p = sub.add_parser("convert", help="official HF snapshot -> orbax checkpoint (ufm_jax.model_io)",
+  p = sub.add_parser("convert", help="official HF snapshot -> orbax checkpoint (ufm_jax.runtime.model_io)",
                      description="Converts an official Hugging Face snapshot into an orbax "
                      "checkpoint that ufm_jax.load reads back.")
   p.add_argument("snapshot_dir", help="Hugging Face snapshot (config.json + model.safetensors): "

@@ -6,7 +6,7 @@ crop, then colour unless `input.augment.photometric` is off; ufm_jax.data.distil
 same pair un-augmented at the teacher's resolution, with the two affine maps from teacher pixels
 to crop pixels (one per view). In the step, before the student's forward, the teacher predicts
 on the un-augmented pair and `warp_to_crop` carries its outputs into the student's crop; the loss
-(ufm_jax.distill_loss) reads only those targets. No pre-pass, no label.
+(ufm_jax.training.distill_loss) reads only those targets. No pre-pass, no label.
 
 Where the teacher's parameters live: neither in the train state nor as constants of the
 compiled step, but as an explicit argument of the jitted step (`BoundStep`), placed on the mesh
@@ -18,7 +18,7 @@ serialised into the HLO and into every compile) instead of staying device buffer
 the student's. As an argument they are neither: no optimizer state, no gradient (the targets
 leave the teacher through stop_gradient, so no backward pass runs through it), one transfer.
 
-The teacher itself is loaded and placed by ufm_jax.teacher (`config.teacher`).
+The teacher itself is loaded and placed by ufm_jax.training.teacher (`config.teacher`).
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ class Teacher:
     return jax.device_put(self.variables(), self.shardings)
 
   def describe(self) -> str:
-    from ufm_jax import optim
+    from ufm_jax.training import optim
     n = optim.count_params(self.abstract["params"])["total"]
     return (f"teacher {self.source}: {type(self.model).__name__}, {n:,} parameters, "
             f"{self.model.config.dtype}, sees {self.resolution[0]}x{self.resolution[1]}")
@@ -112,7 +112,7 @@ def warp_to_crop(outputs, to_crop0, to_crop1, crop_hw, interpolation: str = "bil
   to_crop0 / to_crop1: [B, 2, 3] affines from teacher pixels of the row's source / target view
   to crop pixels. For crop pixel p: q = to_crop0^-1 p is where the teacher saw it, f the
   teacher's flow there, and the target is to_crop1(q + f) - p. Returns the batch keys of
-  ufm_jax.distill_loss: teacher_flow, teacher_in_view (q inside the teacher's image), teacher_in_crop
+  ufm_jax.training.distill_loss: teacher_flow, teacher_in_view (q inside the teacher's image), teacher_in_crop
   (the match inside [0, W) x [0, H) of the target crop, the pipeline's in-frame rule),
   teacher_covisibility (its probability at q, 0 out of the crop) and teacher_flow_covariance
   (A C A^T with A the target map's linear part) where the teacher has them.

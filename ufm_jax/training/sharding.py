@@ -35,7 +35,7 @@ import numpy as np
 from absl import logging
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from ufm_jax import optim
+from ufm_jax.training import optim
 from ufm_jax.models import scan
 
 BATCH_AXES = ("data", "fsdp")

@@ -1,5 +1,5 @@
-"""What every training loss term shares (ufm_jax.losses, ufm_jax.refine_training,
-ufm_jax.distill_loss): the invalid-ground-truth rule, the masked mean with the official
+"""What every training loss term shares (ufm_jax.training.losses, ufm_jax.training.refine_training,
+ufm_jax.training.distill_loss): the invalid-ground-truth rule, the masked mean with the official
 denominators, the pixel grid, the robust loss, and option checking. Its own module so that the
 refinement and distillation terms and the recipe that composes all terms import it without
 importing each other."""
