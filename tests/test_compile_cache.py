@@ -62,7 +62,8 @@ def test_second_infer_loads_the_forward_from_the_cache(reference_dir, tmp_path):
 
 def test_a_configured_cache_is_left_alone(tmp_path):
   """The host program's JAX_COMPILATION_CACHE_DIR wins over --compile_cache and the default."""
-  code = "from ufm_jax import compile_cache; print(compile_cache.enable(%r))" % str(tmp_path / "other")
+  code = ("from ufm_jax.runtime import compile_cache; print(compile_cache.enable(%r))"
+          % str(tmp_path / "other"))
   env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(tmp_path / "mine"))
   r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                      timeout=120)

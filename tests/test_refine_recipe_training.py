@@ -192,7 +192,7 @@ def test_trained_recipe_workdir_round_trips_through_the_official_format(tmp_path
   the same parameters and running statistics, hence the same outputs."""
   cfg = tmp_path / "recipe_small.py"
   cfg.write_text(
-      "from ufm_jax import config_lib\n\n\ndef get_config(arg=None):\n"
+      "from ufm_jax.training import config_lib\n\n\ndef get_config(arg=None):\n"
       f"  c = config_lib.load_config({SMOKE + ',steps=2'!r})\n"
       "  c.model_fn = 'ufm_jax.testing:official_small_refine_recipe_model'\n"
       "  return c\n")
