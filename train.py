@@ -5,11 +5,15 @@ r"""Trains UFM (or its refiner) on a device mesh.
   python train.py --config=configs/ufm560.py --compile_only --topology=v5e-8 --config.grad_accum=3
 
 Sections: plan (--compile_only), mesh, teacher (distillation only), data,
-model/optimizer/sharding/step (ufm_jax.training.trainer.setup), checkpoint, evals, loop. The run resumes from
-the latest checkpoint in --workdir by itself; SIGTERM saves and exits cleanly. --compile_only builds
-the same mesh, shardings and step from the config alone, compiles the step (on these devices, or with
---topology for a TPU slice through libtpu), prints the plan (ufm_jax.planning.planner; its JSON is the
-last line) and exits 0, or 1 where the step needs more HBM than the chip has (docs/scale.md).
+model/optimizer/sharding/step (ufm_jax.training.trainer.setup), checkpoint, evals, loop. The run
+resumes from the latest checkpoint in --workdir by itself; SIGTERM saves and exits cleanly. The
+run accounts for its own time in WORKDIR/goodput.json across restarts (ufm_jax.training.goodput);
+--config.profile_steps=A:B writes a jax.profiler trace of steps A..B-1 to WORKDIR/profile
+(docs/training.md). --compile_only builds the same mesh, shardings and step from the config
+alone, compiles the step (on these devices, or with --topology for a TPU slice through libtpu),
+times the recipe's input pipeline on this host for the host feed (ufm_jax.testing.host_feed;
+--host_ms_per_row instead), prints the plan (ufm_jax.planning.planner; its JSON is the last line)
+and exits 0, or 1 where the step needs more HBM than the chip has (docs/scale.md).
 """
 
 from __future__ import annotations
@@ -33,8 +37,11 @@ _COMPILE_ONLY = flags.DEFINE_bool(
     "exit 1 if HBM does not fit")
 _TOPOLOGY = flags.DEFINE_string(
     "topology", None, "with --compile_only: compile for this TPU slice (v5e-8, ...) via libtpu")
+_HOST_MS = flags.DEFINE_float(
+    "host_ms_per_row", None, "with --compile_only: host CPU ms per training row for the host "
+    "feed, instead of timing the recipe's input pipeline on this host (seconds)")
 flags.mark_flag_as_required("config")
-_FLAGS = (_CONFIG, _WORKDIR, _COMPILE_ONLY, _TOPOLOGY)
+_FLAGS = (_CONFIG, _WORKDIR, _COMPILE_ONLY, _TOPOLOGY, _HOST_MS)
 
 
 def main(argv):
@@ -45,6 +52,10 @@ def main(argv):
   config = _CONFIG.value
   if _TOPOLOGY.value and not _COMPILE_ONLY.value:
     print("error: --topology compiles for a slice: it needs --compile_only", file=sys.stderr)
+    return 2
+  if _HOST_MS.value is not None and not _COMPILE_ONLY.value:
+    print("error: --host_ms_per_row is a figure of the plan: it needs --compile_only",
+          file=sys.stderr)
     return 2
   if not _COMPILE_ONLY.value and not _WORKDIR.value:
     print("error: --workdir is required (except with --compile_only)", file=sys.stderr)
@@ -59,7 +70,9 @@ def main(argv):
   if _COMPILE_ONLY.value:
     # What this run would build (mesh, shardings, grad_accum, the step), from the config alone.
     from ufm_jax.planning import planner
-    result = planner.plan(config, planner.target(_TOPOLOGY.value))
+    from ufm_jax.testing import host_feed
+    feed = host_feed.for_plan(config, _HOST_MS.value)   # before the compile takes the cores
+    result = planner.plan(config, planner.target(_TOPOLOGY.value), host_feed=feed)
     planner.report(result)
     print(planner.to_json(result), flush=True)
     return 0 if result["fits"] else 1
