@@ -28,6 +28,8 @@ import time
 from absl import app, flags, logging
 from ml_collections import config_flags
 
+_STARTED = time.time()   # the run's wall time counts from here (goodput.json)
+
 _CONFIG = config_flags.DEFINE_config_file(
     "config", None, "the training config, PATH[:ARG] (configs/*.py)", lock_config=True)
 _WORKDIR = flags.DEFINE_string(
@@ -59,6 +61,12 @@ def main(argv):
     return 2
   if not _COMPILE_ONLY.value and not _WORKDIR.value:
     print("error: --workdir is required (except with --compile_only)", file=sys.stderr)
+    return 2
+  from ufm_jax.training import goodput, profiling
+  try:
+    profile = profiling.profile_steps(config.get("profile_steps"))
+  except ValueError as e:
+    print(f"error: {e}", file=sys.stderr)
     return 2
   import jax
   if _TOPOLOGY.value:
@@ -98,6 +106,7 @@ def main(argv):
   if is_main:
     io.write_json_atomic(workdir / "config.json", json.loads(config.to_json_best_effort()))
     (workdir / "command.txt").write_text(" ".join([sys.executable] + sys.argv) + "\n")
+  gp = goodput.Tracker(workdir, is_main, started=_STARTED)   # written now: a restart counts it
   logging.info("mesh %s over %d devices (%d processes)", dict(mesh.shape), jax.device_count(),
                jax.process_count())
 
@@ -138,9 +147,10 @@ def main(argv):
   # ---------------------------------------------------------------------------------- checkpoint
   manager = ckpt_lib.make_manager(workdir, config.ckpt_steps, config.keep_ckpt,
                                   config.async_checkpoint)
-  state, start_step = ckpt_lib.restore_latest(manager, jax.tree.map(
-      lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract_state, state_sh),
-      train_iter)
+  with gp.timed("checkpoint"):
+    state, start_step = ckpt_lib.restore_latest(manager, jax.tree.map(
+        lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract_state,
+        state_sh), train_iter)
   if state is None:
     start_step = 0
     # {"params"}, and "batch_stats" (BatchNorm running statistics) for a model that has them.
@@ -164,7 +174,8 @@ def main(argv):
   def run_evals(step, force=False):
     for name, ev in evaluators.items():
       if force or (ev.every and step % ev.every == 0):
-        res = ev.run(predict, state.variables())
+        with gp.timed("eval"):
+          res = ev.run(predict, state.variables())
         if not res.scalars:
           continue
         rec = {"step": step, "eval": name, **res.scalars}
@@ -182,45 +193,74 @@ def main(argv):
   t_last, step_last = time.time(), start_step
   t_start, first_step = None, start_step
   step = start_step
-  with loop_control.PreemptionGuard(mesh) as guard:
-    keeper = loop_control.SaveAndStop(manager, guard, config.max_nonfinite_steps, start_step)
-    while step < total_steps:
-      batch = next(train_iter)
-      state, metrics = train_step(state, batch)
-      step += 1
-      if step % log_every == 0 or step == total_steps:
-        m = jax.device_get(metrics)
-        now = time.time()
-        if t_start is None:  # exclude compilation from the throughput and ETA
-          t_start, first_step = now, step
-        pairs_s = (step - step_last) * config.input.batch_size / max(now - t_last, 1e-9)
-        done = step - first_step
-        eta = (now - t_start) / done * (total_steps - step) if done > 0 else float("nan")
-        lrs = optim.current_lrs(schedules, step - 1)
-        rec = {"step": step, "epoch": step / steps_per_epoch if steps_per_epoch else None,
-               **{k: float(v) for k, v in m.items()},
-               "skipped": int(jax.device_get(state.skipped)),
-               "lr": max(lrs.values(), default=None), **{f"lr_{g}": v for g, v in lrs.items()},
-               "pairs_per_s": pairs_s}
-        writer.scalars("metrics.jsonl", step, rec, "train")
-        logging.info("process %d metrics %s", jax.process_index(), json.dumps(rec))
-        if is_main:
-          ep = f" ep {rec['epoch']:.3f}" if rec["epoch"] is not None else ""
-          terms = "".join(f"{k[5:]} {v:.5f} " for k, v in rec.items() if k.startswith("loss_"))
-          print(f"step {step}/{total_steps}{ep} loss {rec['loss']:.5f} {terms}"
-                f"lr " + " ".join(f"{g}={v:.2e}" for g, v in lrs.items()) +
-                f" {pairs_s:.1f} pairs/s ETA {_fmt_eta(eta)}" +
-                (f" skipped {rec['skipped']}" if rec["skipped"] else ""), flush=True)
-        if not m["update_ok"]:
-          logging.warning("step %d: non-finite loss or gradient, update skipped (total %d)",
-                          step, rec["skipped"])
-        t_last, step_last = now, step
-      if keeper.end_of_step(step, state, train_iter, metrics["update_ok"], step == total_steps):
-        print(keeper.message, flush=True)
-        break
-      run_evals(step, force=step == total_steps)
-    keeper.wait()
-  manager.close()
+  gp.resumed(start_step)
+  trace = profiling.StepTrace(profile, workdir / "profile", start_step)
+  try:
+    with loop_control.PreemptionGuard(mesh) as guard:
+      keeper = loop_control.SaveAndStop(manager, guard, config.max_nonfinite_steps, start_step)
+      while step < total_steps:
+        trace.before_step(step + 1)
+        with gp.timed("data_wait"):
+          batch = next(train_iter)
+        if step == start_step:   # the run's first call traces and compiles the step
+          with gp.timed("compile"):
+            state, metrics = train_step(state, batch)
+        else:
+          state, metrics = train_step(state, batch)
+        step += 1
+        trace.after_step(step, metrics)
+        gp.step(step)
+        if step % log_every == 0 or step == total_steps:
+          m = jax.device_get(metrics)
+          now = time.time()
+          if t_start is None:  # exclude compilation from the throughput and ETA
+            t_start, first_step = now, step
+          pairs_s = (step - step_last) * config.input.batch_size / max(now - t_last, 1e-9)
+          done = step - first_step
+          eta = (now - t_start) / done * (total_steps - step) if done > 0 else float("nan")
+          lrs = optim.current_lrs(schedules, step - 1)
+          rec = {"step": step, "epoch": step / steps_per_epoch if steps_per_epoch else None,
+                 **{k: float(v) for k, v in m.items()},
+                 "skipped": int(jax.device_get(state.skipped)),
+                 "lr": max(lrs.values(), default=None), **{f"lr_{g}": v for g, v in lrs.items()},
+                 "pairs_per_s": pairs_s}
+          writer.scalars("metrics.jsonl", step, rec, "train")
+          logging.info("process %d metrics %s", jax.process_index(), json.dumps(rec))
+          if is_main:
+            ep = f" ep {rec['epoch']:.3f}" if rec["epoch"] is not None else ""
+            terms = "".join(f"{k[5:]} {v:.5f} " for k, v in rec.items() if k.startswith("loss_"))
+            print(f"step {step}/{total_steps}{ep} loss {rec['loss']:.5f} {terms}"
+                  f"lr " + " ".join(f"{g}={v:.2e}" for g, v in lrs.items()) +
+                  f" {pairs_s:.1f} pairs/s ETA {_fmt_eta(eta)}" +
+                  (f" skipped {rec['skipped']}" if rec["skipped"] else ""), flush=True)
+          if not m["update_ok"]:
+            logging.warning("step %d: non-finite loss or gradient, update skipped (total %d)",
+                            step, rec["skipped"])
+          t_last, step_last = now, step
+          gp.write()
+        if manager.should_save(step) or step == total_steps:
+          # A save step: the step itself ends here, not inside the checkpoint's time.
+          jax.block_until_ready(metrics)
+        t_save = time.monotonic()
+        stop = keeper.end_of_step(step, state, train_iter, metrics["update_ok"],
+                                  step == total_steps)
+        if keeper.saved_step == step:
+          gp.add("checkpoint", time.monotonic() - t_save)
+          writer.scalars("goodput.jsonl", step, {"step": step, **gp.write()}, "goodput")
+        if stop:
+          print(keeper.message, flush=True)
+          break
+        run_evals(step, force=step == total_steps)
+      with gp.timed("checkpoint"):
+        keeper.wait()
+    with gp.timed("checkpoint"):
+      manager.close()
+  finally:
+    trace.stop()
+    figures = gp.write(ended=True)
+    if is_main:
+      print(goodput.summary_line(figures), flush=True)
+      writer.scalars("goodput.jsonl", step, {"step": step, **figures}, "goodput")
   writer.close()
 
 

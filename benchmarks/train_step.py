@@ -192,7 +192,8 @@ def time_only(config, hw, args):
     per_row = counted[batch]
     est = planner.estimate(config, tgt, per_row, hw, batch, args.mfu, feed["host_ms_per_row"])
     row = {"topology": name, "chips": tgt.chips, "hosts": tgt.hosts, "global_batch": batch,
-           "grad_accum": int(config.grad_accum), "image_shape": list(hw), **est, "host_feed": feed}
+           "grad_accum": int(config.grad_accum), "image_shape": list(hw), **est,
+           "host_feed": feed}
     print(f"  {est['flops_per_row'] / 1e12:.3f} TFLOP per row at {hw[0]}x{hw[1]}, "
           f"{est['mean_flops_per_row'] / 1e12:.3f} on average; step {est['mean_step_s_estimate']:.3g}"
           f" s on average at {100 * args.mfu:.0f}% MFU"
