@@ -183,6 +183,9 @@ def time_only(config, hw, args):
   hw = hw or planner.largest_shape(config)
   rows, counted = [], {}
   feed = host_feed.for_plan(config, args.host_ms_per_row)
+  if feed["host_ms_per_row"]:
+    print(f"host feed: {feed['host_ms_per_row']} ms/row "
+          f"({planner.host_feed_source({'host_feed': feed})})")
   for name in args.topology.split(","):
     tgt = planner.target(name, compile=False)
     batch = _per_chip_batch(config, args, tgt.chips) * tgt.chips

@@ -176,6 +176,19 @@ def test_host_ms_per_row_overrides_the_measurement(monkeypatch):
     host_feed.for_plan(_small_980(), 0.0)
 
 
+def test_a_mixture_with_nothing_to_read_is_not_measured(tmp_path):
+  """A dataset without an official layout (so no stand-in) that is absent here: no figure, and
+  the reason, instead of a made-up one."""
+  from ufm_jax.testing import host_feed
+  config = _small_980()
+  config.input.datasets = {"pairs_folder": {"quota": 10, "root": str(tmp_path / "absent"),
+                                            "options": {}}}
+  lines = []
+  feed = host_feed.for_plan(config, log=lambda *a, **k: lines.append(a[0]))
+  assert feed["host_ms_per_row"] is None and feed["source"].startswith("not measured")
+  assert str(tmp_path / "absent") in feed["source"] and "--host_ms_per_row" in lines[-1]
+
+
 def test_the_plan_carries_the_host_feed():
   """A plan with a target that has a step time turns the figure into busy cores and says where
   it comes from; the JSON holds the figure and its load average."""

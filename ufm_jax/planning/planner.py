@@ -370,9 +370,9 @@ def report(result: dict, log=print):
       log(f"  host feed: {feed} x {r['host_ms_per_row']} ms/row ({host_feed_source(r)}) = "
           f"{r['host_cores_per_host']:.1f} busy cores per host{have}")
     else:
-      log(f"  host feed: {feed}; no host ms/row (measured by the plan command, or "
-          f"--host_ms_per_row)")
-  elif r.get("host_feed"):
+      why = (r.get("host_feed") or {}).get("source") or "not measured"
+      log(f"  host feed: {feed}; no host ms/row ({why}; --host_ms_per_row gives one)")
+  elif (r.get("host_feed") or {}).get("host_ms_per_row"):
     log(f"  host feed: {r['host_feed']['host_ms_per_row']} ms/row ({host_feed_source(r)}); no "
         f"step time on this target, so no rows/s to feed")
 
