@@ -106,7 +106,8 @@ def main(argv):
   if is_main:
     io.write_json_atomic(workdir / "config.json", json.loads(config.to_json_best_effort()))
     (workdir / "command.txt").write_text(" ".join([sys.executable] + sys.argv) + "\n")
-  gp = goodput.Tracker(workdir, is_main, started=_STARTED)   # written now: a restart counts it
+  # Written now, so that a restart knows of this run; ended at the loop's end or at exit.
+  gp = goodput.Tracker(workdir, is_main, started=_STARTED, at_exit=True)
   logging.info("mesh %s over %d devices (%d processes)", dict(mesh.shape), jax.device_count(),
                jax.process_count())
 
@@ -257,7 +258,7 @@ def main(argv):
       manager.close()
   finally:
     trace.stop()
-    figures = gp.write(ended=True)
+    figures = gp.close()
     if is_main:
       print(goodput.summary_line(figures), flush=True)
       writer.scalars("goodput.jsonl", step, {"step": step, **figures}, "goodput")

@@ -74,6 +74,15 @@ def test_tracker_accumulates_across_instances(tmp_path):
   assert sum(saved[k] for k in PARTS) == pytest.approx(saved["wall_s"], abs=0.01)
 
 
+def test_close_writes_once_and_ends_the_run(tmp_path):
+  t = goodput.Tracker(tmp_path)
+  first = t.close()
+  time.sleep(0.02)
+  assert t.close() == first         # the second call (atexit after the loop's) changes nothing
+  saved = json.loads((tmp_path / goodput.FILE).read_text())
+  assert saved["runs"][0]["ended"] is True and saved["wall_s"] == first["wall_s"]
+
+
 def test_profile_steps_values():
   assert profiling.profile_steps(None) is None and profiling.profile_steps("") is None
   assert profiling.profile_steps("3:6") == (3, 6)

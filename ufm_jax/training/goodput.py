@@ -31,6 +31,7 @@ process 0 keeps the file. docs/training.md ("Goodput") says how to read it.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import pathlib
@@ -82,9 +83,11 @@ class Tracker:
   """One run's share of WORKDIR/goodput.json (module docstring). `active` False (processes other
   than 0): times nothing to disk."""
 
-  def __init__(self, workdir, active: bool = True, started: float | None = None):
+  def __init__(self, workdir, active: bool = True, started: float | None = None,
+               at_exit: bool = False):
     self.path = pathlib.Path(workdir) / FILE
     self.active = active
+    self.closed = False
     now = time.time()
     started = now if started is None else started
     self._t0 = time.monotonic() - (now - started)   # the run's start on the monotonic clock
@@ -99,6 +102,10 @@ class Tracker:
     self._loop_t0 = None
     self._in_loop = 0.0      # timed seconds since the loop started
     self.write()
+    if at_exit and active:
+      # A run that stops on an error before its loop's own final write (a bad config, a failed
+      # restore) still ends its record: only a killed process leaves time unaccounted.
+      atexit.register(self.close)
 
   def _previous(self) -> list:
     if not self.path.exists():
@@ -141,6 +148,13 @@ class Tracker:
     if self._loop_t0 is not None:
       self.run["step_s"] = max(0.0, now - self._loop_t0 - self._in_loop)
     return totals(self.runs)
+
+  def close(self) -> dict:
+    """The run's final write (once; later calls return the figures written then)."""
+    if not self.closed:
+      self._final = self.write(ended=True)
+      self.closed = True
+    return self._final
 
   def write(self, ended: bool = False) -> dict:
     """Writes the file (process 0) and returns its figures."""
