@@ -79,5 +79,5 @@ class StepTrace:
     jax.profiler.stop_trace()
     self.active = False
     self.steps = None
-    print(f"profile: trace written under {self.folder} (tensorboard --logdir {self.folder}, "
-          f"or xprof --logdir {self.folder})", flush=True)
+    print(f"profile: trace written under {self.folder} (tensorboard --logdir={self.folder}, "
+          f"or xprof --logdir={self.folder})", flush=True)
