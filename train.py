@@ -5,11 +5,15 @@ r"""Trains UFM (or its refiner) on a device mesh.
   python train.py --config=configs/ufm560.py --compile_only --topology=v5e-8 --config.grad_accum=3
 
 Sections: plan (--compile_only), mesh, teacher (distillation only), data,
-model/optimizer/sharding/step (ufm_jax.training.trainer.setup), checkpoint, evals, loop. The run resumes from
-the latest checkpoint in --workdir by itself; SIGTERM saves and exits cleanly. --compile_only builds
-the same mesh, shardings and step from the config alone, compiles the step (on these devices, or with
---topology for a TPU slice through libtpu), prints the plan (ufm_jax.planning.planner; its JSON is the
-last line) and exits 0, or 1 where the step needs more HBM than the chip has (docs/scale.md).
+model/optimizer/sharding/step (ufm_jax.training.trainer.setup), checkpoint, evals, loop. The run
+resumes from the latest checkpoint in --workdir by itself; SIGTERM saves and exits cleanly. The
+run accounts for its own time in WORKDIR/goodput.json across restarts (ufm_jax.training.goodput);
+--config.profile_steps=A:B writes a jax.profiler trace of steps A..B-1 to WORKDIR/profile
+(docs/training.md). --compile_only builds the same mesh, shardings and step from the config
+alone, compiles the step (on these devices, or with --topology for a TPU slice through libtpu),
+times the recipe's input pipeline on this host for the host feed (ufm_jax.testing.host_feed;
+--host_ms_per_row instead), prints the plan (ufm_jax.planning.planner; its JSON is the last line)
+and exits 0, or 1 where the step needs more HBM than the chip has (docs/scale.md).
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ import time
 from absl import app, flags, logging
 from ml_collections import config_flags
 
+_STARTED = time.time()   # the run's wall time counts from here (goodput.json)
+
 _CONFIG = config_flags.DEFINE_config_file(
     "config", None, "the training config, PATH[:ARG] (configs/*.py)", lock_config=True)
 _WORKDIR = flags.DEFINE_string(
@@ -33,8 +39,11 @@ _COMPILE_ONLY = flags.DEFINE_bool(
     "exit 1 if HBM does not fit")
 _TOPOLOGY = flags.DEFINE_string(
     "topology", None, "with --compile_only: compile for this TPU slice (v5e-8, ...) via libtpu")
+_HOST_MS = flags.DEFINE_float(
+    "host_ms_per_row", None, "with --compile_only: host CPU ms per training row for the host "
+    "feed, instead of timing the recipe's input pipeline on this host (seconds)")
 flags.mark_flag_as_required("config")
-_FLAGS = (_CONFIG, _WORKDIR, _COMPILE_ONLY, _TOPOLOGY)
+_FLAGS = (_CONFIG, _WORKDIR, _COMPILE_ONLY, _TOPOLOGY, _HOST_MS)
 
 
 def main(argv):
@@ -46,8 +55,18 @@ def main(argv):
   if _TOPOLOGY.value and not _COMPILE_ONLY.value:
     print("error: --topology compiles for a slice: it needs --compile_only", file=sys.stderr)
     return 2
+  if _HOST_MS.value is not None and not _COMPILE_ONLY.value:
+    print("error: --host_ms_per_row is a figure of the plan: it needs --compile_only",
+          file=sys.stderr)
+    return 2
   if not _COMPILE_ONLY.value and not _WORKDIR.value:
     print("error: --workdir is required (except with --compile_only)", file=sys.stderr)
+    return 2
+  from ufm_jax.training import goodput, profiling
+  try:
+    profile = profiling.profile_steps(config.get("profile_steps"))
+  except ValueError as e:
+    print(f"error: {e}", file=sys.stderr)
     return 2
   import jax
   if _TOPOLOGY.value:
@@ -59,7 +78,9 @@ def main(argv):
   if _COMPILE_ONLY.value:
     # What this run would build (mesh, shardings, grad_accum, the step), from the config alone.
     from ufm_jax.planning import planner
-    result = planner.plan(config, planner.target(_TOPOLOGY.value))
+    from ufm_jax.testing import host_feed
+    feed = host_feed.for_plan(config, _HOST_MS.value)   # before the compile takes the cores
+    result = planner.plan(config, planner.target(_TOPOLOGY.value), host_feed=feed)
     planner.report(result)
     print(planner.to_json(result), flush=True)
     return 0 if result["fits"] else 1
@@ -85,6 +106,8 @@ def main(argv):
   if is_main:
     io.write_json_atomic(workdir / "config.json", json.loads(config.to_json_best_effort()))
     (workdir / "command.txt").write_text(" ".join([sys.executable] + sys.argv) + "\n")
+  # Written now, so that a restart knows of this run; ended at the loop's end or at exit.
+  gp = goodput.Tracker(workdir, is_main, started=_STARTED, at_exit=True)
   logging.info("mesh %s over %d devices (%d processes)", dict(mesh.shape), jax.device_count(),
                jax.process_count())
 
@@ -125,9 +148,10 @@ def main(argv):
   # ---------------------------------------------------------------------------------- checkpoint
   manager = ckpt_lib.make_manager(workdir, config.ckpt_steps, config.keep_ckpt,
                                   config.async_checkpoint)
-  state, start_step = ckpt_lib.restore_latest(manager, jax.tree.map(
-      lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract_state, state_sh),
-      train_iter)
+  with gp.timed("checkpoint"):
+    state, start_step = ckpt_lib.restore_latest(manager, jax.tree.map(
+        lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract_state,
+        state_sh), train_iter)
   if state is None:
     start_step = 0
     # {"params"}, and "batch_stats" (BatchNorm running statistics) for a model that has them.
@@ -151,7 +175,8 @@ def main(argv):
   def run_evals(step, force=False):
     for name, ev in evaluators.items():
       if force or (ev.every and step % ev.every == 0):
-        res = ev.run(predict, state.variables())
+        with gp.timed("eval"):
+          res = ev.run(predict, state.variables())
         if not res.scalars:
           continue
         rec = {"step": step, "eval": name, **res.scalars}
@@ -169,45 +194,74 @@ def main(argv):
   t_last, step_last = time.time(), start_step
   t_start, first_step = None, start_step
   step = start_step
-  with loop_control.PreemptionGuard(mesh) as guard:
-    keeper = loop_control.SaveAndStop(manager, guard, config.max_nonfinite_steps, start_step)
-    while step < total_steps:
-      batch = next(train_iter)
-      state, metrics = train_step(state, batch)
-      step += 1
-      if step % log_every == 0 or step == total_steps:
-        m = jax.device_get(metrics)
-        now = time.time()
-        if t_start is None:  # exclude compilation from the throughput and ETA
-          t_start, first_step = now, step
-        pairs_s = (step - step_last) * config.input.batch_size / max(now - t_last, 1e-9)
-        done = step - first_step
-        eta = (now - t_start) / done * (total_steps - step) if done > 0 else float("nan")
-        lrs = optim.current_lrs(schedules, step - 1)
-        rec = {"step": step, "epoch": step / steps_per_epoch if steps_per_epoch else None,
-               **{k: float(v) for k, v in m.items()},
-               "skipped": int(jax.device_get(state.skipped)),
-               "lr": max(lrs.values(), default=None), **{f"lr_{g}": v for g, v in lrs.items()},
-               "pairs_per_s": pairs_s}
-        writer.scalars("metrics.jsonl", step, rec, "train")
-        logging.info("process %d metrics %s", jax.process_index(), json.dumps(rec))
-        if is_main:
-          ep = f" ep {rec['epoch']:.3f}" if rec["epoch"] is not None else ""
-          terms = "".join(f"{k[5:]} {v:.5f} " for k, v in rec.items() if k.startswith("loss_"))
-          print(f"step {step}/{total_steps}{ep} loss {rec['loss']:.5f} {terms}"
-                f"lr " + " ".join(f"{g}={v:.2e}" for g, v in lrs.items()) +
-                f" {pairs_s:.1f} pairs/s ETA {_fmt_eta(eta)}" +
-                (f" skipped {rec['skipped']}" if rec["skipped"] else ""), flush=True)
-        if not m["update_ok"]:
-          logging.warning("step %d: non-finite loss or gradient, update skipped (total %d)",
-                          step, rec["skipped"])
-        t_last, step_last = now, step
-      if keeper.end_of_step(step, state, train_iter, metrics["update_ok"], step == total_steps):
-        print(keeper.message, flush=True)
-        break
-      run_evals(step, force=step == total_steps)
-    keeper.wait()
-  manager.close()
+  gp.resumed(start_step)
+  trace = profiling.StepTrace(profile, workdir / "profile", start_step)
+  try:
+    with loop_control.PreemptionGuard(mesh) as guard:
+      keeper = loop_control.SaveAndStop(manager, guard, config.max_nonfinite_steps, start_step)
+      while step < total_steps:
+        trace.before_step(step + 1)
+        with gp.timed("data_wait"):
+          batch = next(train_iter)
+        if step == start_step:   # the run's first call traces and compiles the step
+          with gp.timed("compile"):
+            state, metrics = train_step(state, batch)
+        else:
+          state, metrics = train_step(state, batch)
+        step += 1
+        trace.after_step(step, metrics)
+        gp.step(step)
+        if step % log_every == 0 or step == total_steps:
+          m = jax.device_get(metrics)
+          now = time.time()
+          if t_start is None:  # exclude compilation from the throughput and ETA
+            t_start, first_step = now, step
+          pairs_s = (step - step_last) * config.input.batch_size / max(now - t_last, 1e-9)
+          done = step - first_step
+          eta = (now - t_start) / done * (total_steps - step) if done > 0 else float("nan")
+          lrs = optim.current_lrs(schedules, step - 1)
+          rec = {"step": step, "epoch": step / steps_per_epoch if steps_per_epoch else None,
+                 **{k: float(v) for k, v in m.items()},
+                 "skipped": int(jax.device_get(state.skipped)),
+                 "lr": max(lrs.values(), default=None), **{f"lr_{g}": v for g, v in lrs.items()},
+                 "pairs_per_s": pairs_s}
+          writer.scalars("metrics.jsonl", step, rec, "train")
+          logging.info("process %d metrics %s", jax.process_index(), json.dumps(rec))
+          if is_main:
+            ep = f" ep {rec['epoch']:.3f}" if rec["epoch"] is not None else ""
+            terms = "".join(f"{k[5:]} {v:.5f} " for k, v in rec.items() if k.startswith("loss_"))
+            print(f"step {step}/{total_steps}{ep} loss {rec['loss']:.5f} {terms}"
+                  f"lr " + " ".join(f"{g}={v:.2e}" for g, v in lrs.items()) +
+                  f" {pairs_s:.1f} pairs/s ETA {_fmt_eta(eta)}" +
+                  (f" skipped {rec['skipped']}" if rec["skipped"] else ""), flush=True)
+          if not m["update_ok"]:
+            logging.warning("step %d: non-finite loss or gradient, update skipped (total %d)",
+                            step, rec["skipped"])
+          t_last, step_last = now, step
+          gp.write()
+        if manager.should_save(step) or step == total_steps:
+          # A save step: the step itself ends here, not inside the checkpoint's time.
+          jax.block_until_ready(metrics)
+        t_save = time.monotonic()
+        stop = keeper.end_of_step(step, state, train_iter, metrics["update_ok"],
+                                  step == total_steps)
+        if keeper.saved_step == step:
+          gp.add("checkpoint", time.monotonic() - t_save)
+          writer.scalars("goodput.jsonl", step, {"step": step, **gp.write()}, "goodput")
+        if stop:
+          print(keeper.message, flush=True)
+          break
+        run_evals(step, force=step == total_steps)
+      with gp.timed("checkpoint"):
+        keeper.wait()
+    with gp.timed("checkpoint"):
+      manager.close()
+  finally:
+    trace.stop()
+    figures = gp.close()
+    if is_main:
+      print(goodput.summary_line(figures), flush=True)
+      writer.scalars("goodput.jsonl", step, {"step": step, **figures}, "goodput")
   writer.close()
 
 

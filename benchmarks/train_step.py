@@ -20,7 +20,9 @@ chip's, the collectives of the compiled HLO by kind (ufm_jax.planning.hlo_stats)
 whole step (ufm_jax.planning.flops: every loop body, grad_accum's microbatches and the scanned blocks, by
 its trip count) and, at --mfu of the chips' bf16 peak (an assumption), the step time, the days of
 the recipe's epochs (the mean over its training shapes) and the host CPU that feeding the chips
-at that pace needs (rows per second per host x --host_ms_per_row). The last line is one JSON
+at that pace needs (rows per second per host x the host ms per row, timed on this host by a short
+run of the recipe's input pipeline on stand-in data, ufm_jax.testing.host_feed, with the load
+average beside it; --host_ms_per_row instead). The last line is one JSON
 object (chips, device_kind, mesh, grad_accum, global_batch, hbm_bytes_per_chip,
 hbm_capacity_bytes, flops_per_step, collective_bytes, compile_s, ...). --fit searches the largest
 per-chip batch that fits (one compile per probe, minutes each at full size), then compiles the
@@ -109,9 +111,10 @@ def aot(config, batch, hw, args):
   """--aot: the step compiled on the devices at hand (--devices fake CPU ones), as
   `train.py --compile_only` compiles it."""
   from ufm_jax.planning import planner
+  from ufm_jax.testing import host_feed
   tgt = planner.target()
   result = planner.plan(config, tgt, batch=batch, image_shape=hw, mfu=args.mfu,
-                         host_ms_per_row=args.host_ms_per_row)
+                         host_feed=host_feed.for_plan(config, args.host_ms_per_row))
   emit(result, args.hlo_out)
   return result
 
@@ -147,6 +150,7 @@ def plan(config, hw, args):
   largest per-chip batch that fits and the plan of the recipe's batch, with the overrides that
   run it."""
   from ufm_jax.planning import planner, topologies
+  from ufm_jax.testing import host_feed
   from ufm_jax.training import sharding
   tgt = planner.target(args.topology)
   slc = topologies.get(args.topology)
@@ -155,12 +159,13 @@ def plan(config, hw, args):
   print(f"{args.topology}: {slc.chips} chips ({slc.topology}, {slc.chip_config}), "
         f"{_gib(tgt.capacity)} HBM per chip, bf16 peak {tgt.peak_flops / 1e12:.0f} TFLOP/s, "
         f"{tgt.hosts} host(s); mesh {config.mesh}", flush=True)
+  feed = host_feed.for_plan(config, args.host_ms_per_row)
   if args.fit:
     result = planner.fit(config, tgt, per_chip, image_shape=hw, max_probes=args.max_probes,
-                          mfu=args.mfu, host_ms_per_row=args.host_ms_per_row)
+                          mfu=args.mfu, host_feed=feed)
   else:
     result = planner.plan(config, tgt, batch=per_chip * n, image_shape=hw, mfu=args.mfu,
-                           host_ms_per_row=args.host_ms_per_row)
+                           host_feed=feed)
   if args.fit:
     print("run this plan (docs/launch.md):")
     for line in planner.launch_lines(result, config_spec(args)):
@@ -173,9 +178,14 @@ def time_only(config, hw, args):
   """--time_only: step time, recipe days and host feed for each of the --topology slices (a
   comma list, GPU nodes too), from the FLOP count alone: no compile, no libtpu."""
   from ufm_jax.planning import planner
+  from ufm_jax.testing import host_feed
   shapes = planner.training_shapes(config)
   hw = hw or planner.largest_shape(config)
   rows, counted = [], {}
+  feed = host_feed.for_plan(config, args.host_ms_per_row)
+  if feed["host_ms_per_row"]:
+    print(f"host feed: {feed['host_ms_per_row']} ms/row "
+          f"({planner.host_feed_source({'host_feed': feed})})")
   for name in args.topology.split(","):
     tgt = planner.target(name, compile=False)
     batch = _per_chip_batch(config, args, tgt.chips) * tgt.chips
@@ -183,11 +193,10 @@ def time_only(config, hw, args):
     if batch not in counted:   # slices with the same batch share the count (TPU and GPU alike)
       counted[batch] = planner.model_flops_per_row(config, set(shapes) | {hw}, batch, "tpu")
     per_row = counted[batch]
-    host_ms = (args.host_ms_per_row if args.host_ms_per_row is not None
-               else planner.default_host_ms_per_row(config))
-    est = planner.estimate(config, tgt, per_row, hw, batch, args.mfu, host_ms)
+    est = planner.estimate(config, tgt, per_row, hw, batch, args.mfu, feed["host_ms_per_row"])
     row = {"topology": name, "chips": tgt.chips, "hosts": tgt.hosts, "global_batch": batch,
-           "grad_accum": int(config.grad_accum), "image_shape": list(hw), **est}
+           "grad_accum": int(config.grad_accum), "image_shape": list(hw), **est,
+           "host_feed": feed}
     print(f"  {est['flops_per_row'] / 1e12:.3f} TFLOP per row at {hw[0]}x{hw[1]}, "
           f"{est['mean_flops_per_row'] / 1e12:.3f} on average; step {est['mean_step_s_estimate']:.3g}"
           f" s on average at {100 * args.mfu:.0f}% MFU"
@@ -340,8 +349,9 @@ def main():
                    help="assumed model FLOPs utilisation for the step time (uncalibrated; 0: no "
                    "step time)")
   tpu.add_argument("--host_ms_per_row", type=float, default=None,
-                   help="host CPU ms per training row for the host feed (default: "
-                   "ufm_jax.planning.planner.HOST_MS_PER_ROW, measured by benchmarks/data_pipeline.py)")
+                   help="host CPU ms per training row for the host feed (default: timed here, "
+                   "a short run of the recipe's input pipeline on stand-in data: "
+                   "ufm_jax.testing.host_feed)")
   tpu.add_argument("--time_only", action="store_true",
                    help="no compile: step time and days for each of --topology A,B,... (GPU "
                    "nodes too: h100-8, h200-8, a100-8) from the FLOP count")

@@ -53,7 +53,7 @@ def test_compile_only_and_the_planner_agree_on_8_devices():
                 "--config.input.batch_size=16", env=env)
   assert a.returncode == 0, a.stderr[-3000:]
   b = _planner("--config", str(TINY), "--aot", "--devices", "8", "--grad_accum", "2",
-               "--batch", "16", env=env)
+               "--batch", "16", "--host_ms_per_row", "7.5", env=env)
   assert b.returncode == 0, b.stderr[-3000:]
   ra, rb = _last_json(a), _last_json(b)
   _agree(ra, rb)
@@ -63,6 +63,11 @@ def test_compile_only_and_the_planner_agree_on_8_devices():
   # that do not split over 8).
   assert ra["param_bytes_per_device"] < ra["param_bytes"] / 4
   assert ra["hbm_capacity_bytes"] is None and ra["fits"] is True   # CPUs have no HBM limit
+  # train.py timed the config's own input (its data_fn) for the host feed; the planner was told.
+  assert ra["host_feed"]["source"] == "measured" and ra["host_feed"]["host_ms_per_row"] > 0
+  assert ra["host_feed"]["load_avg_1m"] >= 0 and ra["host_feed"]["rows"] >= 96
+  assert rb["host_feed"]["source"] == "--host_ms_per_row"
+  assert rb["host_feed"]["host_ms_per_row"] == 7.5
   for key in ("chips", "device_kind", "hbm_bytes_per_chip", "flops_per_step",
               "collective_bytes", "compile_s"):
     assert key in ra, key
@@ -118,13 +123,93 @@ def test_host_feed():
   assert est["hosts_feed_chips"] == (est["host_cores_per_host"] <= 112)
   slow = planner.estimate(config, tgt, per_row, shapes[0], 128, 0.5, 1000.0)
   assert slow["hosts_feed_chips"] is False   # a second per row cannot keep up
-  # The recipe's image operations pick the figure: official by default, OpenCV's when asked.
-  assert planner.default_host_ms_per_row(config) == planner.HOST_MS_PER_ROW[(560, False)]
-  config.input.augment = {**dict(config.input.augment), "fast_image_ops": True}
-  assert planner.default_host_ms_per_row(config) == planner.HOST_MS_PER_ROW[(560, True)]
-  assert planner.HOST_MS_PER_ROW[(560, False)] > planner.HOST_MS_PER_ROW[(560, True)]
-  c980 = config_lib.load_config(str(REPO / "configs" / "ufm980.py"))
-  assert planner.default_host_ms_per_row(c980) is None      # never measured at 980
+
+
+def _small_980(names=("hd1k", "flyingchairs")):
+  """configs/ufm980.py on two of its datasets at two small shapes (the trees stay small)."""
+  config = config_lib.load_config(str(REPO / "configs" / "ufm980.py"))
+  config.input.datasets = {n: config.input.datasets[n].to_dict() for n in names}
+  config.input.shapes = ((42, 56), (28, 56))
+  config.input.longest_side = 56
+  return config
+
+
+def test_host_feed_times_the_recipes_own_pipeline(tmp_path, monkeypatch):
+  """The plan's host figure comes from trainer.build_input (train.py's input) run on the
+  recipe's own input block (datasets, quotas, shapes, augmentation) over stand-in trees in the
+  official layouts, and the load average is recorded beside it."""
+  from ufm_jax.testing import host_feed
+  from ufm_jax.training import trainer
+  config = _small_980()
+  seen = []
+  real = trainer.build_input
+
+  def spy(cfg, process_batch, seed, teacher=None):
+    seen.append(cfg)
+    return real(cfg, process_batch, seed, teacher)
+  monkeypatch.setattr(trainer, "build_input", spy)
+  feed = host_feed.measure(config, rows=8, cache_dir=str(tmp_path))
+  assert len(seen) == 1
+  block = seen[0].input
+  assert dict(block.augment) == dict(config.input.augment)
+  assert tuple(map(tuple, block.shapes)) == ((42, 56), (28, 56))
+  assert {n: d.quota for n, d in block.datasets.items()} == {"hd1k": 5000, "flyingchairs": 25000}
+  for name in ("hd1k", "flyingchairs"):   # read from the trees, at the largest shape
+    assert block.datasets[name].root.startswith(str(tmp_path / f"{name}_42x56"))
+  assert block.num_workers == 0 and block.read_threads == 0
+  assert feed["source"] == "measured" and feed["datasets"] == ["flyingchairs", "hd1k"]
+  assert feed["rows"] >= 8 and feed["host_ms_per_row"] > 0 and feed["wall_ms_per_row"] > 0
+  assert set(map(tuple, feed["image_shapes"])) <= {(42, 56), (28, 56)}
+  assert feed["load_avg_1m"] >= 0
+  assert config.input.num_workers != 0     # the caller's config is left as it was
+
+
+def test_host_ms_per_row_overrides_the_measurement(monkeypatch):
+  from ufm_jax.testing import host_feed
+
+  def never(*a, **k):
+    raise AssertionError("measured although --host_ms_per_row was given")
+  monkeypatch.setattr(host_feed, "measure", never)
+  feed = host_feed.for_plan(_small_980(), 12.5, log=lambda *a, **k: None)
+  assert feed == {"host_ms_per_row": 12.5, "source": "--host_ms_per_row", "load_avg_1m": None}
+  with pytest.raises(ValueError, match="host_ms_per_row"):
+    host_feed.for_plan(_small_980(), 0.0)
+
+
+def test_a_mixture_with_nothing_to_read_is_not_measured(tmp_path):
+  """A dataset without an official layout (so no stand-in) that is absent here: no figure, and
+  the reason, instead of a made-up one."""
+  from ufm_jax.testing import host_feed
+  config = _small_980()
+  config.input.datasets = {"pairs_folder": {"quota": 10, "root": str(tmp_path / "absent"),
+                                            "options": {}}}
+  lines = []
+  feed = host_feed.for_plan(config, log=lambda *a, **k: lines.append(a[0]))
+  assert feed["host_ms_per_row"] is None and feed["source"].startswith("not measured")
+  assert str(tmp_path / "absent") in feed["source"] and "--host_ms_per_row" in lines[-1]
+
+
+def test_the_plan_carries_the_host_feed():
+  """A plan with a target that has a step time turns the figure into busy cores and says where
+  it comes from; the JSON holds the figure and its load average."""
+  config = config_lib.load_config(str(REPO / "configs" / "ufm560.py"))
+  tgt = planner.target("v5e-8", compile=False)
+  shapes = planner.training_shapes(config)
+  # A plan without compiler figures (as XLA's refusal leaves it) beside the estimates.
+  result = {"grad_accum": 1, "refused": "-", "compile_s": 0.0, "image_shape": [420, 560],
+            "global_batch": 8}
+  feed = {"host_ms_per_row": 20.0, "source": "measured", "rows": 96, "load_avg_1m": 3.5}
+  result.update(planner.estimate(config, tgt, {s: 1e12 for s in shapes}, shapes[0], 8, 0.5,
+                                 feed["host_ms_per_row"]))
+  result["host_feed"] = feed
+  lines = []
+  planner.report(result, log=lambda *a, **k: lines.append(a[0]))
+  line = next(x for x in lines if x.strip().startswith("host feed"))
+  assert "20.0 ms/row (measured here on 96 rows" in line and "load average 3.5" in line
+  cores = 8 / (1e12 * 8 / (8 * 197e12 * 0.5)) / result["hosts"] * 0.020   # rows/s per host x 20 ms
+  assert result["host_cores_per_host"] == pytest.approx(cores)
+  back = json.loads(planner.to_json(result))
+  assert back["host_ms_per_row"] == 20.0 and back["host_feed"]["load_avg_1m"] == 3.5
 
 
 def test_train_py_help_lists_its_flags():

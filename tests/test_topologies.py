@@ -136,4 +136,7 @@ def test_plan_tiny_model_on_v5e_4(tmp_path):
   assert res["executed_flops_per_step"] > res["flops_per_step"] > 0   # remat recomputes
   assert res["step_s_estimate"] == pytest.approx(
       res["flops_per_step"] / (4 * 197e12 * res["mfu_assumed"]))
-  assert res["host_ms_per_row"] is None and "host_cores_per_host" not in res   # unmeasured
+  # The host feed: the synthetic config's own pipeline timed here, turned into busy cores.
+  assert res["host_feed"]["source"] == "measured" and res["host_ms_per_row"] > 0
+  assert res["host_cores_per_host"] == pytest.approx(
+      res["rows_per_s_per_host"] * res["host_ms_per_row"] / 1000)

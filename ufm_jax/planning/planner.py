@@ -17,12 +17,11 @@ batch that fits and the plan that trains the recipe's own batch.
 Planning inputs that are assumptions, not compiler output (each a flag of the planner):
 - `MFU`: the model FLOPs utilisation the step time assumes. Not calibrated on any accelerator
   (docs/gpu.md).
-- `HOST_MS_PER_ROW`: host CPU milliseconds per training row, by the recipe's longest side and
-  its image operations (`input.augment.fast_image_ops`: False, the official PIL / torchvision
-  operations, every recipe's default; True, OpenCV's, the named deviation), as
-  `benchmarks/data_pipeline.py --table1` measured the recipes' mixture (docs/host_input.md; the
-  larger of the raw layouts weighted by Table 1 and the official layouts weighted by the 560
-  recipe's samples per epoch). No other size has been measured.
+
+Measured by the plan command, not here: the host CPU milliseconds per training row, a `host_feed`
+dict the callers pass in (`ufm_jax.testing.host_feed.for_plan`: a short run of the recipe's own
+input pipeline on this host, or `--host_ms_per_row`), carried into the plan's JSON with the load
+average it was measured under. None: no host feed figure.
 """
 
 from __future__ import annotations
@@ -35,7 +34,6 @@ import os
 import time
 
 MFU = 0.4
-HOST_MS_PER_ROW = {(560, False): 22.1, (560, True): 13.5}
 
 GIB = 2 ** 30
 
@@ -269,25 +267,16 @@ def estimate(config, tgt: Target, per_row: dict, hw, batch: int, mfu: float,
   return out
 
 
-def default_host_ms_per_row(config) -> float | None:
-  """HOST_MS_PER_ROW of the recipe's longest side and image operations (None where none was
-  measured)."""
-  if config.input.get("data_fn"):
-    return None
-  fast = bool(dict(config.input.get("augment") or {}).get("fast_image_ops", False))
-  return HOST_MS_PER_ROW.get((max(w for _, w in training_shapes(config)), fast))
-
-
 # ----------------------------------------------------------------------------- the plan
 
 
 def plan(config, tgt: Target, *, batch: int | None = None, image_shape=None, mfu: float = MFU,
-         host_ms_per_row: float | None = None, flops: bool = True, log=print) -> dict:
+         host_feed: dict | None = None, flops: bool = True, log=print) -> dict:
   """The step of `config` (config.mesh, config.grad_accum) compiled for `tgt` at global `batch`
   (default config.input.batch_size): the planner's JSON-able result. "fits" is False where the
   compiled step needs more HBM than the chip has, or XLA refused it. With `flops`, the FLOPs,
-  step time, days and host feed too (`add_estimates`). Keys starting with "_" are not for JSON
-  (the HLO text, the collectives' summary)."""
+  step time, days and host feed (of `host_feed`, module docstring) too (`add_estimates`). Keys
+  starting with "_" are not for JSON (the HLO text, the collectives' summary)."""
   config = copy.deepcopy(config)
   mesh, ts, hw = setup(config, tgt.devices, image_shape)
   batch = int(batch or config.input.batch_size)
@@ -315,15 +304,15 @@ def plan(config, tgt: Target, *, batch: int | None = None, image_shape=None, mfu
             "per_chip_batch": batch // shards, "image_shape": list(hw),
             "hbm_capacity_bytes": tgt.capacity, "fits": fits, **info, **r}
   if flops:
-    add_estimates(result, config, tgt, ts, mfu, host_ms_per_row)
+    add_estimates(result, config, tgt, ts, mfu, host_feed)
   return result
 
 
 def add_estimates(result: dict, config, tgt: Target, ts=None, mfu: float = MFU,
-                  host_ms_per_row: float | None = None):
+                  host_feed: dict | None = None):
   """Adds to a compiled plan (`plan`) the model FLOPs of its step at every training shape, the
   FLOPs the compiled step executes (remat included: its TrainSetup `ts`, set up again if None),
-  and `estimate`."""
+  `estimate`, and `host_feed` (the measured host ms/row and the load it was measured under)."""
   from ufm_jax.planning import flops
   config = copy.deepcopy(config)
   config.grad_accum = result["grad_accum"]
@@ -331,9 +320,10 @@ def add_estimates(result: dict, config, tgt: Target, ts=None, mfu: float = MFU,
   per_row = model_flops_per_row(config, set(training_shapes(config)) | {hw}, batch, tgt.platform)
   ts = ts or setup(config, tgt.devices, hw)[1]
   executed = flops.step_flops(ts, batch, hw, tgt.platform).flops
-  if host_ms_per_row is None:
-    host_ms_per_row = default_host_ms_per_row(config)
+  host_ms_per_row = host_feed and host_feed["host_ms_per_row"]
   result.update(estimate(config, tgt, per_row, hw, batch, mfu, host_ms_per_row, executed))
+  if host_feed:
+    result["host_feed"] = dict(host_feed)
   return result
 
 
@@ -377,10 +367,24 @@ def report(result: dict, log=print):
       have = (f"; the hosts have {r['host_vcpus']} vCPUs: they "
               f"{'can' if r['hosts_feed_chips'] else 'can NOT'} feed the chips"
               if "hosts_feed_chips" in r else "; host vCPUs unknown")
-      log(f"  host feed: {feed} x {r['host_ms_per_row']} ms/row = "
+      log(f"  host feed: {feed} x {r['host_ms_per_row']} ms/row ({host_feed_source(r)}) = "
           f"{r['host_cores_per_host']:.1f} busy cores per host{have}")
     else:
-      log(f"  host feed: {feed}; no measured host ms/row for this recipe (--host_ms_per_row)")
+      why = (r.get("host_feed") or {}).get("source") or "not measured"
+      log(f"  host feed: {feed}; no host ms/row ({why}; --host_ms_per_row gives one)")
+  elif (r.get("host_feed") or {}).get("host_ms_per_row"):
+    log(f"  host feed: {r['host_feed']['host_ms_per_row']} ms/row ({host_feed_source(r)}); no "
+        f"step time on this target, so no rows/s to feed")
+
+
+def host_feed_source(result: dict) -> str:
+  """Where a plan's host ms/row comes from, in words: measured here (rows, load average) or
+  given."""
+  f = result.get("host_feed") or {}
+  if f.get("source") == "measured":
+    return (f"measured here on {f['rows']} rows of the recipe's pipeline, load average "
+            f"{f['load_avg_1m']}")
+  return f"given: {f.get('source', '?')}"
 
 
 def public(result: dict) -> dict:
@@ -395,7 +399,7 @@ def to_json(result: dict) -> str:
 
 
 def fit(config, tgt: Target, start_per_chip: int, *, image_shape=None, max_probes: int = 6,
-        mfu: float = MFU, host_ms_per_row: float | None = None, log=print) -> dict:
+        mfu: float = MFU, host_feed: dict | None = None, log=print) -> dict:
   """The largest per-chip batch whose step fits `tgt` (one compile per probe,
   topologies.fit_search), then the plan that trains the recipe's own batch
   (config.input.batch_size) with the fewest microbatches (grad_accum, from the config's) whose
@@ -456,7 +460,7 @@ def fit(config, tgt: Target, start_per_chip: int, *, image_shape=None, max_probe
         f"{', '.join(map(str, candidates[:3])) or 'any'}: the plan is the largest batch that fit")
     result = probed.get(best) or probed[min(probed)]
   result = dict(result)
-  add_estimates(result, config, tgt, None, mfu, host_ms_per_row)
+  add_estimates(result, config, tgt, None, mfu, host_feed)
   result.update(summary)
   return result
 

@@ -359,27 +359,41 @@ NATIVE = {"flyingthings": (540, 960), "monkaa": (540, 960), "spring": (560, 926)
           "hd1k": (560, 1330), "tartanair_v2": (640, 640), "flyingchairs": (384, 512)}
 
 
+# Each dataset's folder under its data root, as the official layout names it (mixture.LAYOUTS).
+FOLDERS = {"blendedmvs": "blendedmvs_processed", "megadepth": "megadepth_processed",
+           "scannetpp": "scannetpp_anymap_processed/train",
+           "staticthings": "staticthings3d_processed",
+           "habitat": "habitat_processed/replica_cad_baked_lighting", "kubric4d": "kubric4d",
+           "tartanair_v2": TAWB_FOLDER, "flyingthings": "flyingthings3d_processed",
+           "monkaa": "monkaa_processed", "spring": "spring_processed", "hd1k": "hd1k_processed",
+           "flyingchairs": "FlyingChairs"}
+
+
+def write_official_dataset(data_root, name, hw=(36, 48)) -> str:
+  """Dataset `name` of the official recipes in its official layout under `data_root`, at hw
+  (TA-WB square at hw[1]). -> its folder, relative to data_root."""
+  plane = wide.PlaneScene(hw0=tuple(hw))
+  writers = {
+      "blendedmvs": lambda: write_blendedmvs(data_root, plane),
+      "megadepth": lambda: write_megadepth(data_root, plane),
+      "scannetpp": lambda: write_scannetpp(data_root, plane),
+      "staticthings": lambda: write_staticthings(data_root, plane),
+      "habitat": lambda: write_habitat(data_root, plane),
+      "kubric4d": lambda: write_kubric4d(data_root, wide.KubricScene(hw=tuple(hw), num_frames=4)),
+      "tartanair_v2": lambda: write_tawb(data_root, (hw[1], hw[1])),
+      "flyingthings": lambda: write_sceneflow(data_root, "flyingthings", tuple(hw)),
+      "monkaa": lambda: write_sceneflow(data_root, "monkaa", tuple(hw)),
+      "spring": lambda: write_spring(data_root, tuple(hw)),
+      "hd1k": lambda: write_hd1k(data_root, tuple(hw)),
+      "flyingchairs": lambda: write_flyingchairs(data_root, tuple(hw))}
+  if name not in writers:
+    raise KeyError(f"no official-layout writer for dataset {name!r}; known: {sorted(writers)}")
+  writers[name]()
+  return FOLDERS[name]
+
+
 def write_official_root(data_root, hw=(36, 48), sizes=None) -> dict[str, str]:
   """Every dataset of the official 560 recipe in its official layout under `data_root`, at hw
   (TA-WB square at hw[1]) or at `sizes[name]` (e.g. NATIVE). -> {mixture name: folder}."""
   sizes = dict(sizes or {})
-  size = lambda name, default=hw: tuple(sizes.get(name, default))   # noqa: E731
-  plane = lambda name: wide.PlaneScene(hw0=size(name))   # noqa: E731
-  write_blendedmvs(data_root, plane("blendedmvs"))
-  write_megadepth(data_root, plane("megadepth"))
-  write_scannetpp(data_root, plane("scannetpp"))
-  write_staticthings(data_root, plane("staticthings"))
-  write_habitat(data_root, plane("habitat"))
-  write_kubric4d(data_root, wide.KubricScene(hw=size("kubric4d"), num_frames=4))
-  write_tawb(data_root, size("tartanair_v2", (hw[1], hw[1])))
-  write_sceneflow(data_root, "flyingthings", size("flyingthings"))
-  write_sceneflow(data_root, "monkaa", size("monkaa"))
-  write_spring(data_root, size("spring"))
-  write_hd1k(data_root, size("hd1k"))
-  write_flyingchairs(data_root, size("flyingchairs"))
-  return {"blendedmvs": "blendedmvs_processed", "megadepth": "megadepth_processed",
-          "scannetpp": "scannetpp_anymap_processed/train", "staticthings":
-          "staticthings3d_processed", "habitat": "habitat_processed/replica_cad_baked_lighting",
-          "kubric4d": "kubric4d", "tartanair_v2": TAWB_FOLDER,
-          "flyingthings": "flyingthings3d_processed", "monkaa": "monkaa_processed",
-          "spring": "spring_processed", "hd1k": "hd1k_processed", "flyingchairs": "FlyingChairs"}
+  return {name: write_official_dataset(data_root, name, sizes.get(name, hw)) for name in FOLDERS}

@@ -74,6 +74,8 @@ def training_defaults(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict
   c.max_nonfinite_steps = 100
   c.apply_kwargs = {"symmetrized": True}  # rows (2i, 2i+1) are (a, b), (b, a): encode once
   c.matmul_precision = unset(str)  # e.g. "highest": float32 matmuls in full float32 on GPU
+  # "A:B": a jax.profiler trace of steps A..B-1 under WORKDIR/profile (training/profiling.py).
+  c.profile_steps = unset(str)
   return c
 
 
