@@ -91,7 +91,7 @@ def main(argv):
   sharding.maybe_initialize_distributed()
   import numpy as np
   from ufm_jax.runtime import checkpoint as ckpt_lib
-  from ufm_jax.training import accumulation, loop_control, model_init, optim, trainer
+  from ufm_jax.training import accumulation, loop_control, losses, model_init, optim, trainer
   from ufm_jax.data import io
   from ufm_jax.evaluators import train_evals
 
@@ -127,6 +127,9 @@ def main(argv):
                                  accumulation.pair_rows(config.apply_kwargs))
     logging.info("gradient accumulation: %d microbatches of %d rows per step", config.grad_accum,
                  config.input.batch_size // config.grad_accum)
+  if config.get("loss"):   # refused here, before the pipeline starts
+    losses.check_groups(config.input.batch_size, int(config.loss.get("groups", 1)),
+                        config.grad_accum, accumulation.pair_rows(config.apply_kwargs))
   host_iter, data_info = trainer.build_input(config, process_batch, config.seed, teacher)
   # Global batches, the next `device_prefetch` already on their way to the devices.
   train_iter = sharding.DevicePrefetch(host_iter, mesh, config.device_prefetch)

@@ -25,7 +25,7 @@ definition (ufm_jax/training/losses.py, ufm_jax/training/optim.py) says what swi
 
 import ml_collections
 
-from ufm_jax.training import config_lib, optim
+from ufm_jax.training import config_lib, losses, optim
 from ufm_jax.data import augment, mixture, pipeline
 
 
@@ -79,9 +79,10 @@ def get_config(arg=None):
                      "eps": 1e-4},
       "covisibility_ce": {"type": "bce", "multiplier": 10.0, "eps": 1e-6},
       "shared_cleanup": True,
-      # Official: DDP, each GPU's own loss over its rows, gradients averaged; the GPU count of
-      # the paper's runs is unknown (losses.Recipe.groups). 1: one loss over the global batch.
-      "groups": 1})
+      # Official: DDP, each GPU's own loss over its rows (its own means and 400k-pixel cap),
+      # gradients averaged: the mean of 8 group losses, one per GPU of the paper's run
+      # (12 rows each), whatever our device count (losses.Recipe.groups; 1 pools the batch).
+      "groups": losses.PAPER_GPUS})
   if arg.cov:
     config_lib.add_flow_covariance(c, pixels="robust_epe")
   c.evals = ml_collections.ConfigDict({"sintel": config_lib.bench_eval("sintel")})

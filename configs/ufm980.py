@@ -25,7 +25,7 @@ which holds its covisibility channel while the layers it shares with the covaria
 
 import ml_collections
 
-from ufm_jax.training import config_lib, optim
+from ufm_jax.training import config_lib, losses, optim
 from ufm_jax.data import augment, mixture, pipeline
 
 
@@ -72,9 +72,10 @@ def get_config(arg=None):
                   "multiplier": 1.0, "multiplier_applied": False, "invalid_gt": "zero",
                   "eps": 1e-4},
       "shared_cleanup": True,
-      # Official: DDP, each GPU's own loss over its rows, gradients averaged; the GPU count of
-      # the paper's runs is unknown (losses.Recipe.groups). 1: one loss over the global batch.
-      "groups": 1})
+      # Official: DDP, each GPU's own loss over its rows (its own means and 400k-pixel cap),
+      # gradients averaged: the mean of 8 group losses, one per GPU of the paper's run
+      # (4 rows each), whatever our device count (losses.Recipe.groups; 1 pools the batch).
+      "groups": losses.PAPER_GPUS})
   if arg.cov:
     c.optim.lr.uncertainty_head = 1e-5
     c.loss.terms = tuple(c.loss.terms) + ("covisibility_ce",)

@@ -521,10 +521,11 @@ def test_float_hue_step_is_mod_one_on_the_hue_plane():
 
 
 def test_kubric_float_jitter_is_torchvisions_tensor_path():
-  """Kubric's jitter (on the float image, kubric4d.py:171-178) against torchvision's tensor
-  formulas (`color_reference.torchvision_tensor_jitter`): brightness, contrast and saturation
-  exact; the hue through OpenCV's float HSV within one grey level on a few pixels (measured
-  2.7% of them)."""
+  """Kubric's jitter (on the float image, kubric4d.py:171-178) against a hand copy of
+  torchvision's tensor formulas run in torch (`color_reference.torchvision_tensor_jitter`;
+  torchvision itself is not installed): brightness, contrast and saturation exact; the hue
+  through OpenCV's float HSV within one grey level on at most 0.2% of the values (measured at
+  most 0.021% of the pixels in these draws; benchmarks/kubric_hue.py, docs/host_input.md)."""
   pytest.importorskip("torch")
   from ufm_jax.testing import color_reference
   rng = np.random.default_rng(8)
@@ -538,7 +539,7 @@ def test_kubric_float_jitter_is_torchvisions_tensor_path():
                - color_reference.torchvision_tensor_jitter(img, params))
     if 3 not in params[0]:
       assert d.max() == 0, params
-    assert d.max() <= 1 and (d > 0).mean() <= 0.05, (params, d.max(), (d > 0).mean())
+    assert d.max() <= 1 and (d > 0).mean() <= 0.002, (params, d.max(), (d > 0).mean())
 
 
 def test_static_crop_warp_is_pils_bicubic_transform():

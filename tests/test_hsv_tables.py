@@ -1,7 +1,8 @@
 """The official hue jitter through lookup tables (ufm_jax.data.hsv_tables) against its
 references: Pillow's HSV conversions written from its C code in numpy (every colour, both
-directions; ufm_jax.testing.color_reference) and torchvision's adjust_hue of a PIL image (the
-split / shifted hue plane / merge it runs), for every hue shift ColorJitter(hue=0.1) draws."""
+directions; ufm_jax.testing.color_reference) and a hand copy of torchvision's adjust_hue of a PIL
+image run on Pillow (the split / shifted hue plane / merge it runs; torchvision is not
+installed), for every hue shift ColorJitter(hue=0.1) draws."""
 
 import numpy as np
 from PIL import Image
@@ -23,7 +24,8 @@ def test_tables_are_pillows_conversions_on_every_colour():
 
 
 def _torchvision_pil(img, hue_factor):
-  """torchvision/transforms/_functional_pil.py adjust_hue, on PIL."""
+  """A hand copy of torchvision/transforms/_functional_pil.py's adjust_hue (torchvision is not
+  installed), run on Pillow."""
   h, s, v = Image.fromarray(img).convert("HSV").split()
   np_h = np.array(h, dtype=np.uint8)
   np_h += np.int32(hue_factor * 255).astype(np.uint8)

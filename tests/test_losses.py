@@ -2,6 +2,7 @@
 parity is tests/test_official_losses.py): masks, quirks and their switches, config handling."""
 
 import math
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -237,3 +238,19 @@ def test_groups_average_per_group_losses_like_ddp():
   assert aux["loss_robust_epe"].shape == ()
   with pytest.raises(ValueError, match="does not divide"):
     losses.recipe_from_config(_config(groups=3))(out, batch)
+
+
+@pytest.mark.parametrize("recipe,rows", [("ufm560", 12), ("ufm980", 4), ("ufm560_refine", 6),
+                                         ("ufm980_refine", 4)])
+def test_recipes_take_one_loss_per_gpu_of_the_papers_8(recipe, rows):
+  """"4 days on 8 H100 GPUs" (paper, Training Details): 8 loss groups of the official per-GPU
+  rows (48 / 16 / 24 / 16 unique pairs per step over 8 GPUs, symmetrized), whatever the mesh."""
+  from ufm_jax.training import config_lib
+  config = config_lib.load_config(
+      str(pathlib.Path(__file__).resolve().parents[1] / "configs" / f"{recipe}.py"))
+  assert config.loss.groups == 8
+  assert config.input.batch_size // config.loss.groups == rows
+  losses.check_groups(config.input.batch_size, config.loss.groups, 1, 2)
+  with pytest.raises(ValueError, match=rf"groups=8 .*batch of {config.input.batch_size + 2} "
+                                       r"rows.*multiple of 16"):
+    losses.check_groups(config.input.batch_size + 2, config.loss.groups, 1, 2)

@@ -246,3 +246,54 @@ def test_refine_stage_trains_only_the_refiner():
   for k in ("encoder", "info_sharing", "head1_0_0", "uncertainty_head_0_1"):
     for a, b in zip(jax.tree.leaves(state.params[k]), jax.tree.leaves(params[k])):
       assert np.array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_eight_groups_are_the_mean_of_eight_group_losses_each_capped_on_its_own():
+  """The recipes' loss.groups=8 (one per GPU of the paper's run): the total is the mean of the
+  losses of 8 consecutive 2-row blocks, each block with its own means and its own pixel cap
+  (here 10 pixels of up to 40), as 8 DDP workers would; not the cap once over all 16 rows."""
+  rng = np.random.default_rng(7)
+  b, h, w, c, p = 16, 4, 5, 4, 3
+  flow = rng.normal(size=(b, h, w, 2)).astype(np.float32)
+  gt = flow + rng.uniform(-0.5, 0.5, size=flow.shape).astype(np.float32)   # all in the window
+  covis = rng.random((b, h, w)) < np.repeat(np.linspace(0.2, 1.0, 8), 2)[:, None, None]
+  outputs = {"flow": jnp.asarray(flow),
+             "feature_map_0": jnp.asarray(rng.normal(size=(b, h, w, c)), jnp.float32),
+             "feature_map_1": jnp.asarray(rng.normal(size=(b, h, w, c)), jnp.float32),
+             "attention_bias": jnp.asarray(0.1 * rng.normal(size=p * p), jnp.float32)}
+  batch = {"flow": jnp.asarray(gt), "covisibility": jnp.asarray(covis),
+           "covis_valid": jnp.ones((b, h, w), bool)}
+
+  def recipe(groups):
+    return losses.recipe_from_config(ml_collections.ConfigDict({
+        "terms": ("robust_epe", "refinement_cross_entropy"),
+        "robust_epe": {"type": "robust", "range": "covisible", "alpha": 0.5, "c": 0.24},
+        "refinement_cross_entropy": {"type": "refinement_ce", "datasets": None,
+                                     "max_pixels": 10},
+        "groups": groups}), temperature=2.0)
+
+  key = jax.random.PRNGKey(5)
+  total, aux = recipe(8)(outputs, batch, rng=key)
+  keys = jax.random.split(key, 8)
+  per_group = [recipe(1)({k: v[2 * g:2 * g + 2] if v.ndim == 4 else v for k, v in outputs.items()},
+                         {k: v[2 * g:2 * g + 2] for k, v in batch.items()}, rng=keys[g])
+               for g in range(8)]
+  np.testing.assert_allclose(float(total), np.mean([float(t) for t, _ in per_group]), rtol=1e-5)
+  ratio = "refinement_cross_entropy/ratio_in_refinement_range"
+  ratios = np.array([float(a[ratio]) for _, a in per_group])
+  np.testing.assert_allclose(float(aux[ratio]), ratios.mean(), rtol=1e-5)
+  counts = covis.reshape(8, -1).sum(1)
+  # each group: all its covisible pixels up to ~10, its own draw
+  assert (counts <= 10).sum() == 2
+  np.testing.assert_allclose(ratios[counts <= 10], 1.0, rtol=1e-3)
+  capped = ratios[counts > 20] * counts[counts > 20]
+  assert capped.size and np.all(capped < 25) and np.all(capped >= 1)
+  # pooled: one cap of 10 over every row's pixels (the kept share is far smaller)
+  _, pooled_aux = recipe(1)(outputs, batch, rng=key)
+  assert float(pooled_aux[ratio]) < 20 / counts.sum() < 0.5 * float(aux[ratio])
+  with pytest.raises(ValueError, match=r"groups=8 .*batch of 12 rows.*multiple of 8"):
+    recipe(8)({k: v[:12] if v.ndim == 4 else v for k, v in outputs.items()},
+              {k: v[:12] for k, v in batch.items()})
+  with pytest.raises(ValueError, match=r"batch of 48 rows in 4 microbatches.*multiple of 64"):
+    losses.check_groups(48, 8, grad_accum=4, pair_rows=2)
+  losses.check_groups(96, 8, grad_accum=1, pair_rows=2)

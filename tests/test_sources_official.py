@@ -64,6 +64,33 @@ def test_megadepth_processed_plane_and_val_scenes(tmp_path):
         ("0001/0", "img0", "img1"), ("0015/0", "img0", "img1"), ("0001/0", "img1", "img0")]
 
 
+def test_megadepth_readers_make_the_same_split_choice_by_default(tmp_path):
+  """Both layouts: by default the official choice (every scene in every split, the val scenes
+  0015 and 0022 train too); select_scenes=True the intended split, in both alike."""
+  ot.write_megadepth(str(tmp_path / "official"))
+  processed = str(tmp_path / "official" / "megadepth_processed")
+  raw = tmp_path / "raw"
+  scene = wide.megadepth_scene()
+  for name in ("0001", "0015"):
+    wide.write_megadepth(str(raw), scene, name=name)
+  np.savez(raw / "megadepth_pairs.npz", scenes=np.array(["0001 0", "0015 0"]),
+           images=np.array(["img0.jpg", "img1.jpg"]),
+           pairs=np.array([[0, 0, 1, 0.5], [1, 0, 1, 0.5]]))
+
+  def scenes(reader, root, **kw):
+    src = data.get_source(reader, root, **kw)
+    return sorted({p[0] for p in src.pairs}), src.scenes()
+
+  for split in ("train", "val"):
+    official = scenes("megadepth_official", processed, split=split)
+    assert official == scenes("megadepth", str(raw), split=split)
+    assert official == (["0001/0", "0015/0"], ["0001/0", "0015/0"])
+  assert scenes("megadepth", str(raw), select_scenes=True) == (["0001/0"], ["0001/0"])
+  assert scenes("megadepth_official", processed, select_scenes=True) == (["0001/0"], ["0001/0"])
+  for reader, root in (("megadepth", str(raw)), ("megadepth_official", processed)):
+    assert scenes(reader, root, split="val", select_scenes=True) == (["0015/0"], ["0015/0"])
+
+
 def test_scannetpp_processed_plane_millimetre_png_and_95_percent_split(tmp_path):
   scene = ot.write_scannetpp(str(tmp_path))
   root = str(tmp_path / "scannetpp_anymap_processed" / "train")

@@ -28,6 +28,11 @@ class DPTConfig:
   hidden_dims: Optional[Tuple[int, int]] = None  # processor widths; default feature_dim // 2
 
 
+# Every scale strategy of UniCeption ee7fa0b's FlowAdaptor._get_xy_scale (prediction_heads/
+# adaptors.py:121-139); anything else raises there too.
+SCALE_STRATEGIES = ("none", "scale_width", "scale_height", "scale_both")
+
+
 @dataclasses.dataclass(frozen=True)
 class FlowAdaptorConfig:
   flow_mean: Tuple[float, float] = (0.0, 0.0)
@@ -37,9 +42,9 @@ class FlowAdaptorConfig:
   output_normalized_coordinate: bool = False
 
   def __post_init__(self):
-    if self.scale_strategy not in ("none", "scale_width", "scale_height", "scale_both"):
+    if self.scale_strategy not in SCALE_STRATEGIES:
       raise ValueError(f"invalid FlowAdaptor scale_strategy {self.scale_strategy!r}; expected "
-                       "none, scale_width, scale_height or scale_both")
+                       f"one of {', '.join(SCALE_STRATEGIES)}")
 
 
 # Channels each official adaptor takes from a head's output (UniCeption's `required_channels`).

@@ -470,6 +470,13 @@ class UFMRefineConfig(ufm.UFMConfig):
   # Source rows per refinement step (lax.map): bounds the refinement's memory at 980 px.
   refine_chunk: Optional[int] = None
 
+  def __post_init__(self):
+    super().__post_init__()
+    if "non_occluded_mask" in self.flow_head_adaptors:
+      raise ValueError("UFMRefineConfig.flow_head_adaptors: UniFlowMatchClassificationRefinement "
+                       "reads covisibility from the uncertainty head only (ufm.py:956-960 at "
+                       "3732a50), so a 'non_occluded_mask' in its main head is not supported")
+
   def build_model(self, **kw) -> "UFMRefine":
     """ufm.model_from_config dispatches here, so train.py / the CLI build the refine model."""
     return UFMRefine(self, **kw)

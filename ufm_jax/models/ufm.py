@@ -1,12 +1,15 @@
 """UFM (`UniFlowMatchConfidence`): DINOv2 encoder -> two-view info sharing -> DPT flow head and
-DPT covisibility head.
+DPT covisibility head; without the covisibility head (`covisibility_head=None`) the one-head
+`UniFlowMatch`, whose main head may also hold the covisibility ("non_occluded_mask") and the flow
+covariance ("flow_cov") channels.
 
 Contract: `model.apply(variables(params), source, target)` with [B, H, W, 3] uint8 (or float
 0..255) images, H and W multiples of the patch size, returns
 {"flow" [B, H, W, 2] (pixels, u then v), "covisibility" [B, H, W], "covisibility_logits" [B, H, W]}
-(no covisibility without an uncertainty head), and for a model with a flow covariance adaptor
-(`flow_covariance` set) "flow_covariance" [B, H, W, 3] = (var_x, var_y, cov_xy) in px^2,
-"flow_covariance_log_det" [B, H, W] and "flow_covariance_params" [B, H, W, 3] (models/covariance.py).
+(no covisibility without a non_occluded_mask adaptor: `UFMConfig.has_covisibility`), and for a
+model with a flow covariance adaptor (`flow_covariance` set) "flow_covariance" [B, H, W, 3] =
+(var_x, var_y, cov_xy) in px^2, "flow_covariance_log_det" [B, H, W] and "flow_covariance_params"
+[B, H, W, 3] (models/covariance.py).
 ImageNet normalisation of x / 255 happens inside.
 Internals are sown into the "intermediates" collection (read them with `mutable=["intermediates"]`).
 `params` is the parameter tree, or for models with BatchNorm (a refiner with
@@ -99,6 +102,14 @@ class UFMConfig:
   def has_flow_covariance(self) -> bool:
     return self.flow_covariance is not None
 
+  @property
+  def has_covisibility(self) -> bool:
+    """Whether the model predicts covisibility: a non_occluded_mask adaptor in the uncertainty
+    head, or in the main head of a model without one (UniFlowMatch)."""
+    if self.covisibility_head is not None:
+      return "non_occluded_mask" in self.uncertainty_head_adaptors
+    return "non_occluded_mask" in self.flow_head_adaptors
+
   def replace(self, **kw) -> "UFMConfig":
     """dataclasses.replace; a mapping for a sub-config (e.g. flow_adaptor={"flow_std": ...},
     as a training config's `model` block gives it) replaces only the fields it names."""
@@ -134,10 +145,10 @@ def _check_adaptors(cfg: UFMConfig) -> None:
                        f"{field}={tuple(names)} take {want} channels")
   if "flow" not in cfg.flow_head_adaptors:
     raise ValueError(f"UFMConfig.flow_head_adaptors={cfg.flow_head_adaptors} has no 'flow'")
-  if "non_occluded_mask" in cfg.flow_head_adaptors:
-    raise ValueError("UFMConfig.flow_head_adaptors: a 'non_occluded_mask' in the main head is not "
-                     "supported (UniFlowMatchConfidence reads covisibility from the uncertainty "
-                     "head)")
+  if "non_occluded_mask" in cfg.flow_head_adaptors and cfg.covisibility_head is not None:
+    raise ValueError("UFMConfig.flow_head_adaptors: a 'non_occluded_mask' in the main head goes "
+                     "with no uncertainty head (UniFlowMatch); UniFlowMatchConfidence reads "
+                     "covisibility from its uncertainty head")
   if "flow" in cfg.uncertainty_head_adaptors:
     raise ValueError("UFMConfig.uncertainty_head_adaptors: the flow comes from the main head")
   where = [f for f, (names, _, _) in heads.items() if "flow_cov" in names]
@@ -366,8 +377,11 @@ class UFM(nn.Module):
       unc = dpt.split_adaptor_channels(
           self.uncertainty_head_0_1(self.uncertainty_head_0_0(unc_feats), hw),
           cfg.uncertainty_head_adaptors)
-    if "non_occluded_mask" in unc:
-      logits = unc["non_occluded_mask"][..., 0]
+    # UniFlowMatch (no uncertainty head) reads the mask from the main head (ufm.py:436-440 at
+    # 3732a50); the two heads never both have one (_check_adaptors).
+    mask = unc.get("non_occluded_mask", main.get("non_occluded_mask"))
+    if mask is not None:
+      logits = mask[..., 0]
       out.update(covisibility=jax.nn.sigmoid(logits), covisibility_logits=logits)
     cov = main.get("flow_cov", unc.get("flow_cov"))
     if cov is not None:

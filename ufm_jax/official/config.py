@@ -91,6 +91,11 @@ BASE_KEYS = ("encoder_str", "encoder_kwargs", "info_sharing_and_head_structure",
              "uncertainty_head_kwargs", "uncertainty_adaptors_kwargs",
              "pretrained_backbone_checkpoint_path", "pretrained_checkpoint_path",
              "inference_resolution")
+# UniFlowMatch (ufm.py:130-152 at 3732a50): one head, no uncertainty head.
+ONE_HEAD_KEYS = ("encoder_str", "encoder_kwargs", "info_sharing_and_head_structure",
+                 "info_sharing_str", "info_sharing_kwargs", "encoder_skip_connection",
+                 "info_sharing_skip_connection", "head_type", "feature_head_kwargs",
+                 "adaptors_kwargs", "pretrained_checkpoint_path", "inference_resolution")
 REFINE_KEYS = BASE_KEYS + ("temperature", "use_unet_feature", "use_unet_batchnorm",
                            "classification_head_type", "classification_head_kwargs",
                            "feature_combine_method", "refinement_range")
@@ -234,6 +239,13 @@ def dpt_config_from_official(kw: dict, where: str, patch_size: int) -> dpt.DPTCo
 
 def flow_adaptor_from_official(kw: dict, where: str) -> dpt.FlowAdaptorConfig:
   check_keys(kw, FLOW_ADAPTOR_KEYS, where)
+  for key in ("flow_mean", "flow_std", "base_shape", "scale_strategy"):
+    if key not in kw:
+      raise ValueError(f"config.json: missing {where}.{key} (a FlowAdaptor argument)")
+  if kw["scale_strategy"] not in dpt.SCALE_STRATEGIES:
+    raise ValueError(f"config.json: {where}.scale_strategy={kw['scale_strategy']!r} is not a "
+                     "FlowAdaptor scale strategy (UniCeption ee7fa0b implements "
+                     f"{', '.join(repr(v) for v in dpt.SCALE_STRATEGIES)})")
   return dpt.FlowAdaptorConfig(
       flow_mean=tuple(float(v) for v in kw["flow_mean"]),
       flow_std=tuple(float(v) for v in kw["flow_std"]),
@@ -259,12 +271,16 @@ ADAPTOR_CLASSES = {"flow": "FlowAdaptor", "flow_cov": "Covariance2DAdaptor",
                    "non_occluded_mask": "MaskAdaptor"}
 HEAD_ADAPTORS = {"adaptors_kwargs": ("flow", "flow_cov"),
                  "uncertainty_adaptors_kwargs": ("flow_cov", "non_occluded_mask")}
+# UniFlowMatch reads all three from its one head (ufm.py:427-440 at 3732a50).
+ONE_HEAD_ADAPTORS = ("flow", "flow_cov", "non_occluded_mask")
 
 
-def adaptors_from_official(adaptors: dict, where: str) -> Tuple[Tuple[str, ...], dict]:
+def adaptors_from_official(adaptors: dict, where: str, allowed=None
+                           ) -> Tuple[Tuple[str, ...], dict]:
   """A head's adaptor map -> (its keys in config.json's order: the order the official AdaptorMap
-  splits the head's channels in, {key: our config of that adaptor})."""
-  allowed = HEAD_ADAPTORS[where]
+  splits the head's channels in, {key: our config of that adaptor}). `allowed`: the keys the
+  class reads from this head (default: UniFlowMatchConfidence's, HEAD_ADAPTORS)."""
+  allowed = HEAD_ADAPTORS[where] if allowed is None else allowed
   out = {}
   for key, spec in adaptors.items():
     if key not in allowed:
@@ -290,9 +306,11 @@ def adaptors_from_official(adaptors: dict, where: str) -> Tuple[Tuple[str, ...],
   return tuple(adaptors), out
 
 
-def ufm_config_from_official(cj: dict, shapes: dict, keys=BASE_KEYS) -> ufm.UFMConfig:
+def ufm_config_from_official(cj: dict, shapes: dict, keys=BASE_KEYS,
+                             main_adaptors=None) -> ufm.UFMConfig:
   """UFMConfig from an official config.json (+ weight shapes for what it cannot say).
-  `keys`: the top-level keys of the class's constructor (anything else is refused)."""
+  `keys`: the top-level keys of the class's constructor (anything else is refused);
+  `main_adaptors`: the adaptors the class reads from its main head (default HEAD_ADAPTORS')."""
   check_keys(cj, keys, "")
   for key, want in (("encoder_str", "dinov2"), ("info_sharing_str", "global_attention"),
                     ("head_type", "dpt"), ("uncertainty_head_type", "dpt"),
@@ -300,7 +318,8 @@ def ufm_config_from_official(cj: dict, shapes: dict, keys=BASE_KEYS) -> ufm.UFMC
     if cj.get(key, want) != want:
       raise ValueError(f"config.json: {key}={cj[key]!r} is not supported (expected {want!r})")
   encoder = encoder_config_from_official(cj["encoder_kwargs"], shapes)
-  main_order, main = adaptors_from_official(cj.get("adaptors_kwargs", {}), "adaptors_kwargs")
+  main_order, main = adaptors_from_official(cj.get("adaptors_kwargs", {}), "adaptors_kwargs",
+                                            main_adaptors)
   if "flow" not in main:
     raise ValueError("config.json: adaptors_kwargs has no 'flow' (FlowAdaptor)")
   covisibility, unc_order, unc = None, ("non_occluded_mask",), {}
@@ -311,6 +330,9 @@ def ufm_config_from_official(cj: dict, shapes: dict, keys=BASE_KEYS) -> ufm.UFMC
       raise ValueError("config.json: uncertainty_head_kwargs without uncertainty_adaptors_kwargs")
     covisibility = dpt_config_from_official(cj["uncertainty_head_kwargs"],
                                             "uncertainty_head_kwargs", encoder.patch_size)
+  if "non_occluded_mask" in main and covisibility is not None:
+    raise ValueError("config.json: adaptors_kwargs.non_occluded_mask with an uncertainty head; "
+                     "the official classes with one read covisibility from that head only")
   if "flow_cov" in main and "flow_cov" in unc:
     raise ValueError("config.json: both adaptors_kwargs and uncertainty_adaptors_kwargs have a "
                      "'flow_cov'; UniFlowMatchConfidence reads the uncertainty head's only")
@@ -516,6 +538,8 @@ def official_config_dict(cfg: ufm.UFMConfig) -> dict:
   for cls, extra, _ in OFFICIAL_CONFIG_EXTRAS:
     if isinstance(cfg, cls):
       out.update(extra(cfg))
+  if is_one_head(cfg):   # UniFlowMatch's constructor takes none of the uncertainty keys
+    out = {k: v for k, v in out.items() if k in ONE_HEAD_KEYS}
   return out
 
 
@@ -575,8 +599,28 @@ def refine_official_limits(cfg: refine.UFMRefineConfig) -> List[str]:
   return []
 
 
+def is_one_head(cfg: ufm.UFMConfig) -> bool:
+  """Whether cfg is the one-head UniFlowMatch: no uncertainty head and not the refinement class
+  (whose recipe model has no uncertainty head either)."""
+  return cfg.covisibility_head is None and not isinstance(cfg, refine.UFMRefineConfig)
+
+
 def _is_base(cj: dict) -> bool:
   return "uncertainty_head_kwargs" in cj and "refinement_range" not in cj
+
+
+# Keys only the classes with an uncertainty head take (UniFlowMatchConfidence and the refiner).
+_UNCERTAINTY_KEYS = ("detach_uncertainty_head", "uncertainty_head_type", "uncertainty_head_kwargs",
+                     "uncertainty_adaptors_kwargs", "pretrained_backbone_checkpoint_path")
+
+
+def _is_one_head(cj: dict) -> bool:
+  return "refinement_range" not in cj and not any(k in cj for k in _UNCERTAINTY_KEYS)
+
+
+def _build_one_head(cj: dict, shapes: dict) -> OfficialSpec:
+  cfg = ufm_config_from_official(cj, shapes, ONE_HEAD_KEYS, ONE_HEAD_ADAPTORS)
+  return OfficialSpec(ufm.UFM(cfg), ufm_buffers(cfg), "UniFlowMatch")
 
 
 def _build_base(cj: dict, shapes: dict) -> OfficialSpec:
@@ -599,6 +643,7 @@ def _build_refine(cj: dict, shapes: dict) -> OfficialSpec:
 OFFICIAL_CLASSES: List[Tuple[Callable[[dict], bool], Callable[[dict, dict], OfficialSpec]]] = [
     (_is_refine, _build_refine),
     (_is_base, _build_base),
+    (_is_one_head, _build_one_head),
 ]
 
 
@@ -618,6 +663,8 @@ def class_name(model) -> str:
   """The official class name of a Flax model (what config.json and model_config.json record)."""
   if type(model) not in CLASS_NAMES:
     raise ValueError(f"no official class name registered for {type(model).__name__}")
+  if is_one_head(model.config):
+    return "UniFlowMatch"
   return CLASS_NAMES[type(model)]
 
 

@@ -218,13 +218,17 @@ def compile_step(ts, batch: int, image_shape, row_ids: bool = True) -> dict:
 def check_batch(config, mesh, batch: int):
   """ValueError naming the sizes unless `batch` splits over the mesh's batch shards (and into
   config.grad_accum microbatches of whole pairs on every device), as train.py refuses it."""
-  from ufm_jax.training import accumulation, sharding
+  from ufm_jax.training import accumulation, losses, sharding
   shards = sharding.batch_divisor(mesh)
   if batch % shards:
     raise ValueError(f"global batch {batch} does not split over the mesh's {shards} batch "
                      f"shards (config.mesh={config.mesh!r})")
   accumulation.check_divisible(batch, int(config.get("grad_accum", 1)), shards,
                                accumulation.pair_rows(config.get("apply_kwargs")))
+  if config.get("loss"):
+    losses.check_groups(batch, int(config.loss.get("groups", 1)),
+                        int(config.get("grad_accum", 1)),
+                        accumulation.pair_rows(config.get("apply_kwargs")))
 
 
 # ----------------------------------------------------------------------------- FLOPs and time

@@ -13,7 +13,8 @@ utils/flow_resizing.py) step by step:
 The resize and unmap run in numpy on the host (they are cheap and must match PyTorch's float32
 arithmetic); the forward pass is jitted once per model and traced once per inference shape.
 
-A model without an uncertainty head (the refinement training recipe's, `ufm_refine_recipe`)
+A model without a covisibility output (`UFMConfig.has_covisibility`: the refinement training
+recipe's `ufm_refine_recipe`, or a one-head UniFlowMatch without a non_occluded_mask adaptor)
 predicts flow only: its predictions have no "covisibility" key (a warning says so once). A model
 with a flow covariance adaptor adds "flow_covariance" (and its inverse, "flow_covariance_inv"),
 unmapped like covisibility and rescaled to the source's pixels as the official predict does
@@ -196,8 +197,8 @@ def _warn_no_covisibility(model) -> None:
   key = (type(model).__name__, getattr(model, "config", None))
   if key not in _NO_COVISIBILITY_WARNED:
     _NO_COVISIBILITY_WARNED.add(key)
-    logging.warning("%s has no uncertainty head: predictions have flow only, no covisibility",
-                    type(model).__name__)
+    logging.warning("%s predicts no covisibility (no non_occluded_mask adaptor in any head): "
+                    "predictions have no covisibility", type(model).__name__)
 
 
 def unmap_prediction(pred: dict, book) -> dict[str, np.ndarray]:
@@ -243,7 +244,7 @@ def predict(model, variables, source, target, *, batch_size: int = 8, resolution
   Returns:
     {"flow": [H, W, 2] float32 px, "covisibility": [H, W] float32} at the SOURCE size for a single
     pair; a list of such dicts for lists; stacked [B, ...] arrays for [B, H, W, 3] inputs. No
-    "covisibility" from a model without an uncertainty head. A model with a flow covariance adds
+    "covisibility" from a model without a covisibility output. A model with a flow covariance adds
     "flow_covariance" [H, W, 3] = (var_x, var_y, cov_xy) in px^2 and its inverse
     "flow_covariance_inv" [H, W, 3] (`unmap_covariance`).
   """

@@ -157,6 +157,7 @@ def _saved_classes() -> dict:
   from ufm_jax.models import refine, ufm
   return {
       "UniFlowMatchConfidence": (ufm.config_from_dict, ufm.model_from_config),
+      "UniFlowMatch": (ufm.config_from_dict, ufm.model_from_config),
       "UniFlowMatchClassificationRefinement": (refine.refine_config_from_dict,
                                                refine.refine_model_from_config),
   }

@@ -10,7 +10,7 @@ shared by the single pair (`infer SOURCE TARGET`) and the many-pair runs (`ufm_j
   <name>_panel.png          source | target | flow colours | warped target, and with a flow
                             covariance | its uncertainty over a legend           (--save panel)
 
-A model without an uncertainty head (the refinement training recipe's) predicts no covisibility:
+A model without a covisibility output (`UFMConfig.has_covisibility`) predicts no covisibility:
 its covisibility files are not written (`written`) and its panel greys nothing out; a model
 without a flow covariance writes no covariance file and no uncertainty tile.
 """
@@ -53,9 +53,7 @@ def predicted(model) -> dict:
   """Which optional outputs `model`'s predictions have, as a stand-in prediction for `written`
   (a model without a config, e.g. a test stand-in: covisibility, no covariance)."""
   cfg = getattr(model, "config", None)
-  covis = cfg is None or (getattr(cfg, "covisibility_head", None) is not None and
-                          "non_occluded_mask" in getattr(cfg, "uncertainty_head_adaptors",
-                                                         ("non_occluded_mask",)))
+  covis = cfg is None or bool(getattr(cfg, "has_covisibility", True))
   cov = getattr(cfg, "flow_covariance", None) is not None
   return {"flow": True, **({"covisibility": True} if covis else {}),
           **({"flow_covariance": True} if cov else {})}

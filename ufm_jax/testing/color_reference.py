@@ -6,7 +6,10 @@ written from its C code (libImaging/Convert.c `rgb2hsv_row`, `hsv2rgb`: float32 
 arithmetic as C evaluates them, truncating casts, C's round-half-away-from-zero). They need
 neither PIL nor torchvision, so CI checks the tables against the formula on every colour. In
 torch (the torch extra), `torchvision_tensor_jitter`: ColorJitter on a float tensor, the Kubric
-path (torchvision/transforms/_functional_tensor.py's blend, grayscale and HSV formulas)."""
+path, a HAND COPY of torchvision's functions (torchvision/transforms/_functional_tensor.py:
+`_blend`, `rgb_to_grayscale`, `adjust_hue` with `_rgb2hsv` / `_hsv2rgb`, compared line by line
+with pytorch/vision commit 0ffa6ae), not torchvision itself, which is not installed (PyPI's
+torchvision does not import beside torch 2.13.0)."""
 
 from __future__ import annotations
 
@@ -82,7 +85,8 @@ def all_colours(chunks: int = 16):
 
 
 def torchvision_tensor_jitter(image: np.ndarray, params) -> np.ndarray:
-  """torchvision's ColorJitter of `image / 255` as a float tensor with params = (order,
+  """Hand copy of torchvision's ColorJitter of `image / 255` as a float tensor (module
+  docstring: which file and commit) with params = (order,
   brightness, contrast, saturation, hue), returned as `(img * 255).to(uint8)` (the official
   Kubric path, kubric4d.py:171-178). Needs torch."""
   import torch  # pylint: disable=g-import-not-at-top

@@ -130,11 +130,16 @@ class Analyser:
     check_size(source, "source", self.max_side)
     check_size(target, "target", self.max_side)
     key, pred, ms = self.predict(source, target)
-    # A model without covisibility: matches_from_dense refuses it, naming why.
     flow, covis = pred["flow"], pred.get("covisibility")
     threshold, num = float(threshold), int(num)
     colours, warped = viz.flow_views(target, flow, covis, threshold=threshold)
     cov = pred.get("flow_covariance")
+    uncertainty = None if cov is None else viz.uncertainty_view(cov)
+    if covis is None:   # flow and warp only: matches are drawn by covisibility (matching.py)
+      summary = ("this model predicts no covisibility (no non_occluded_mask adaptor): flow and "
+                 "warp only, no covisibility view and no matches; "
+                 + (f"forward {ms:.0f} ms" if ms else "prediction cached"))
+      return colours, None, warped, None, None, summary, uncertainty
     m = matching.matches_from_dense(flow, covis, num=num, min_covisibility=threshold,
                                     target_hw=target.shape[:2], covariance=cov,
                                     covariance_inv=pred.get("flow_covariance_inv"))
@@ -150,7 +155,6 @@ class Analyser:
                + (f"median match sigma {float(np.median(m['sigma'])):.2f} px; "
                   if cov is not None and n else "")
                + (f"forward {ms:.0f} ms" if ms else "prediction cached"))
-    uncertainty = None if cov is None else viz.uncertainty_view(cov)
     return (colours, viz.covisibility_to_image(covis), warped, drawing, str(npz), summary,
             uncertainty)
 

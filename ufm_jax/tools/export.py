@@ -93,7 +93,7 @@ def _prepare(model, variables, size, dtype, outputs, attention_impl=None):
 
 def resolve_outputs(outputs, available, model=None) -> tuple[str, ...]:
   """The output names to export: `outputs`, or for None the default ones the model produces
-  (`DEFAULT_OUTPUTS`: no covisibility from a model without an uncertainty head, with a warning;
+  (`DEFAULT_OUTPUTS`: no covisibility from a model that predicts none, with a warning;
   `OPTIONAL_OUTPUTS` where the model has them)."""
   if outputs is not None:
     return tuple(outputs)
@@ -101,7 +101,8 @@ def resolve_outputs(outputs, available, model=None) -> tuple[str, ...]:
   chosen = tuple(k for k in DEFAULT_OUTPUTS if k in available)
   if chosen != DEFAULT_OUTPUTS:
     from absl import logging
-    logging.log_first_n(logging.WARNING, "%s produces no %s (no uncertainty head): exporting %s",
+    logging.log_first_n(logging.WARNING, "%s produces no %s (no non_occluded_mask adaptor in any "
+                        "head): exporting %s",
                         1, type(model).__name__,
                         ", ".join(sorted(set(DEFAULT_OUTPUTS) - set(chosen))), ", ".join(chosen))
   return chosen + optional
@@ -238,7 +239,8 @@ def _sidecar(fmt, model, size, batch, dtype, outputs, shapes, checkpoint, platfo
 
   import ufm_jax
   from ufm_jax.official import config as official_config
-  class_name = official_config.CLASS_NAMES.get(type(model), type(model).__name__)
+  class_name = (official_config.class_name(model) if type(model) in official_config.CLASS_NAMES
+                else type(model).__name__)
   h, w = size
   b = batch if batch == "dynamic" else int(batch)
   return {

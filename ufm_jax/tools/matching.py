@@ -58,8 +58,9 @@ def matches_from_dense(flow, covisibility, *, num=5000, min_covisibility=0.5, ta
   flow = np.asarray(flow, np.float32)
   if covisibility is None:
     raise ValueError("matches are drawn by predicted covisibility, and this model predicts none "
-                     "(it has no uncertainty head, as the refinement training recipe's model); "
-                     "use a model with covisibility (UFM-Base, UFM-Refine)")
+                     "(no non_occluded_mask adaptor in any head: the refinement training "
+                     "recipe's model, or a UniFlowMatch whose adaptor map is {flow}); use a model "
+                     "with covisibility (UFM-Base, UFM-Refine)")
   covis = np.asarray(covisibility, np.float32)
   if backward_flow is not None:
     covis = np.where(forward_backward_error(flow, backward_flow) <= max_fb_error_px, covis, 0.0)

@@ -315,6 +315,31 @@ def from_official(class_name: str, kwargs: Mapping[str, Any]) -> dict:
   return out
 
 
+# "The training takes 4 days on 8 H100 GPUs" (paper, Training Details): the recipes' loss
+# groups, one per GPU of that run (Recipe.groups).
+PAPER_GPUS = 8
+
+
+def check_groups(batch_rows: int, groups: int, grad_accum: int = 1, pair_rows: int = 1):
+  """ValueError naming the numbers unless the rows one loss sees (the batch, or each of
+  grad_accum microbatches) split into `groups` equal blocks of whole pairs (pair_rows 2:
+  symmetrized (a, b), (b, a) rows)."""
+  if groups < 1:
+    raise ValueError(f"config.loss.groups={groups}: the loss groups must be 1 or more")
+  if groups == 1:
+    return
+  unit = groups * grad_accum * pair_rows
+  if batch_rows % unit:
+    what = f"batch of {batch_rows} rows"
+    if grad_accum > 1:
+      what += f" in {grad_accum} microbatches"
+    raise ValueError(
+        f"config.loss.groups={groups} (one loss per group of rows, as one per GPU of the paper's "
+        f"{PAPER_GPUS}-GPU run) does not divide the {what} into groups of whole "
+        f"{'pairs' if pair_rows == 2 else 'rows'}: the global batch must be a multiple of "
+        f"{unit} (groups x grad_accum x {pair_rows}), or set --config.loss.groups")
+
+
 @dataclasses.dataclass(frozen=True)
 class Recipe:
   """Terms summed in order; `__call__(outputs, batch, rng=, suitable_rows=)` -> (loss, aux).
@@ -332,8 +357,8 @@ class Recipe:
   dataset_names: Optional[Tuple[str, ...]] = None
   # The official runs are DDP: each of N GPUs takes the loss over its own rows (its own means
   # and pixel cap) and the gradients are averaged, i.e. the total is the mean of N per-group
-  # losses over consecutive row blocks. N of the paper's runs is not known (the 560 script's
-  # comment mentions 8 GPUs); 1 pools the whole batch.
+  # losses over consecutive row blocks. The recipes set the paper's N = 8 (PAPER_GPUS) whatever
+  # our device count; 1 pools the whole batch.
   groups: int = 1
 
   def __call__(self, outputs, batch, rng=None, suitable_rows=None):
@@ -344,8 +369,7 @@ class Recipe:
     if self.groups == 1:
       return self._pooled(outputs, batch, rng, suitable_rows)
     b = batch["flow"].shape[0]
-    if b % self.groups:
-      raise ValueError(f"loss.groups={self.groups} does not divide the batch of {b} rows")
+    check_groups(b, self.groups)
 
     def split(tree):   # [B, ...] leaves -> [G, B/G, ...]; others (attention_bias) shared
       return jax.tree.map(lambda x: x.reshape((self.groups, b // self.groups) + x.shape[1:])

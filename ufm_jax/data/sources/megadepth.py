@@ -9,7 +9,10 @@ A scene id in pair lists is `<scene>/<N>` and frames are image file names (with 
 Intrinsics of the undistorted `imgs` are not shipped; as DUSt3R's preprocessing does, they are
 K_post = cv2.getOptimalNewCameraMatrix(K_colmap, dist, size_colmap, alpha=0,
 newImgSize=size_img, centerPrincipalPoint=True), taken as OpenCV-convention intrinsics.
-Split (DUSt3R): val = scenes 0015 and 0022 (the MegaDepth-1500 test scenes), train = the rest.
+Split: by default the official one, as the official-layout reader (MegaDepthProcessed) and the
+official class: `split` selects no scenes, so "train" holds the val scenes 0015 and 0022 too;
+`select_scenes=True` applies the intended (DUSt3R) split: val = scenes 0015 and 0022 (the
+MegaDepth-1500 test scenes), train = the rest. Both readers take the same option.
 Pairs: `<root>/pairs_<split>.txt`, else DUSt3R's `megadepth_pairs.npz` at root, else run
 data/mine_pairs.py (mutual covisibility > 25%).
 """
@@ -29,6 +32,12 @@ from ufm_jax.data.sources import _official, posed
 
 _VAL_SCENES = ("0015", "0022")
 _DIST = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4}
+
+
+def _selected(scene, split, select_scenes: bool) -> bool:
+  """Whether `scene` belongs to `split`: always by default (the official quirk), by the
+  intended split with select_scenes."""
+  return not select_scenes or _in_split(scene, split)
 
 
 def _in_split(scene, split):
@@ -72,11 +81,17 @@ class MegaDepth(posed.PosedPairSource):
   has_backward = False
   static_scene = True
 
+  def __init__(self, root, split="train", pairs=None, thresholds=None, select_scenes=False):
+    super().__init__(root, split, pairs, thresholds)
+    # False: the official choice (every scene in every split, as MegaDepthProcessed); True: the
+    # intended split (val = 0015, 0022). A pair list named pairs_<split>.txt is read as given.
+    self.select_scenes = bool(select_scenes)
+
   def scenes(self):
     out = []
     for s in sorted(os.listdir(self.root)):
       d = os.path.join(self.root, s)
-      if not (os.path.isdir(d) and _in_split(s, self.split)):
+      if not (os.path.isdir(d) and _selected(s, self.split, self.select_scenes)):
         continue
       for sub in sorted(os.listdir(d)):
         if sub.startswith("dense") and sub[5:].isdigit():
@@ -97,7 +112,7 @@ class MegaDepth(posed.PosedPairSource):
     scenes, images = data["scenes"], data["images"]
     for scene_id, im1, im2, _ in data["pairs"]:
       s, n = str(scenes[int(scene_id)]).split()
-      if _in_split(s, self.split):
+      if _selected(s, self.split, self.select_scenes):
         yield f"{s}/{n}", str(images[int(im1)]), str(images[int(im2)])
 
   @functools.lru_cache(maxsize=64)
@@ -137,7 +152,8 @@ class MegaDepthProcessed(_official.OfficialPosed, posed.PosedPairSource):
   Split: the official class reads every pair of the file whatever `split` says: its `split`
   keyword never reaches the base class (megadepth.py:19-35), so the `select_scene` that would
   keep val = scenes 0015 and 0022 and train = the others never runs (val scenes train too).
-  `select_scenes=True` applies that intended split instead."""
+  `select_scenes=True` applies that intended split instead (the raw-layout reader MegaDepth
+  takes the same option with the same default)."""
 
   name = "megadepth"
   has_backward = False
@@ -171,7 +187,8 @@ class MegaDepthProcessed(_official.OfficialPosed, posed.PosedPairSource):
     return out
 
   def scenes(self):
-    return sorted(f"{s}/{sub}" for s in os.listdir(self.root) if _in_split(s, self.split)
+    return sorted(f"{s}/{sub}" for s in os.listdir(self.root)
+                  if _selected(s, self.split, self.select_scenes)
                   and os.path.isdir(os.path.join(self.root, s))
                   for sub in os.listdir(os.path.join(self.root, s)))
 
