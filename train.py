@@ -167,6 +167,16 @@ def main(argv):
       if is_main:
         print(report.summary(), flush=True)
       variables = jax.device_put(loaded, ts.variables_sh)
+    from_teacher = str(config.model_init or "").startswith("teacher:")
+    if teacher is not None and is_main and not from_teacher:
+      # configs/distill.py init=fresh: said in the log, as init=teacher's report says what it
+      # copied (most of a synthetic student).
+      n = optim.count_params(ts.abstract_params)["total"]
+      scheme = getattr(getattr(model, "config", None), "param_init", None)
+      start = (f"model_init {config.model_init}" if config.model_init else
+               "its own initialisation" + (f" (param_init {scheme})" if scheme else ""))
+      print(f"student init: {start}; 0 of its {n:,} parameters copied from the teacher",
+            flush=True)
     state = ts.create_state(variables)
   else:
     print(f"resumed from step {start_step}", flush=True)

@@ -32,20 +32,20 @@ encoder), loss (paper|l1), labels (weight of the label terms; 0: none read), tea
 the teacher sees; default: a workdir's training shape, else its inference resolution), eval
 (the held-out evals on or off), recipe (synthetic|560; default synthetic for data=synthetic, else
 560), init (teacher: the student starts from the teacher's parameters wherever their paths and
-shapes agree, the rest at init, model_init=teacher:SRC; fresh: from its own init or
---config.model_init; default teacher in recipe synthetic, fresh otherwise), eval_root (a folder
+shapes agree, the rest at init, model_init=teacher:SRC, the log saying how many parameters it
+copied; fresh, the default for every teacher: from its own init or --config.model_init, nothing
+from the teacher, the log saying so), eval_root (a folder
 of held-out pairs of the same kind as data=: every 1000 steps, 100 in recipe synthetic, the
 student is scored against the teacher's predictions on 32 of them, `teacher_agreement`;
 data=synthetic is also scored against the true flow of its val split), colour (the colour part
-of the student's augmentation, `input.augment.photometric`: default true in recipe 560, false
-in recipe synthetic, whose teacher trained without it; docs/distillation.md has both runs).
+of the student's augmentation, `input.augment.photometric`: default true, the official
+augmentation, in both recipes; colour=false drops it; docs/distillation.md has both runs).
 
 recipe=synthetic follows configs/synthetic.py (56 px shift pairs, 2000 steps of 8 rows, lr 1e-3
-everywhere, loss l1, float32; the student from the teacher's shared parameters, init=teacher,
-where the teacher is not a variant:NAME, else flax's init; with data=synthetic the held-out
-eval every 100 steps), except that the student's input takes the official augmentation's
-geometric part (resize and shared crop, the teacher's outputs warped into it; colour=true adds
-the colour part);
+everywhere, loss l1, float32, the student from its own init; with data=synthetic the held-out
+eval every 100 steps), except that the student's input takes the official flow-pathway
+augmentation (resize, shared crop, the teacher's outputs warped into it, colour), where
+configs/synthetic.py trains the teacher on its shift pairs without any;
 recipe=560 follows the 560 recipe (configs/ufm560.py: its shapes, scaled to the student's
 inference width for ufm_tiny's 392, AdamW, encoder lr 5e-6 and 1e-4 elsewhere, 10% warmup and
 cosine to 1%, bf16, scan, remat, the official init). The
@@ -115,7 +115,7 @@ def get_config(arg=None):
   synthetic = recipe == "synthetic"
   if arg.colour.lower() not in ("", "true", "false", "1", "0"):
     raise ValueError(f"configs/distill.py: colour must be true or false, got {arg.colour!r}")
-  colour = arg.colour.lower() in ("true", "1") if arg.colour else not synthetic
+  colour = arg.colour.lower() not in ("false", "0")
   loss = arg.loss or ("l1" if synthetic else "paper")
   if loss not in ("paper", "l1"):
     raise ValueError(f"configs/distill.py: loss must be 'paper' or 'l1', got {arg.loss!r}")
@@ -165,8 +165,7 @@ def get_config(arg=None):
         "scale_strategy": "scale_both"})
   # dinov2:PATH (facebook/dinov2-small for ufm_small / ufm_tiny), snapshot:DIR or ckpt:WORKDIR;
   # init=teacher: every parameter the student shares with the teacher (path and shape) from it.
-  init = arg.init or ("teacher" if synthetic and not arg.teacher.startswith("variant:") else
-                      "fresh")
+  init = arg.init or "fresh"
   if init not in ("teacher", "fresh"):
     raise ValueError(f"configs/distill.py: init must be 'teacher' or 'fresh', got {arg.init!r}")
   c.model_init = config_lib.unset(str)

@@ -293,6 +293,7 @@ def test_static_labels_equal_labelling_the_cropped_geometry():
   crop's border, and a pixel whose full-size match leaves the other crop is never covisible."""
   rng = np.random.default_rng(9)
   params = (0.1, 0.1, 0.005)
+  turned_off = 0   # pixels covisible at full size whose match leaves the other crop
   for v0, v1 in _static_scenes(2, (80, 100)):
     full = geometry.official_labels(v0.depth, v0.K, v0.cam2world, v1.depth, v1.K, v1.cam2world,
                                      params)
@@ -316,7 +317,8 @@ def test_static_labels_equal_labelling_the_cropped_geometry():
       covis = full["covisibility"][t0:t0 + 56, l0:l0 + 72]
       np.testing.assert_array_equal(fwd["covisibility"][clear], covis[clear])
       assert not fwd["covisibility"][~inside].any()
-      assert (covis & ~inside).any() or not (~inside & fov).any()
+      turned_off += int((covis & ~inside).sum())
+  assert turned_off > 0          # the case above happened, not only crops that keep every match
 
 
 def test_rotating_a_portrait_view_rotates_its_labels():

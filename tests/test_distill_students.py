@@ -15,18 +15,37 @@ from ufm_jax.training import model_init, optim
 from ufm_jax.models import ufm, variants
 from ufm_jax.official import config as official_config
 from ufm_jax.official import snapshot
+from ufm_jax.testing import param_counts as pc
 
 
 def _count(name):
   return optim.count_params(ufm.param_shapes(variants.build_model(name)))["total"]
 
 
+def _synth_count(mlp_hidden, covis_dims, covis_f):
+  """synth's structure (7 px patches on an 8 x 8 grid, 2 encoder and 3 fusion blocks 64 wide,
+  16-wide flow DPT) with the given MLP width and covisibility head, in closed form."""
+  return (pc.dinov2_count(64, 2, patch=7, grid=8, hidden=mlp_hidden)
+          + pc.fusion_count(64, 64, 3, mlp_hidden)
+          + pc.dpt_count((64,) * 4, (16, 16, 32, 32), 16, 2)
+          + pc.dpt_count((64,) * 4, covis_dims, covis_f, 1))
+
+
+def _student_count(dim, depth, layer_dims, f):
+  """ViT-S/14 whole, a `depth` x `dim` fusion (MLP ratio 4), two DPT heads (flow, covisibility)."""
+  return (pc.dinov2_count(384, 12) + pc.fusion_count(384, dim, depth, 4 * dim)
+          + sum(pc.dpt_count((384, dim, dim, dim), layer_dims, f, out) for out in (2, 1)))
+
+
 def test_student_sizes():
   """synth_small at most half of synth (the demonstration's bound); the real students well
-  below UFM-Base, their encoder the whole ViT-S/14."""
-  assert _count("synth_small") == 198_223 and 2 * _count("synth_small") <= _count("synth")
-  assert _count("ufm_small") == 42_205_827
-  assert _count("ufm_tiny") == 27_743_939
+  below UFM-Base, their encoder the whole ViT-S/14. Each count against the closed form of its
+  structure (ufm_jax.testing.param_counts), as in the docstrings: synth_small is synth with MLPs
+  of ratio 1/4 (16 wide) and a covisibility head of layer dims [8, 8, 16, 16], feature dim 8."""
+  synth, small = _synth_count(256, (16, 16, 32, 32), 16), _synth_count(16, (8, 8, 16, 16), 8)
+  assert _count("synth") == synth and _count("synth_small") == small and 2 * small <= synth
+  assert _count("ufm_small") == _student_count(384, 6, (48, 96, 192, 384), 128)
+  assert _count("ufm_tiny") == _student_count(256, 4, (24, 48, 96, 192), 64)
   for name in ("ufm_small", "ufm_tiny"):
     cfg = variants.get(name)
     assert cfg.encoder.embed_dim == 384 and cfg.encoder.depth == 12 and cfg.encoder.num_heads == 6
@@ -74,7 +93,7 @@ def test_students_export_to_official_and_load_back(tmp_path, name):
 
 
 def test_synth_small_starts_from_its_teacher(tmp_path):
-  """model_init=teacher:SRC (configs/distill.py init=teacher, the synthetic recipe's default):
+  """model_init=teacher:SRC (configs/distill.py init=teacher; the default is init=fresh):
   every parameter synth_small shares with synth by path and shape comes from the teacher (the
   attention and the flow head), the narrower MLPs and covisibility head stay at init and are
   listed with both shapes; a plain ckpt: source of
@@ -101,5 +120,14 @@ def test_synth_small_starts_from_its_teacher(tmp_path):
   assert any(k.startswith("head1") for k in report.loaded)
   for k in left:
     assert not np.any(np.asarray(flat_o[k])), k       # the template's (zeros here)
+  # Copied: everything but the 5 blocks' 16-wide MLPs and the 8-wide covisibility head, except
+  # the arrays whose shape does not depend on those widths (fc2's bias, 64; the head's last
+  # bias, 1): the figure the training log prints.
+  mlp_kernels = pc.mlp(64, 16) - 64
+  covis = pc.dpt_count((64,) * 4, (8, 8, 16, 16), 8, 1) - 1
+  small = _count("synth_small")
+  assert report.copied_values == small - 5 * mlp_kernels - covis
+  assert report.total_values == small
+  assert f"{small - 5 * mlp_kernels - covis:,} of the model's {small:,}" in report.summary()
   with pytest.raises(ValueError):
     model_init.load_init_variables(f"ckpt:{tmp_path / 'teacher'}", template, student.config)

@@ -216,7 +216,7 @@ def test_pipeline_rows_swap_for_the_backward_direction(tmp_path):
 
 
 def test_photometric_off_keeps_the_geometric_crop_only():
-  """input.augment.photometric=False (configs/distill.py's synthetic recipe by default): the
+  """input.augment.photometric=False (configs/distill.py colour=false): the
   student's images are the resize-and-crop of the pair, no colour; with it on they differ."""
   fwd, bwd = _shift_pairs(1)[0]
   for photometric in (False, True):
@@ -229,15 +229,25 @@ def test_photometric_off_keeps_the_geometric_crop_only():
     assert same == (not photometric)
 
 
-def test_distill_config_colour_defaults_per_recipe():
+def test_distill_config_defaults_official_colour_and_a_fresh_student():
+  """Both recipes take the official colour augmentation unless colour=false, and start the
+  student from its own init (no model_init) unless init=teacher, for every kind of teacher."""
   import pathlib
   from ufm_jax.training import config_lib
   config = pathlib.Path(__file__).resolve().parents[1] / "configs" / "distill.py"
   get = lambda a: config_lib.load_config(f"{config}:{a}")   # noqa: E731
   synth = "teacher=variant:synth,student=synth_small,data=synthetic"
-  assert get(synth).input.augment["photometric"] is False
-  assert get(synth + ",colour=true").input.augment["photometric"] is True
+  assert get(synth).input.augment["photometric"] is True
+  assert get(synth + ",colour=false").input.augment["photometric"] is False
   frames = "teacher=variant:ufm_base,student=ufm_small,data=frames,data_root=/data/frames"
   assert get(frames).input.augment["photometric"] is True
+  workdir = "teacher=workdirs/synthetic,student=synth_small,data=synthetic"
+  hub = "teacher=infinity1096/UFM-Base,student=ufm_small,data=frames,data_root=/data/frames"
+  for arg in (synth, frames, workdir, hub):
+    assert not get(arg).model_init, arg
+  assert get(workdir + ",init=teacher").model_init == "teacher:workdirs/synthetic"
+  assert get(hub + ",init=teacher").model_init == "teacher:snapshot:infinity1096/UFM-Base"
+  with pytest.raises(ValueError, match="init"):
+    get(synth + ",init=both")
   with pytest.raises(ValueError, match="colour"):
     get(synth + ",colour=maybe")

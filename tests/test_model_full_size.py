@@ -10,43 +10,11 @@ import pytest
 
 from ufm_jax.official import snapshot
 from ufm_jax.models import dinov2, ufm, variants
-
+from ufm_jax.testing.param_counts import dinov2_count, dpt_count, linear, vit_block
 
 
 def _count(model):
   return sum(int(np.prod(s)) for s in snapshot.expected_param_shapes(model).values())
-
-
-# ---- closed-form counts of the official modules (torch Linear/Conv/LayerNorm parameter sizes)
-
-def linear(i, o, bias=True):
-  return i * o + (o if bias else 0)
-
-
-def conv(i, o, k, bias=True):
-  return i * o * k * k + (o if bias else 0)
-
-
-def vit_block(d, hidden, layerscale=True, swiglu=False):
-  ffn = linear(d, 2 * hidden) + linear(hidden, d) if swiglu else linear(d, hidden) + linear(hidden, d)
-  return 4 * d + linear(d, 3 * d) + linear(d, d) + ffn + (2 * d if layerscale else 0)
-
-
-def dinov2_count(d, depth, swiglu_hidden=None, patch=14, grid=37):
-  hidden = swiglu_hidden or 4 * d
-  return (conv(3, d, patch) + d + (1 + grid * grid) * d  # patch embed, cls, pos
-          + depth * vit_block(d, hidden, swiglu=swiglu_hidden is not None) + 2 * d)
-
-
-def dpt_count(in_dims, layer_dims, f, out):
-  n = conv(in_dims[0], layer_dims[0], 1) + conv(layer_dims[0], layer_dims[0], 4)
-  n += conv(in_dims[1], layer_dims[1], 1) + conv(layer_dims[1], layer_dims[1], 2)
-  n += conv(in_dims[2], layer_dims[2], 1)
-  n += conv(in_dims[3], layer_dims[3], 1) + conv(layer_dims[3], layer_dims[3], 3)
-  n += sum(conv(l, f, 3, bias=False) for l in layer_dims)  # layer{k}_rn
-  rcu = 2 * conv(f, f, 3)
-  n += 3 * (2 * rcu + conv(f, f, 1)) + (rcu + conv(f, f, 1))  # refinenet4 has one RCU
-  return n + conv(f, f // 2, 3) + conv(f // 2, f // 2, 3) + conv(f // 2, out, 1)
 
 
 def test_ufm_base_parameter_count():

@@ -125,8 +125,8 @@ class AugmentConfig:
   kubric_score_quirk: True (official): the backward term of a crop pair's score is read with the
     two crop indices swapped (flow_manipulation.py:606-630); False scores matching pairs.
   photometric: True (official): the colour augmentation below. False: none of it (jitter,
-    grayscale, blur, low light), only the geometric part; configs/distill.py's synthetic recipe,
-    whose teacher trained on pairs without colour augmentation (docs/distillation.md).
+    grayscale, blur, low light), only the geometric part (configs/distill.py colour=false;
+    docs/distillation.md has runs with and without it).
   brightness, contrast, saturation, hue: torchvision ColorJitter(0.5, 0.5, 0.5, 0.1), each image
     independently, the four in random order.
   grayscale_prob, blur_prob, blur_sigma, blur_kernel: RandomGrayscale(0.05),

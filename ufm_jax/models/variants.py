@@ -203,8 +203,9 @@ def synth_small(**kw) -> ufm.UFMConfig:
   the tied query/key init, the 16-wide flow DPT), MLPs of ratio 1/4 instead of 4 and a
   covisibility head of width 8 (layer dims [8, 8, 16, 16]): 198,223 parameters, 0.49 x
   `synth`'s 403,707. It shares synth's layout wherever it can, so that `init=teacher`
-  (configs/distill.py) starts it from the teacher's attention, patch embedding and flow head;
-  narrower students stayed on the zero-flow plateau (docs/distillation.md)."""
+  (configs/distill.py; the default is init=fresh, its own init) can start it from the teacher's
+  attention, patch embedding and flow head; narrower students stayed on the zero-flow plateau
+  (docs/distillation.md)."""
   cfg = synth()
   cfg = cfg.replace(
       encoder=dataclasses.replace(cfg.encoder, mlp_ratio=0.25),

@@ -4,8 +4,8 @@ random weights in official namings, the skip-or-fail rule of optional extras. Su
 `wide_trees` (tiny trees in the real on-disk formats of the wide-baseline and benchmark datasets),
 `bench_trees` (the optical-flow benchmarks' layouts and the official benchmark branch's),
 `official_trees` (the official processed training layouts), `train_support` (a stand-in model,
-data and config for the training-machinery tests); `training_fixtures()` locates the official
-training-code fixtures."""
+data and config for the training-machinery tests), `param_counts` (closed-form parameter counts
+of the official modules); `training_fixtures()` locates the official training-code fixtures."""
 
 from __future__ import annotations
 

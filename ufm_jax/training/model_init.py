@@ -65,10 +65,17 @@ class InitReport:
   resized: list[str]
   left_at_init: list[str]
   unused: list[str]
+  # Parameter values (not arrays) in the arrays loaded or resized from the source (a head whose
+  # adaptors were remapped counts whole), and in the template.
+  copied_values: int = 0
+  total_values: int = 0
 
   def summary(self) -> str:
     lines = [f"model_init from {self.source}: {len(self.loaded)} loaded, {len(self.resized)} "
              f"resized, {len(self.left_at_init)} left at init, {len(self.unused)} unused"]
+    if self.total_values:
+      lines.append(f"  {self.copied_values:,} of the model's {self.total_values:,} parameters "
+                   f"from the source ({100 * self.copied_values / self.total_values:.1f}%)")
     for name, items in (("resized", self.resized), ("left at init", self.left_at_init),
                         ("unused", self.unused)):
       if items:
@@ -95,6 +102,7 @@ def merge_into(template, loaded: dict[str, np.ndarray], source: str,
   out, rep = {}, InitReport(source, [], [], [], sorted(set(loaded) - set(flat_t)))
   mismatched = []
   for k, v in flat_t.items():
+    rep.total_values += int(np.prod(v.shape))
     if k not in loaded:
       out[k] = v
       rep.left_at_init.append(k)
@@ -109,8 +117,11 @@ def merge_into(template, loaded: dict[str, np.ndarray], source: str,
     elif partial:
       out[k] = v
       rep.left_at_init.append(f"{k} (source {w.shape}, model {tuple(v.shape)})")
+      continue
     else:
       mismatched.append(f"{k}: checkpoint {w.shape} vs model {tuple(v.shape)}")
+      continue
+    rep.copied_values += int(np.prod(v.shape))
   if mismatched:
     raise ValueError(f"model_init {source}: shape mismatch for\n  " + "\n  ".join(mismatched))
   return traverse_util.unflatten_dict(out, sep="/"), rep
