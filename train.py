@@ -244,6 +244,21 @@ def _config_file_missing(argv) -> str | None:
   return None
 
 
+def _config_arg_error(argv) -> str | None:
+  """One line for a bad `--config=FILE:key=value` argument (an unknown key, a value of the wrong
+  type, a value the config refuses), which absl would report inside a traceback."""
+  from ufm_jax.training import config_lib
+  for i, arg in enumerate(argv):
+    spec = arg.split("=", 1)[1] if arg.startswith("--config=") else (
+        argv[i + 1] if arg == "--config" and i + 1 < len(argv) else None)
+    if spec is not None and ":" in spec:
+      try:
+        config_lib.load_config(spec)
+      except (config_lib.ConfigArgError, ValueError) as e:
+        return f"error: --config={spec}: {' '.join(str(e).split())}"
+  return None
+
+
 def _run():
   if any(a in ("-h", "--help", "--helpshort", "-help") for a in sys.argv[1:]):
     print(_usage())
@@ -251,6 +266,10 @@ def _run():
   missing = _config_file_missing(sys.argv[1:])
   if missing:
     print(f"error: --config: no such file {missing}", file=sys.stderr)
+    sys.exit(2)
+  bad_arg = _config_arg_error(sys.argv[1:])
+  if bad_arg:
+    print(bad_arg, file=sys.stderr)
     sys.exit(2)
   try:
     app.run(main)
