@@ -156,7 +156,8 @@ def main(argv):
           continue
         rec = {"step": step, "eval": name, **res.scalars}
         if is_main:
-          print(f"[eval {name}] step {step}: " +
+          what = f" ({ev.describe()}, the params of step {step})" if hasattr(ev, "describe") else ""
+          print(f"[eval {name}] step {step}{what}: " +
                 ", ".join(f"{k}={v:.4g}" for k, v in res.scalars.items()), flush=True)
         writer.scalars("eval.jsonl", step, rec, f"eval/{name}")
         for tag, img in res.images.items():
@@ -207,8 +208,22 @@ def main(argv):
         break
       run_evals(step, force=step == total_steps)
     keeper.wait()
+  last_saved = manager.latest_step()
   manager.close()
   writer.close()
+  if is_main and step == total_steps and last_saved is not None:
+    print(_next_steps(workdir, last_saved, config), flush=True)
+
+
+def _next_steps(workdir: pathlib.Path, saved_step: int, config) -> str:
+  """The lines a finished run ends with: its checkpoint and the commands that use it."""
+  synthetic = "synthetic" in dict((config.input.get("datasets") or {}))
+  bench = "" if synthetic else " --bench sintel --data_root DATA"
+  return "\n".join([
+      f"checkpoint: {workdir}/checkpoints/{saved_step} (step {saved_step} of {workdir})",
+      f"evaluate:   python evaluate.py --checkpoint {workdir}{bench} --out {workdir}/results",
+      f"infer:      python -m ufm_jax infer SOURCE.png TARGET.png --checkpoint {workdir} "
+      f"--out {workdir}/infer"])
 
 
 def _fmt_eta(sec):
