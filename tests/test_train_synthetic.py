@@ -70,7 +70,8 @@ def test_synthetic_config_learns(tmp_path):
   assert "nan" not in evals_printed[1]
   # The run ends with its checkpoint and the next commands.
   assert lines[-3] == f"checkpoint: {tmp_path}/checkpoints/{steps} (step {steps} of {tmp_path})"
-  assert lines[-2] == f"evaluate:   python evaluate.py --checkpoint {tmp_path} --out {tmp_path}/results"
+  assert lines[-2] == (f"evaluate:   python evaluate.py --checkpoint {tmp_path} "
+                       f"--out {tmp_path}/results")
   assert lines[-1].startswith(f"infer:      python -m ufm_jax infer SOURCE.png TARGET.png "
                               f"--checkpoint {tmp_path} ")
   assert not [l for l in lines if "INFO" in l], lines[:10]

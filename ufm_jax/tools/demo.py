@@ -93,8 +93,8 @@ def colour_key(side: int = 96) -> np.ndarray:
 class Analyser:
   """Prediction (cached by image content) -> the demo's views; no gradio in here."""
 
-  def __init__(self, model, variables, out_dir, max_side: int = DEFAULT_MAX_SIDE, cache_size: int = 8,
-               keep_s: float = CACHE_SECONDS):
+  def __init__(self, model, variables, out_dir, max_side: int = DEFAULT_MAX_SIDE,
+               cache_size: int = 8, keep_s: float = CACHE_SECONDS):
     from ufm_jax.runtime import inference
     self.model, self.variables = model, variables
     self.out_dir = pathlib.Path(out_dir)
@@ -205,7 +205,8 @@ def build_app(analyser: Analyser, examples: list[list[str]] | None = None):
     except ValueError as e:  # a refused input, not a bug: shown to the user (and API clients)
       raise gr.Error(str(e), title="Input refused", print_exception=False) from None
 
-  with gr.Blocks(title="UFM-JAX demo", analytics_enabled=False, delete_cache=(CACHE_SECONDS, CACHE_SECONDS)) as app:
+  with gr.Blocks(title="UFM-JAX demo", analytics_enabled=False,
+                 delete_cache=(CACHE_SECONDS, CACHE_SECONDS)) as app:
     gr.Markdown("## UFM: dense flow and covisibility between two images\n"
                 "Upload a source and a target image. The flow is defined on the source's pixels "
                 "(where does each one land in the target); pixels below the covisibility "
