@@ -74,9 +74,11 @@ def parse_args(argv=None):
                   help="560 | 980 | native (default: model config); native protocol only")
   ap.add_argument("--max_pairs", type=int, default=None, help="evaluate at most N pairs per split")
   ap.add_argument("--save_predictions", default=None,
-                  help="write .flo + covisibility PNG (+ flow covariance .npy) per pair here")
+                  help="write .flo + covisibility PNG (+ flow covariance .npy) per pair, and the "
+                  "panels, here (a folder other than --out)")
   ap.add_argument("--num_panels", type=int, default=8, help="panel PNGs for the first N pairs")
-  ap.add_argument("--out", default="results", help="results.json goes here")
+  ap.add_argument("--out", default="results", help="results.json goes here; one already there "
+                  "is kept, renamed after its date")
   ap.add_argument("--seed", type=int, default=0, help="pose RANSAC/sampling seed")
   ap.add_argument("--no_progress", action="store_true", help="no progress bars (logs, CI)")
   compile_cache.add_argument(ap)
@@ -87,6 +89,9 @@ def parse_args(argv=None):
     ap.error("give the snapshot once: --checkpoint X --snapshot, or --snapshot X")
   if args.revision is not None and not args.snapshot:
     ap.error("--revision applies to a Hugging Face model ID: add --snapshot")
+  if args.save_predictions and (pathlib.Path(args.save_predictions).resolve()
+                                == pathlib.Path(args.out).resolve()):
+    ap.error("--save_predictions and --out name the same folder: give the predictions their own")
   if args.resolution is not None and args.resolution != "native":
     try:
       args.resolution = int(args.resolution)
@@ -211,12 +216,40 @@ def main(argv=None) -> int:
       "metrics": results,
   }
   out = pathlib.Path(args.out) / "results.json"
+  kept = keep_previous(out)
   io.write_json_atomic(out, payload)
+  print(f"model: {source['checkpoint']}")
+  for name in sources:
+    for s in benches[name].splits:
+      if s.label in counts:
+        split = dict(s.options).get("split")
+        print(f"{s.label}: {counts[s.label]} pairs" + (f" of the {split} split" if split else ""))
   print(report.markdown_table(results, list(sources), runtime))
   for name, why in skipped.items():
     print(f"skipped {name}: {why}")
+  if kept:
+    print(f"kept the previous {out.name} as {kept}")
   print(f"wrote {out}")
   return 0
+
+
+def keep_previous(out: pathlib.Path) -> pathlib.Path | None:
+  """Renames a results.json already at `out` after the date it records (or its file time), so
+  that no run replaces another's results; returns the new name (None: there was none)."""
+  if not out.is_file():
+    return None
+  try:
+    date = str(json.loads(out.read_text()).get("date") or "")
+  except (ValueError, AttributeError):
+    date = ""
+  stamp = "".join(c for c in date[:19] if c.isalnum()) or time.strftime(
+      "%Y%m%dT%H%M%S", time.gmtime(out.stat().st_mtime))
+  kept, i = out.with_name(f"results_{stamp}.json"), 1
+  while kept.exists():
+    i += 1
+    kept = out.with_name(f"results_{stamp}_{i}.json")
+  out.rename(kept)
+  return kept
 
 
 if __name__ == "__main__":

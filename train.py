@@ -194,7 +194,8 @@ def main(argv):
           continue
         rec = {"step": step, "eval": name, **res.scalars}
         if is_main:
-          print(f"[eval {name}] step {step}: " +
+          what = f" ({ev.describe()}, the params of step {step})" if hasattr(ev, "describe") else ""
+          print(f"[eval {name}] step {step}{what}: " +
                 ", ".join(f"{k}={v:.4g}" for k, v in res.scalars.items()), flush=True)
         writer.scalars("eval.jsonl", step, rec, f"eval/{name}")
         for tag, img in res.images.items():
@@ -267,6 +268,7 @@ def main(argv):
         run_evals(step, force=step == total_steps)
       with gp.timed("checkpoint"):
         keeper.wait()
+    last_saved = manager.latest_step()
     with gp.timed("checkpoint"):
       manager.close()
   finally:
@@ -276,6 +278,19 @@ def main(argv):
       print(goodput.summary_line(figures), flush=True)
       writer.scalars("goodput.jsonl", step, {"step": step, **figures}, "goodput")
   writer.close()
+  if is_main and step == total_steps and last_saved is not None:
+    print(_next_steps(workdir, last_saved, config), flush=True)
+
+
+def _next_steps(workdir: pathlib.Path, saved_step: int, config) -> str:
+  """The lines a finished run ends with: its checkpoint and the commands that use it."""
+  synthetic = "synthetic" in dict((config.input.get("datasets") or {}))
+  bench = "" if synthetic else " --bench sintel --data_root DATA"
+  return "\n".join([
+      f"checkpoint: {workdir}/checkpoints/{saved_step} (step {saved_step} of {workdir})",
+      f"evaluate:   python evaluate.py --checkpoint {workdir}{bench} --out {workdir}/results",
+      f"infer:      python -m ufm_jax infer SOURCE.png TARGET.png --checkpoint {workdir} "
+      f"--out {workdir}/infer"])
 
 
 def _fmt_eta(sec):
@@ -311,6 +326,21 @@ def _config_file_missing(argv) -> str | None:
   return None
 
 
+def _config_arg_error(argv) -> str | None:
+  """One line for a bad `--config=FILE:key=value` argument (an unknown key, a value of the wrong
+  type, a value the config refuses), which absl would report inside a traceback."""
+  from ufm_jax.training import config_lib
+  for i, arg in enumerate(argv):
+    spec = arg.split("=", 1)[1] if arg.startswith("--config=") else (
+        argv[i + 1] if arg == "--config" and i + 1 < len(argv) else None)
+    if spec is not None and ":" in spec:
+      try:
+        config_lib.load_config(spec)
+      except (config_lib.ConfigArgError, ValueError) as e:
+        return f"error: --config={spec}: {' '.join(str(e).split())}"
+  return None
+
+
 def _run():
   if any(a in ("-h", "--help", "--helpshort", "-help") for a in sys.argv[1:]):
     print(_usage())
@@ -318,6 +348,10 @@ def _run():
   missing = _config_file_missing(sys.argv[1:])
   if missing:
     print(f"error: --config: no such file {missing}", file=sys.stderr)
+    sys.exit(2)
+  bad_arg = _config_arg_error(sys.argv[1:])
+  if bad_arg:
+    print(bad_arg, file=sys.stderr)
     sys.exit(2)
   try:
     app.run(main)

@@ -92,3 +92,18 @@ def _lookup(config, dotted):
   for part in filter(None, dotted.split(".")):
     config = config[part]
   return config
+
+
+@pytest.mark.parametrize("arg, message", [
+    ("stpes=10", "unknown config arg 'stpes'; valid keys: aligned, batch, cov, cov_head, eval, "
+                 "loss, lr, max_shift, model, pairs, size, steps"),
+    ("cov=maybe", "config arg cov='maybe' is not a bool; valid values: true, false, 1, 0")])
+def test_train_py_reports_a_bad_config_arg_in_one_line(arg, message):
+  import subprocess
+  import sys
+  out = subprocess.run([sys.executable, str(REPO / "train.py"),
+                        f"--config=configs/synthetic.py:{arg}", "--workdir=/tmp/unused"],
+                       capture_output=True, text=True, timeout=120, cwd=REPO)
+  assert out.returncode == 2
+  assert out.stderr.strip() == f"error: --config=configs/synthetic.py:{arg}: {message}"
+  assert out.stdout == ""

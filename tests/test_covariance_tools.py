@@ -51,10 +51,10 @@ def test_infer_writes_the_covariance_and_the_uncertainty_panel(snap, images, tmp
   assert cov.shape == (150, 210, 3) and cov.dtype == np.float32
   np.testing.assert_allclose(cov, pred["flow_covariance"], rtol=1e-6)
   panel = io.read_image(tmp_path / "forward_panel.png")
-  # five tiles (the fifth: sigma_max on the fixed scale) over a 30 px legend row
-  assert panel.shape == (150 + 30, 5 * 210, 3)
+  # five tiles (the fifth: sigma_max on the fixed scale) over a 40 px legend row, 320 px wide
+  assert panel.shape == (150 + 40, 5 * 210, 3)
   np.testing.assert_array_equal(panel[:150, 4 * 210:], viz.uncertainty_to_image(cov))
-  np.testing.assert_array_equal(panel[150:, -240:], viz.uncertainty_legend(240))
+  np.testing.assert_array_equal(panel[150:, -320:], viz.uncertainty_legend(320))
 
 
 def test_uncertainty_image_scale():

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from ufm_jax import testing
-from ufm_jax.tools import cli
+from ufm_jax.tools import cli, demo
 from ufm_jax.data import io, synthetic
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -113,6 +113,55 @@ def test_api_end_to_end_and_threshold_changes_matches(client, pair):
   assert "forward" in s_low and "prediction cached" in s_high  # the slider does not re-run the model
 
 
+def test_concurrent_clients_each_get_their_whole_download(server, client, pair, tmp_path):
+  """8 clients on loopback send 3 requests each at once, identical ones among them (the same pair
+  and threshold from several clients): every download (the four pictures and the .npz) arrives
+  whole, with the size and content of the same request answered alone. Gradio once wrote
+  identical pictures to one shared file in place while other clients downloaded it."""
+  from concurrent.futures import ThreadPoolExecutor, wait
+  from gradio_client import Client, handle_file
+  src, tgt = pair
+  thresholds = (0.2, 0.5, 0.8)
+
+  def contents(out):
+    """(size, content) of each file of a response; the .npz by its arrays (its zip entries
+    carry the time they were written), every member read (a cut zip fails its CRC)."""
+    got = []
+    for path in out[:5]:
+      path = pathlib.Path(path)
+      if path.suffix == ".npz":
+        with np.load(path) as z:
+          content = {k: z[k].tolist() for k in z.files}
+      else:
+        content = path.read_bytes()
+      got.append((path.stat().st_size, content))
+    return got
+
+  alone = {thr: contents(client.predict(handle_file(str(src)), handle_file(str(tgt)), thr, 500,
+                                        api_name="/analyse"))
+           for thr in thresholds}
+
+  def one_client(i):
+    c = Client(server[0], verbose=False, analytics_enabled=False,
+               download_files=str(tmp_path / f"client{i}"))
+    got = []
+    for j in range(3):
+      thr = thresholds[(i + j) % 3]
+      out = c.predict(handle_file(str(src)), handle_file(str(tgt)), thr, 500, api_name="/analyse")
+      got.append((thr, contents(out)))
+    return got
+
+  with ThreadPoolExecutor(8) as pool:
+    futures = [pool.submit(one_client, i) for i in range(8)]
+    _, pending = wait(futures, timeout=300)
+  assert not pending, f"{len(pending)} of 8 clients unanswered after 300 s"
+  answers = [a for f in futures for a in f.result()]  # a cut download raises here
+  assert len(answers) == 24
+  for thr, got in answers:
+    for (size, content), (want_size, want) in zip(got, alone[thr]):
+      assert size == want_size and content == want, thr
+
+
 def test_too_large_image_and_file_are_refused(server, client, pair, tmp_path):
   from gradio_client import handle_file
   from gradio_client.exceptions import AppError
@@ -189,6 +238,17 @@ def _listening(port: int) -> list[str]:
       if int(p, 16) == port and fields[3] == "0A":  # 0A: LISTEN
         found.append(addr)
   return found
+
+
+def test_each_response_gets_its_own_folder_pruned_by_age(tmp_path):
+  analyser = object.__new__(demo.Analyser)   # response_dir reads out_dir and keep_s only
+  analyser.out_dir, analyser.keep_s = tmp_path, 3600
+  a, b = analyser.response_dir("k"), analyser.response_dir("k")
+  assert a != b and a.parent == b.parent == tmp_path
+  (a / "m.npz").write_bytes(b"x")
+  os.utime(a, (time.time() - 3601, time.time() - 3601))
+  c = analyser.response_dir("k")
+  assert not a.exists() and b.is_dir() and c.is_dir()
 
 
 def test_binds_loopback_only_by_default(server):

@@ -102,6 +102,7 @@ def test_the_step_compiles_ahead_of_time_with_an_abstract_teacher():
   assert ts.teacher._host is None                # still nothing loaded
 
 
+@pytest.mark.slow
 def test_teacher_from_a_workdir_sees_its_training_shape(tmp_path):
   (tmp_path / "checkpoints").mkdir()
   (tmp_path / "config.json").write_text(json.dumps(

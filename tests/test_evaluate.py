@@ -146,3 +146,27 @@ def test_saved_predictions_reproduce_reported_epe(tmp_path):
     flo, _ = base.predicted_paths(tmp_path, "dtu", s, i)
     acc.add("epe", metrics.endpoint_error(read_flo(flo), s["flow"]), s["covisibility"])
   assert acc.mean("epe") == pytest.approx(res["dtu/epe"], rel=1e-6)
+
+
+def test_an_earlier_results_json_is_kept_not_replaced(tmp_path):
+  import json
+  import evaluate
+  out = tmp_path / "results.json"
+  assert evaluate.keep_previous(out) is None
+  out.write_text(json.dumps({"date": "2026-12-07T10:11:12+00:00", "metrics": {"a": 1}}))
+  kept = evaluate.keep_previous(out)
+  assert kept == tmp_path / "results_20261207T101112.json" and not out.exists()
+  assert json.loads(kept.read_text())["metrics"] == {"a": 1}
+  out.write_text(json.dumps({"date": "2026-12-07T10:11:12+00:00"}))
+  assert evaluate.keep_previous(out) == tmp_path / "results_20261207T101112_2.json"
+
+
+def test_predictions_may_not_share_the_results_folder(tmp_path, run_evaluate):
+  rc, _, err = run_evaluate("--save_predictions", str(tmp_path), "--out", str(tmp_path))
+  assert rc == 2 and "--save_predictions and --out name the same folder" in err
+
+
+def test_undefined_metric_gets_no_column():
+  table = report.markdown_table({"synthetic/epe": 1.0, "synthetic/epe_occluded": float("nan"),
+                                 "synthetic/px2": 5.0}, ["synthetic"], {"synthetic": 1.0})
+  assert table.splitlines()[0] == "| split | epe | px2 | ms/pair |"

@@ -182,6 +182,7 @@ def _onnx_parity(fm, tmp_path, batch):
   assert json.loads(export.sidecar_path(out).read_text())["format"] == "onnx"
 
 
+@pytest.mark.slow
 def test_onnx_matches_apply_base(reference_dir, tmp_path):
   model, variables = snapshot.load_official(reference_dir / "base")
   io = np.load(reference_dir / "base" / "io.npz")

@@ -32,6 +32,10 @@ def test_zero_flow_and_exact_predictions():
   # Predicting "all covisible" is right exactly on the covisible pixels (all are covis_valid).
   assert abs(res["covis_acc"] - covis.mean()) < 1e-9
   assert res["px1"] == 100.0 * (speed[covis] > 1).mean()
+  assert res["px2"] == 100.0 * (speed[covis] > 2).mean() and "px3" not in res  # evaluate.py's set
+  # Shift pairs occlude nothing (what leaves the view is not scored): no epe_occluded at all.
+  assert "epe_occluded" not in res
+  assert ev.describe() == "synthetic val split, 5 pairs"
 
   def oracle(params, batch):
     del params

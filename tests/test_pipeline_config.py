@@ -86,8 +86,12 @@ def test_parse_arg():
   c = config_lib.parse_arg("data=of,res=980,sym=false", data="both", res=560, sym=True)
   assert (c.data, c.res, c.sym) == ("of", 980, False)
   assert config_lib.parse_arg(None, data="both").data == "both"
-  with pytest.raises(KeyError, match="unknown config arg 'x'"):
+  with pytest.raises(config_lib.ConfigArgError, match="unknown config arg 'x'; valid keys: data$"):
     config_lib.parse_arg("x=1", data="both")
+  with pytest.raises(config_lib.ConfigArgError, match="valid values: true, false, 1, 0"):
+    config_lib.parse_arg("sym=maybe", sym=True)
+  with pytest.raises(config_lib.ConfigArgError, match="'many' is not int"):
+    config_lib.parse_arg("res=many", res=560)
 
 
 def test_synthetic_mixture_through_train_entry_point():

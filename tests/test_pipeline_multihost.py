@@ -12,6 +12,9 @@ import pytest
 
 from ufm_jax.data import mixture, pipeline
 
+# Slow tier: two jax processes feeding one stream (pytest -m slow).
+pytestmark = pytest.mark.slow
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 _WORKER = textwrap.dedent("""

@@ -45,6 +45,7 @@ def _agree(a, b):
   assert a["flops_per_step"] == pytest.approx(b["flops_per_step"], rel=0.01)
 
 
+@pytest.mark.slow
 def test_compile_only_and_the_planner_agree_on_8_devices():
   """The same config and overrides through both programs on 8 fake CPU devices: the config's
   default mesh (FSDP over all 8), grad_accum 2, the same HBM and collectives."""

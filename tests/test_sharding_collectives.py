@@ -207,6 +207,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.slow
 def test_gradients_reduce_in_two_stages_on_large_fsdp_axes():
   # XLA:TPU all-reduces a gradient over a 64-way FSDP axis whole instead of reduce-scattering it,
   # so from sharding.TWO_STAGE_MIN_DEVICES on each gradient is reduced over fsdp_outer first, then

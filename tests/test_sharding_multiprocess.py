@@ -13,6 +13,9 @@ import pytest
 
 from ufm_jax import testing
 
+# Slow tier: train.py jobs of two processes (pytest -m slow).
+pytestmark = pytest.mark.slow
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 

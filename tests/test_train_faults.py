@@ -24,6 +24,9 @@ CONFIG = f"--config={REPO}/ufm_jax/testing/train_support.py"
 _FAILING_WRITER = """
 import os, runpy, sys
 from orbax.checkpoint._src.path import atomicity
+
+# Slow tier: train.py runs killed, corrupted and restarted (pytest -m slow).
+pytestmark = pytest.mark.slow
 _finalize = atomicity.AtomicRenameTemporaryPath.finalize
 async def finalize(self, *a, **k):
   if self.get_final().name == os.environ["UFM_TEST_FAIL_CKPT_STEP"]:

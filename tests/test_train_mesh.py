@@ -12,6 +12,9 @@ from ufm_jax import testing
 from ufm_jax.runtime import checkpoint
 from ufm_jax.training import model_init
 
+# Slow tier: train.py runs on 8 fake devices and on one (pytest -m slow).
+pytestmark = pytest.mark.slow
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 

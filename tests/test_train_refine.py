@@ -10,9 +10,13 @@ import tempfile
 
 import jax
 import numpy as np
+import pytest
 
 from ufm_jax.runtime import checkpoint
 from ufm_jax.training import model_init
+
+# Slow tier: a train.py run (pytest -m slow).
+pytestmark = pytest.mark.slow
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 XLA_CACHE = pathlib.Path(tempfile.gettempdir()) / "ufm_jax_test_xla_cache"

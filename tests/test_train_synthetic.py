@@ -61,9 +61,21 @@ def test_synthetic_config_learns(tmp_path):
   lines = (r.stdout + r.stderr).splitlines()
   step_lines = [l for l in lines if l.startswith("step ")]
   assert len(step_lines) == steps and len(set(step_lines)) == steps, step_lines[:4]
-  assert len([l for l in lines if l.startswith("[eval heldout]")]) == 2
+  evals_printed = [l for l in lines if l.startswith("[eval heldout]")]
+  assert len(evals_printed) == 2
+  # Each names what it scored, with evaluate.py's metric names and nothing undefined.
+  assert evals_printed[1].startswith(
+      f"[eval heldout] step {steps} (synthetic val split, 16 pairs, the params of step {steps}): ")
+  assert " px2=" in evals_printed[1] and "px3" not in evals_printed[1]
+  assert "nan" not in evals_printed[1]
+  # The run ends with its checkpoint and the next commands.
+  assert lines[-3] == f"checkpoint: {tmp_path}/checkpoints/{steps} (step {steps} of {tmp_path})"
+  assert lines[-2] == (f"evaluate:   python evaluate.py --checkpoint {tmp_path} "
+                       f"--out {tmp_path}/results")
+  assert lines[-1].startswith(f"infer:      python -m ufm_jax infer SOURCE.png TARGET.png "
+                              f"--checkpoint {tmp_path} ")
   assert not [l for l in lines if "INFO" in l], lines[:10]
-  assert len(lines) <= steps + 2 + 3, lines   # a few warnings at most
+  assert len(lines) <= steps + 2 + 3 + 3, lines   # a few warnings at most
 
   # evaluate.py on the workdir: its training task (flow pairs at 56 px), test split.
   out = tmp_path / "eval"
@@ -72,6 +84,7 @@ def test_synthetic_config_learns(tmp_path):
                      env=env, capture_output=True, text=True, timeout=600, cwd=REPO)
   assert r.returncode == 0, r.stderr[-3000:]
   assert "| epe | epe_zero |" in r.stdout
+  assert f"model: {tmp_path}\nsynthetic: 4 pairs of the test split\n" in r.stdout
   # Standard JSON (no bare NaN), and the task scored at the size the run trained at (56x56, as its
   # held-out eval), not resized to the model config's inference resolution.
   results = json.loads((out / "results.json").read_text(),

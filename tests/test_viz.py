@@ -60,7 +60,12 @@ def test_grey_out_and_panel(tmp_path):
   luma = 0.299 * 200
   np.testing.assert_array_equal(out[:, :4], np.round(128 + (luma - 128) / 4))
   p = viz.panel(img, img[:3, :5], np.zeros((6, 8, 2), np.float32), covis)
-  assert p.shape == (6, 32, 3) and p.dtype == np.uint8
+  # 6 px images: the row enlarged 22x (ceil(128 / 6)), each pixel a 22 x 22 block
+  assert p.shape == (6 * 22, 4 * 8 * 22, 3) and p.dtype == np.uint8
+  np.testing.assert_array_equal(p[::22, :8 * 22:22], img)
+  np.testing.assert_array_equal(p, np.repeat(np.repeat(p[::22, ::22], 22, 0), 22, 1))
+  assert viz.panel(np.zeros((128, 130, 3), np.uint8), img, np.zeros((128, 130, 2), np.float32)
+                   ).shape == (128, 4 * 130, 3)   # large enough: as it is
   path = tmp_path / "panel.png"
   io.write_image(path, p)
   np.testing.assert_array_equal(io.read_image(path), p)

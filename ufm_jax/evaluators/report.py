@@ -32,7 +32,9 @@ def markdown_table(results: dict[str, float], benches: list[str], runtime: dict[
           rows[s.label] = (vals, runtime.get(b, float("nan")))
     if not rows:
       continue
-    cols = [c for c in TABLE_COLUMNS[family] if any(c in v for v, _ in rows.values())]
+    # A metric undefined on every row (epe_occluded where nothing is occluded) gets no column.
+    cols = [c for c in TABLE_COLUMNS[family]
+            if any(_defined(v.get(c)) for v, _ in rows.values())]
     lines.append("| split | " + " | ".join(cols) + " | ms/pair |")
     lines.append("|---" * (len(cols) + 2) + "|")
     for label, (vals, ms) in rows.items():
@@ -40,6 +42,10 @@ def markdown_table(results: dict[str, float], benches: list[str], runtime: dict[
       lines.append(f"| {label} | " + " | ".join(cells) + f" | {_fmt(ms, 1)} |")
     lines.append("")
   return "\n".join(lines)
+
+
+def _defined(v) -> bool:
+  return v is not None and not (isinstance(v, float) and math.isnan(v))
 
 
 def _fmt(v, digits=2):

@@ -116,7 +116,10 @@ def flow_views(target: np.ndarray, flow: np.ndarray, covisibility: np.ndarray | 
 # The uncertainty images' fixed scale: sigma_max from 1/4 px to 64 px on a log scale, so that
 # pictures of different pairs and models compare; values outside take the end colours.
 UNCERTAINTY_RANGE_PX = (0.25, 64.0)
-LEGEND_MIN_WIDTH = 240
+LEGEND_MIN_WIDTH = 320
+LEGEND_HEIGHT = 40
+LEGEND_FONT = 0.45         # cv2.FONT_HERSHEY_SIMPLEX scale: smaller ones render unreadably
+PANEL_MIN_SIDE = 128       # panels of smaller images are enlarged (whole pixels) to this side
 
 
 def _uncertainty_colours(sigma: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -138,23 +141,26 @@ def uncertainty_to_image(covariance: np.ndarray, range_px=UNCERTAINTY_RANGE_PX) 
   return _uncertainty_colours(cov_lib.sigma_max(cov), *range_px)
 
 
-def uncertainty_legend(width: int, range_px=UNCERTAINTY_RANGE_PX, height: int = 30) -> np.ndarray:
+def uncertainty_legend(width: int, range_px=UNCERTAINTY_RANGE_PX,
+                       height: int = LEGEND_HEIGHT) -> np.ndarray:
   """[height, width, 3] uint8 legend of `uncertainty_to_image`: the colour bar with its ticks
-  (powers of 4, the last with the unit, px), on white."""
+  (powers of 4, the last with the unit, px), on white, each label centred on its tick."""
   lo, hi = range_px
   out = np.full((height, width, 3), 255, np.uint8)
-  margin, bar_h = 8, height // 2 - 2
+  ticks = [v for v in 4.0 ** np.arange(-4, 6) if lo <= v <= hi]
+  labels = [f"{v:g}" + (" px" if v == ticks[-1] else "") for v in ticks]
+  sizes = [cv2.getTextSize(t, cv2.FONT_HERSHEY_SIMPLEX, LEGEND_FONT, 1)[0] for t in labels]
+  # the bar starts and ends half a label in, so that the end labels sit whole under their ticks
+  margin = max(8, sizes[0][0] // 2 + 2, sizes[-1][0] // 2 + 2)
+  bar_h = height // 2 - 4
   xs = np.linspace(np.log2(lo), np.log2(hi), width - 2 * margin)
   out[2:2 + bar_h, margin:width - margin] = _uncertainty_colours(2.0 ** xs[None], lo, hi)
-  ticks = [v for v in 4.0 ** np.arange(-4, 6) if lo <= v <= hi]
-  for v in ticks:
+  for v, label, (tw, _) in zip(ticks, labels, sizes):
     x = margin + int(round((np.log2(v) - np.log2(lo)) / (np.log2(hi) - np.log2(lo))
                            * (width - 2 * margin - 1)))
-    out[2 + bar_h:5 + bar_h, x] = 0
-    label = f"{v:g}" + (" px" if v == ticks[-1] else "")
-    (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.33, 1)
-    cv2.putText(out, label, (min(max(x - tw // 2, 0), width - tw), height - 3),
-                cv2.FONT_HERSHEY_SIMPLEX, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
+    out[2 + bar_h:6 + bar_h, x] = 0
+    cv2.putText(out, label, (x - tw // 2, height - 5), cv2.FONT_HERSHEY_SIMPLEX, LEGEND_FONT,
+                (0, 0, 0), 1, cv2.LINE_AA)
   return out
 
 
@@ -173,7 +179,8 @@ def panel(source: np.ndarray, target: np.ndarray, flow: np.ndarray,
           covariance: np.ndarray | None = None) -> np.ndarray:
   """One RGB row: source | target | flow colours | target warped into the source frame, and with
   a flow `covariance` | its uncertainty (`uncertainty_to_image`) over a legend row under the
-  panel.
+  panel. A source under PANEL_MIN_SIDE px on its short side has its row enlarged by a whole
+  factor (each pixel a square block) until it is not.
 
   The target is shown resized to the source size; the warp uses the full-resolution target; with
   `covisibility`, non-covisible pixels of the warp (and of the flow colours) are greyed out.
@@ -183,13 +190,16 @@ def panel(source: np.ndarray, target: np.ndarray, flow: np.ndarray,
       np.ascontiguousarray(target), (w, h), interpolation=cv2.INTER_AREA)
   colours, warped = flow_views(target, flow, covisibility, max_flow=max_flow)
   tiles = [source, tgt_small, colours, warped]
+  if covariance is not None:
+    tiles.append(uncertainty_to_image(covariance))
+  row = np.concatenate(tiles, axis=1)
+  k = -(-PANEL_MIN_SIDE // min(h, w))
+  if k > 1:
+    row, w = np.repeat(np.repeat(row, k, axis=0), k, axis=1), w * k
   if covariance is None:
-    return np.concatenate(tiles, axis=1)
-  row = np.concatenate(tiles + [uncertainty_to_image(covariance)], axis=1)
+    return row
   # the legend ends under the uncertainty tile, at least LEGEND_MIN_WIDTH wide
   width = min(max(w, LEGEND_MIN_WIDTH), row.shape[1])
-  legend = np.full((30, row.shape[1], 3), 255, np.uint8)
+  legend = np.full((LEGEND_HEIGHT, row.shape[1], 3), 255, np.uint8)
   legend[:, row.shape[1] - width:] = uncertainty_legend(width)
   return np.concatenate([row, legend], axis=0)
-
-

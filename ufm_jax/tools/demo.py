@@ -26,6 +26,7 @@ import hashlib
 import ipaddress
 import os
 import pathlib
+import shutil
 import tempfile
 import threading
 import time
@@ -38,6 +39,7 @@ DEFAULT_MAX_FILE_SIZE = "20mb"
 DEFAULT_NUM = 2000
 EXAMPLE_SIZE = (240, 320)  # (H, W): the 3:4 aspect of the released models' 420x560
 MAX_LINES = 300            # matches drawn; the .npz holds all of them
+CACHE_SECONDS = 3600       # how long the page's files stay fetchable (Gradio's delete_cache)
 
 
 def check_size(image: np.ndarray, what: str, max_side: int) -> None:
@@ -91,15 +93,31 @@ def colour_key(side: int = 96) -> np.ndarray:
 class Analyser:
   """Prediction (cached by image content) -> the demo's views; no gradio in here."""
 
-  def __init__(self, model, variables, out_dir, max_side: int = DEFAULT_MAX_SIDE, cache_size: int = 8):
+  def __init__(self, model, variables, out_dir, max_side: int = DEFAULT_MAX_SIDE,
+               cache_size: int = 8, keep_s: float = CACHE_SECONDS):
     from ufm_jax.runtime import inference
     self.model, self.variables = model, variables
     self.out_dir = pathlib.Path(out_dir)
     self.max_side = max_side
     self.min_side = inference.min_image_side(model)
     self.cache_size = cache_size
+    self.keep_s = keep_s
     self._cache: collections.OrderedDict = collections.OrderedDict()
     self._lock = threading.Lock()
+
+  def response_dir(self, key: str) -> pathlib.Path:
+    """A new folder for one response's files. Folders older than `keep_s` are removed first:
+    Gradio copies a response's files into its own cache as it answers, and that cache keeps
+    them for the same hour (build_app's delete_cache), so no client fetches ours after that."""
+    self.out_dir.mkdir(parents=True, exist_ok=True)
+    now = time.time()
+    for old in self.out_dir.glob("response_*"):
+      try:
+        if now - old.stat().st_mtime > self.keep_s:
+          shutil.rmtree(old, ignore_errors=True)
+      except FileNotFoundError:  # another request removed it first
+        pass
+    return pathlib.Path(tempfile.mkdtemp(prefix=f"response_{key}_", dir=self.out_dir))
 
   def predict(self, source: np.ndarray, target: np.ndarray) -> tuple[str, dict, float]:
     """(content key, prediction at the source size, forward ms; 0 when it came from the cache)."""
@@ -145,8 +163,10 @@ class Analyser:
                                     covariance_inv=pred.get("flow_covariance_inv"))
     drawing = matching.draw_matches(source, target, m["keypoints0"], m["keypoints1"],
                                     max_lines=MAX_LINES)
-    npz = matching.save_matches(self.out_dir / f"matches_{key}_{threshold:.3f}_{num}.npz", m,
-                                source.shape, target.shape)
+    # Each response owns its files (as_files adds the pictures): identical concurrent requests
+    # never share or replace one while Gradio copies it to its cache (#51).
+    npz = matching.save_matches(self.response_dir(key) / f"matches_{key}_{threshold:.3f}_{num}.npz",
+                                m, source.shape, target.shape)
     n = len(m["keypoints0"])
     why = matching.shortfall(m, num, threshold)
     summary = (f"{n} matches at covisibility >= {threshold:.2f} ({min(n, MAX_LINES)} drawn"
@@ -159,17 +179,38 @@ class Analyser:
             uncertainty)
 
 
+VIEW_FILES = {0: "flow.png", 1: "covisibility.png", 2: "warped.png", 3: "matches.png",
+              6: "uncertainty.png"}
+
+
+def as_files(views: tuple) -> tuple:
+  """Analyser's views with every picture written as a PNG into the response's own folder (the
+  one holding its .npz). Gradio saves a returned array under a name made from its content,
+  writing the file in place: identical concurrent requests rewrote one file while other
+  clients downloaded it, and a download came back cut (#51). A file it copies into its cache
+  under a temporary name and renames, so each client reads a whole one."""
+  from ufm_jax.data import io
+  folder = pathlib.Path(views[4]).parent
+  out = list(views)
+  for i, name in VIEW_FILES.items():
+    if out[i] is not None:
+      io.write_image(folder / name, out[i])
+      out[i] = str(folder / name)
+  return tuple(out)
+
+
 def build_app(analyser: Analyser, examples: list[list[str]] | None = None):
   """The gr.Blocks page around `analyser`; its API endpoint is /analyse."""
   import gradio as gr
 
   def analyse(source, target, threshold, num):
     try:
-      return analyser(source, target, threshold, num)
+      return as_files(analyser(source, target, threshold, num))
     except ValueError as e:  # a refused input, not a bug: shown to the user (and API clients)
       raise gr.Error(str(e), title="Input refused", print_exception=False) from None
 
-  with gr.Blocks(title="UFM-JAX demo", analytics_enabled=False, delete_cache=(3600, 3600)) as app:
+  with gr.Blocks(title="UFM-JAX demo", analytics_enabled=False,
+                 delete_cache=(CACHE_SECONDS, CACHE_SECONDS)) as app:
     gr.Markdown("## UFM: dense flow and covisibility between two images\n"
                 "Upload a source and a target image. The flow is defined on the source's pixels "
                 "(where does each one land in the target); pixels below the covisibility "

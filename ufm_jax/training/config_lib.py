@@ -15,25 +15,37 @@ import ml_collections
 from ufm_jax.data import mixture
 
 
+class ConfigArgError(ValueError):
+  """A bad `config.py:key=value` argument; its message is one line naming the valid keys or
+  values (train.py prints it alone, without a traceback)."""
+
+
 def parse_arg(arg: str | None, **defaults) -> ml_collections.ConfigDict:
   """big_vision-style `get_config(arg)` parsing: "data=of,res=980" -> ConfigDict over defaults.
 
-  Values are converted to the type of their default (bool accepts true/false/1/0).
+  Values are converted to the type of their default (bool accepts true/false/1/0). A malformed
+  item, an unknown key or a value of the wrong type raises ConfigArgError.
   """
   out = ml_collections.ConfigDict(defaults)
   for item in filter(None, (arg or "").split(",")):
     if "=" not in item:
-      raise ValueError(f"config arg {item!r} is not key=value (in {arg!r})")
+      raise ConfigArgError(f"config arg {item!r} is not key=value; valid keys: "
+                           f"{', '.join(sorted(defaults))}")
     key, value = item.split("=", 1)
     if key not in defaults:
-      raise KeyError(f"unknown config arg {key!r}; known: {sorted(defaults)}")
+      raise ConfigArgError(f"unknown config arg {key!r}; valid keys: {', '.join(sorted(defaults))}")
     default = defaults[key]
     if isinstance(default, bool):
       if value.lower() not in ("true", "false", "1", "0"):
-        raise ValueError(f"config arg {key}={value!r} is not a bool")
+        raise ConfigArgError(f"config arg {key}={value!r} is not a bool; valid values: true, "
+                             "false, 1, 0")
       value = value.lower() in ("true", "1")
     elif default is not None:
-      value = type(default)(value)
+      try:
+        value = type(default)(value)
+      except ValueError:
+        raise ConfigArgError(f"config arg {key}={value!r} is not {type(default).__name__} "
+                             f"(default {default!r})") from None
     out[key] = value
   return out
 
