@@ -55,3 +55,15 @@ def test_the_cues_pass_no_gradient_to_the_flow():
     official_config.official_config_dict(cfg)
   with pytest.raises(ValueError, match="uncertainty_cues=\\('flow',\\)"):
     cfg.replace(uncertainty_cues=("flow",))
+
+
+def test_the_synthetic_cov_recipe_reads_the_cues_and_clips_its_head_apart():
+  """configs/synthetic.py:cov=True (the docs' demonstration) turns both on; without the
+  covariance, or with it in the flow head, the recipe is the one of docs/synthetic_training.md."""
+  from ufm_jax.training import config_lib
+  c = config_lib.load_config("configs/synthetic.py:cov=True,pairs=layers")
+  assert tuple(c.model.uncertainty_cues) == ("warp_residual", "flow_edges")
+  assert tuple(c.optim.grad_clip_apart) == ("uncertainty_head",)
+  for arg in ("pairs=layers", "cov=True,cov_head=main"):
+    c = config_lib.load_config(f"configs/synthetic.py:{arg}")
+    assert tuple(c.model.uncertainty_cues) == () and tuple(c.optim.grad_clip_apart) == (), arg
