@@ -15,9 +15,11 @@ variant, e.g. tiny_synth or synth), lr (peak learning rate of every parameter gr
 (paper: alpha 0.5, c 0.24; l1: alpha 1, c 0.01, i.e. ~100 x EPE), for pairs=shift and
 pairs=layers (a shift pair with a rectangle moving on its own over it): max_shift (px), for
 pairs=shift: aligned (fraction of patch-aligned shifts in training, default 0; the held-out pairs
-have none), cov (a flow covariance in the uncertainty head, trained by the Gaussian NLL on the pixels the
-flow term supervises: `config_lib.add_flow_covariance`, docs/uncertainty.md; cov_head=main puts it
-in the flow head instead):
+have none), cov (a flow covariance in the uncertainty head, trained by the Gaussian NLL on the
+pixels the flow term supervises: `config_lib.add_flow_covariance`, docs/uncertainty.md; the head
+also reads the warp residual and the flow's edges, `model.uncertainty_cues`, and its gradients are
+clipped apart from the flow's, `optim.grad_clip_apart`; cov_head=main puts it in the flow head
+instead, with neither):
 
   python train.py --config=configs/synthetic.py:cov=True --workdir=workdirs/synthetic_cov
 
