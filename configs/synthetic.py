@@ -98,7 +98,8 @@ def get_config(arg=None):
   c.optim = ml_collections.ConfigDict({
       "lr": {g: arg.lr for g in optim.PARAM_GROUPS}, "groups": dict(optim.PARAM_GROUPS),
       "b1": 0.9, "b2": 0.95, "eps": 1e-8, "weight_decay": 0.05, "no_decay": config_lib.unset(str),
-      "grad_clip_norm": 1.0, "grad_clip_apart": (), "warmup_epochs": config_lib.unset(float), "warmup_frac": 0.05,
+      "grad_clip_norm": 1.0, "grad_clip_apart": (), "warmup_epochs": config_lib.unset(float),
+      "warmup_frac": 0.05,
       "min_lr_rate": 0.0, "skip_advances_schedule": True, "frozen": config_lib.unset(str),
       "trainable": config_lib.unset(str)})
   # Replicated on every device: a 0.4M-parameter model's state is small, and FSDP's per-step
