@@ -15,9 +15,11 @@ variant, e.g. tiny_synth or synth), lr (peak learning rate of every parameter gr
 (paper: alpha 0.5, c 0.24; l1: alpha 1, c 0.01, i.e. ~100 x EPE), for pairs=shift and
 pairs=layers (a shift pair with a rectangle moving on its own over it): max_shift (px), for
 pairs=shift: aligned (fraction of patch-aligned shifts in training, default 0; the held-out pairs
-have none), cov (a flow covariance in the uncertainty head, trained by the Gaussian NLL on the pixels the
-flow term supervises: `config_lib.add_flow_covariance`, docs/uncertainty.md; cov_head=main puts it
-in the flow head instead):
+have none), cov (a flow covariance in the uncertainty head, trained by the Gaussian NLL on the
+pixels the flow term supervises: `config_lib.add_flow_covariance`, docs/uncertainty.md; the head
+also reads the warp residual and the flow's edges, `model.uncertainty_cues`, and its gradients are
+clipped apart from the flow's, `optim.grad_clip_apart`; cov_head=main puts it in the flow head
+instead, with neither):
 
   python train.py --config=configs/synthetic.py:cov=True --workdir=workdirs/synthetic_cov
 
@@ -81,19 +83,31 @@ def get_config(arg=None):
   c.model.detach_uncertainty_head = True   # the variant's; a key so that flags can change it
   # `ufm_jax.predict` on the workdir infers at the size it trained at (the default is 420x560).
   c.model.inference_resolution = hw
+  # Cues the uncertainty head reads beside the trunk's features (ufm.UFMConfig; none without
+  # the covariance, the figures of docs/synthetic_training.md).
+  c.model.uncertainty_cues = ()
   if arg.cov:
     config_lib.add_flow_covariance(c, pixels="robust_epe", head=arg.cov_head)
+    if arg.cov_head == "uncertainty":
+      # The warp residual and the flow's edges say within an image where the flow is wrong, which
+      # the 8 x 8 tokens the trunk gives the head cannot (docs/uncertainty.md).
+      c.model.uncertainty_cues = ("warp_residual", "flow_edges")
   c.model_init = config_lib.unset(str)  # e.g. ckpt:WORKDIR
   c.model_init_flow_adaptor = "check"   # a source must match the config (model_init.py)
   # One learning rate for every group, 5% linear warmup, cosine to 0 (no epochs to count in).
   c.optim = ml_collections.ConfigDict({
       "lr": {g: arg.lr for g in optim.PARAM_GROUPS}, "groups": dict(optim.PARAM_GROUPS),
       "b1": 0.9, "b2": 0.95, "eps": 1e-8, "weight_decay": 0.05, "no_decay": config_lib.unset(str),
-      "grad_clip_norm": 1.0, "warmup_epochs": config_lib.unset(float), "warmup_frac": 0.05,
+      "grad_clip_norm": 1.0, "grad_clip_apart": (), "warmup_epochs": config_lib.unset(float),
+      "warmup_frac": 0.05,
       "min_lr_rate": 0.0, "skip_advances_schedule": True, "frozen": config_lib.unset(str),
       "trainable": config_lib.unset(str)})
   # Replicated on every device: a 0.4M-parameter model's state is small, and FSDP's per-step
   # gathers would cost more than the memory they save.
+  if arg.cov and arg.cov_head == "uncertainty":
+    # The head's NLL and BCE gradients clipped by their own norm: in the one global norm (~500,
+    # always clipped) they would change the flow's step size (docs/uncertainty.md).
+    c.optim.grad_clip_apart = ("uncertainty_head",)
   c.mesh = "data:-1,fsdp:1"
   c.ckpt_steps = 100
   c.keep_ckpt = 2

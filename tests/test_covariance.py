@@ -230,27 +230,70 @@ def test_sparsification_by_hand():
   quarters has trapezoid area 0.25 (v0 + v1 + v2 + v3) - 0.005 (v0 + v3). Oracle (1, 0, 0, 0):
   0.245. Random (flat at the mean 1): 0.99, so ause_random = 0.745. Uncertainty in the worst
   order (the error-free pixels first, 4 last): (1, 4/3, 2, 4): 2.058333, ause = 1.813333. In the
-  oracle's order: 0. One image: pooled and per image agree."""
+  oracle's order: 0. One image: per image and pooled agree."""
   epe = np.array([0.0, 0.0, 0.0, 4.0])
   for unc, want in ((np.array([1.0, 2.0, 3.0, 0.0]), 1.813333333), (epe + 1, 0.0)):
     sp = metrics.Sparsification()
     sp.add(epe, unc)
     res = sp.result()
-    for pooling in ("", "_per_image"):
+    for pooling in ("", "_pooled"):
       np.testing.assert_allclose(res[f"ause{pooling}"], want, atol=1e-9)
       np.testing.assert_allclose(res[f"ause{pooling}_random"], 0.745, atol=1e-9)
 
 
+def test_per_image_and_pooled_sparsification_of_two_images_by_hand():
+  """Ilg et al.'s per-image AUSE against the pooled one, on 2 images of 4 pixels.
+
+  On the grid f = i / 100, i = 0..99, the implementation removes floor(f n) pixels. A curve that
+  is v_k where k pixels are removed, on n_k grid points, has trapezoid area
+  0.01 (sum_k n_k v_k - (v_first + v_last) / 2) (each block of n_k points gives n_k - 1 steps of
+  v_k, each junction a step of the two values' mean).
+
+  n = 4: k = 0, 1, 2, 3 on 25 points each (f in [0, 0.25), [0.25, 0.5), ...).
+    Image A: EPE (1, 2, 3, 4), uncertainty (4, 1, 2, 3): removes EPE 1, 4, 3 in turn.
+      curve (2.5, 3, 2.5, 2), oracle (removes 4, 3, 2) (2.5, 2, 1.5, 1), difference (0, 1, 1, 1):
+      0.01 (25 * 3 - (0 + 1) / 2) = 0.745. Random: flat 2.5, difference (0, 0.5, 1, 1.5):
+      0.01 (25 * 3 - 1.5 / 2) = 0.7425.
+    Image B: EPE (0, 0, 0, 8), uncertainty (1.5, 2.5, 3.5, 9): the oracle's order, 0. Random: flat
+      2, oracle (2, 0, 0, 0), difference (0, 2, 2, 2): 0.01 (25 * 6 - 2 / 2) = 1.49.
+    ause = (0.745 + 0) / 2 = 0.3725, ause_random = (0.7425 + 1.49) / 2 = 1.11625.
+  Pooled, n = 8: k = floor(8 i / 100) on 13, 12, 13, 12, 13, 12, 13, 12 points. By uncertainty
+  (9, 4, 3.5, 3, 2.5, 2, 1.5, 1) the EPE removed is 8, 1, 0, 4, 0, 3, 0 (sum 18):
+    curve  18/8, 10/7, 9/6, 9/5, 5/4, 5/3, 2/2, 2/1
+    oracle 18/8, 10/7, 6/6, 3/5, 1/4, 0, 0, 0 (removes 8, 4, 3, 2, 1, 0, 0)
+    difference (0, 0, 0.5, 1.2, 1, 5/3, 1, 2): 0.01 (90.9 - 1) = 0.899;
+    random, flat 18/8 = 2.25: difference (0, 2.25 - 10/7, 1.25, 1.65, 2, 2.25, 2.25, 2.25):
+    0.01 (12 (2.25 - 10/7) + 13 * 1.25 + 12 * 1.65 + 13 * 2 + 12 * 2.25 + 13 * 2.25 + 12 * 2.25
+    - 2.25 / 2)."""
+  sp = metrics.Sparsification()
+  sp.add(np.array([1.0, 2.0, 3.0, 4.0]), np.array([4.0, 1.0, 2.0, 3.0]))
+  sp.add(np.array([0.0, 0.0, 0.0, 8.0]), np.array([1.5, 2.5, 3.5, 9.0]))
+  res = sp.result()
+  np.testing.assert_allclose(res["ause"], 0.3725, atol=1e-12)
+  np.testing.assert_allclose(res["ause_random"], 1.11625, atol=1e-12)
+  np.testing.assert_allclose(res["ause_pooled"], 0.899, atol=1e-12)
+  pooled_random = 0.01 * (12 * (2.25 - 10 / 7) + 13 * 1.25 + 12 * 1.65 + 13 * 2 + 12 * 2.25
+                          + 13 * 2.25 + 12 * 2.25 - 2.25 / 2)
+  np.testing.assert_allclose(res["ause_pooled_random"], pooled_random, atol=1e-12)
+
+
 def test_pooled_and_per_image_sparsification():
-  """Two images of uniform error (1 px and 3 px), the uncertainty ranking the images: per image
-  there is nothing to rank (every area 0); pooled, the order is the oracle's (ause 0) and a random
-  one is not (ause_random > 0). The pooled histograms agree with an exact sort of all pixels."""
+  """Two images of uniform error (1 px and 3 px, 100 pixels each), the uncertainty ranking the
+  images: per image there is nothing to rank (every area 0); pooled, the order is the oracle's
+  (ause_pooled 0), and a random order, flat at the mean 2, is not: f = i / 100 removes
+  k = floor(200 f) pixels (2i, or 2i - 1 where the float64 f * 200 rounds below 2i, e.g. i = 29),
+  the oracle's 3 px ones first, so oracle = (3 (100 - k) + 100) / (200 - k) for k <= 100 and 1
+  after. The pooled histograms agree with an exact sort of all pixels."""
   sp = metrics.Sparsification()
   sp.add(np.ones((10, 10)), np.full((10, 10), 1.0))
   sp.add(np.full((10, 10), 3.0), np.full((10, 10), 9.0))
   res = sp.result()
-  assert res["ause_per_image"] == 0 and res["ause_per_image_random"] == 0
-  assert abs(res["ause"]) < 1e-12 and res["ause_random"] > 0.3
+  assert res["ause"] == 0 and res["ause_random"] == 0
+  k = np.floor(np.arange(100) / 100 * 200)
+  oracle = np.where(k <= 100, (3 * (100 - k) + 100) / (200 - k), 1.0)
+  want = sum((4 - oracle[j] - oracle[j + 1]) / 2 * 0.01 for j in range(99))
+  assert abs(res["ause_pooled"]) < 1e-12
+  np.testing.assert_allclose(res["ause_pooled_random"], want, atol=1e-12)
   rng = np.random.default_rng(0)
   sp, es, us = metrics.Sparsification(), [], []
   for i in range(10):
@@ -263,9 +306,10 @@ def test_pooled_and_per_image_sparsification():
   f = metrics.Sparsification.FRACTIONS
   oracle = metrics.Sparsification.curve(e, e)
   res = sp.result()
-  np.testing.assert_allclose(res["ause"], np.trapezoid(
+  np.testing.assert_allclose(res["ause_pooled"], np.trapezoid(
       metrics.Sparsification.curve(e, u) - oracle, f), rtol=1e-3)
-  np.testing.assert_allclose(res["ause_random"], np.trapezoid(e.mean() - oracle, f), rtol=1e-3)
+  np.testing.assert_allclose(res["ause_pooled_random"], np.trapezoid(e.mean() - oracle, f),
+                             rtol=1e-3)
 
 
 # --------------------------------------------------------------------------- the recipe switch

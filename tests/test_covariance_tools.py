@@ -187,15 +187,40 @@ def test_evaluate_reports_the_calibration(snap, tmp_path, run_evaluate):
     assert f" {k} |" in printed, k
   src = get_source("synthetic", None, split="test")
   acc = metrics.Pooled()
+  areas = []
   for i in range(2):
     s = src[i]
     flo, _ = base.predicted_paths(preds, "synthetic", s, i)
     cov = np.load(flo.with_name(flo.stem + "_flow_covariance.npy"))
     assert cov.shape == s["flow"].shape[:2] + (3,) and cov.dtype == np.float32
     mask = s["flow_valid"] & s["covisibility"] & s["covis_valid"]
-    metrics.add_calibration(acc, metrics.Sparsification(), io.read_flo(flo), s["flow"], cov, mask)
+    flow = io.read_flo(flo)
+    metrics.add_calibration(acc, metrics.Sparsification(), flow, s["flow"], cov, mask)
+    areas.append(_per_image_ause(flow, s["flow"], cov, mask))
   for k in ("nll", "nll_laplace", "coverage_1sigma", "coverage_2sigma", "coverage_3sigma"):
     assert acc.mean(k) == pytest.approx(m[f"synthetic/{k}"], rel=1e-5), k
+  ause, ause_random = np.mean(areas, 0)
+  assert m["synthetic/ause"] == pytest.approx(ause, rel=1e-9)
+  assert m["synthetic/ause_random"] == pytest.approx(ause_random, rel=1e-9)
+
+
+def _per_image_ause(flow, flow_gt, cov, mask):
+  """(AUSE, random AUSE) of one image written out from Ilg et al.'s definition, pixel by pixel:
+  at f = i / 100 drop the floor(f n) pixels of largest trace (or EPE, the oracle), average the
+  rest, and integrate the differences with the trapezoid rule."""
+  epe = np.sqrt(((flow.astype(np.float64) - flow_gt) ** 2).sum(-1))[mask]
+  trace = (cov[..., 0].astype(np.float64) + cov[..., 1])[mask]
+  n = epe.size
+  by_trace = epe[np.argsort(-trace, kind="stable")]
+  by_epe = np.sort(epe)[::-1]
+  model, oracle = [], []
+  for i in range(100):
+    k = int(np.floor(i / 100 * n))
+    model.append(by_trace[k:].mean())
+    oracle.append(by_epe[k:].mean())
+  model, oracle = np.array(model), np.array(oracle)
+  area = lambda d: sum((d[j] + d[j + 1]) / 2 * 0.01 for j in range(99))  # noqa: E731
+  return area(model - oracle), area(epe.mean() - oracle)
 
 
 def test_demo_shows_the_uncertainty(snap, images, tmp_path):

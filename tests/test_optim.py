@@ -201,3 +201,25 @@ def test_a_skipped_step_advances_the_schedule_as_the_official_trainer(advance):
   # Adam's second applied update: m_hat = v_hat = 1 (constant gradient): the step is -lr.
   np.testing.assert_allclose(np.asarray(state.params["w"]) - before, -lr, rtol=1e-5)
   assert lr > 0 and sched["default"](1) != sched["default"](2)
+
+
+def test_clip_apart_clips_each_part_by_its_own_norm():
+  """Groups of grad_clip_apart are clipped by their own norm and left out of the others':
+  head gradient (6, 8) (norm 10) and rest (0.3, 0.4) (norm 0.5) with max norm 1 give (0.6, 0.8)
+  and the rest unchanged; one global clip would have scaled the rest by 1 / sqrt(100.25)."""
+  params = {"head1": {"w": jnp.zeros(2)}, "uncertainty_head_0": {"w": jnp.zeros(2)}}
+  labels = optim.param_labels(params, {"uncertainty_head": "^uncertainty_head_",
+                                       "output_head": "^head1"})
+  tx = optim.clip_apart(1.0, labels, ("uncertainty_head",))
+  g = {"head1": {"w": jnp.array([0.3, 0.4])}, "uncertainty_head_0": {"w": jnp.array([6.0, 8.0])}}
+  u, _ = tx.update(g, tx.init(params))
+  np.testing.assert_allclose(u["uncertainty_head_0"]["w"], [0.6, 0.8], rtol=1e-6)
+  np.testing.assert_allclose(u["head1"]["w"], [0.3, 0.4], rtol=1e-6)
+  c = _cfg(lr={"default": 1.0, "uncertainty_head": 1.0},
+           groups={"uncertainty_head": "^uncertainty_head_"},
+           grad_clip_norm=1.0, grad_clip_apart=("uncertainty_head",))
+  tx, _, _ = optim.make_optimizer(c, params, total_steps=10)
+  assert len(optim.TrainState.create(params, tx).opt_state) == 2
+  with pytest.raises(ValueError, match="grad_clip_apart.*'head'.*not groups"):
+    optim.make_optimizer(_cfg(lr={"default": 1.0}, groups={}, grad_clip_norm=1.0,
+                              grad_clip_apart=("head",)), params, total_steps=10)

@@ -24,7 +24,7 @@ covisibility >= 0.5 is right) are added; `covis_acc` only for a model that predi
 (the refinement recipe's has no uncertainty head: a warning says so once).
 A model that predicts a flow covariance adds its calibration over the `epe` pixels
 (ufm_jax.evaluators.metrics.add_calibration): nll, coverage_1sigma / 2sigma / 3sigma, ause and ause_random
-pooled over pixels like `epe`, ause_per_image and ause_per_image_random.
+per image (Ilg et al. 2018), ause_pooled and ause_pooled_random pooled over pixels like `epe`.
 """
 
 from __future__ import annotations

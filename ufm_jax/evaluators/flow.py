@@ -14,8 +14,8 @@ Pooling, stated once:
     valid pixels of all images (KITTI devkit, RAFT); `fl_bg`/`fl_fg` likewise over background /
     foreground (meta["foreground"], from obj_map) when the source provides it.
   * A model that predicts a flow covariance adds its calibration over the `epe_covis` pixels, the
-    ones UFM is trained on (ufm_jax.evaluators.metrics.add_calibration: nll, coverage_{1,2,3}sigma and
-    ause / ause_random pooled over pixels, ause_per_image / ause_per_image_random per image),
+    ones UFM is trained on (ufm_jax.evaluators.metrics.add_calibration: nll, coverage_{1,2,3}sigma,
+    ause / ause_random per image and ause_pooled / ause_pooled_random pooled over pixels),
     on both kinds.
 """
 

@@ -13,8 +13,9 @@ Conventions (the benchmark protocols that use them: docs/benchmarks.md):
     sign ambiguity removed), degrees; AUC@T integrates recall(error) from 0 to T (SuperGlue/LoFTR).
   * Calibration of a predicted flow covariance Sigma (models with a flow_cov head; formulas at
     `add_calibration`): `nll` and `nll_laplace` (nats per pixel), `coverage_{1,2,3}sigma` (percent
-    of pixels whose Mahalanobis distance is within 1, 2, 3), `ause` / `ause_random` over the
-    pooled pixels and `ause_per_image` / `ause_per_image_random` per image (px, `Sparsification`).
+    of pixels whose Mahalanobis distance is within 1, 2, 3), `ause` / `ause_random` per image
+    (Ilg et al. 2018's protocol) and `ause_pooled` / `ause_pooled_random` over the pooled pixels
+    (px, `Sparsification`).
 """
 
 from __future__ import annotations
@@ -115,7 +116,10 @@ def calibration_errors(flow, flow_gt, cov):
     nll_laplace = sqrt(3) d + 0.5 log|Sigma| + log(2 pi / 3)  (the elliptical Laplace's with the
                   same covariance, covariance.laplace_nll_from: lower than `nll` where the
                   residuals have heavier tails than a Gaussian's),
-    uncertainty = trace(Sigma) = E[|r|^2] under the prediction (the order of `Sparsification`).
+    uncertainty = trace(Sigma) = var_x + var_y = E[|r|^2] under the prediction: the expected
+                  squared EPE, so ordering by it orders by the error the covariance predicts
+                  (the order of `Sparsification`; sigma_max^2 or |Sigma| would rank a thin
+                  ellipse's pixel by one axis or by its area instead).
   """
   from ufm_jax.models import covariance
   cov = np.asarray(cov, np.float64)
@@ -158,15 +162,18 @@ class Sparsification:
     random    = the same for a random order, whose expected curve is flat at the mean EPE: the
                 baseline beside it (an uncertainty that ranks errors gets well under it).
 
+  The predicted uncertainty is trace(Sigma), the expected squared EPE (`calibration_errors`).
   Two poolings, both reported:
-    ause, ause_random                    one curve over every pixel of every image added: the
-                                         sparsification of the bench's pooled EPE (which pixels
-                                         of the whole bench to trust). Kept as histograms (HIST_BINS
-                                         log bins per decade of uncertainty and of EPE; a removal
-                                         that ends inside a bin takes that bin's mean EPE), so any
-                                         bench fits in memory.
-    ause_per_image, ause_per_image_random  each image's own curves (exact), areas averaged over
-                                         images (which pixels of one pair to trust).
+    ause, ause_random                 the standard protocol (Ilg et al. 2018): each image's own
+                                      curves (exact sorts), the areas averaged over images (which
+                                      pixels of one pair to trust); the random baseline likewise
+                                      per image, then averaged;
+    ause_pooled, ause_pooled_random   one curve over every pixel of every image added: the
+                                      sparsification of the bench's pooled EPE (which pixels of
+                                      the whole bench to trust). Kept as histograms (HIST_BINS log
+                                      bins per decade of uncertainty and of EPE; a removal that
+                                      ends inside a bin takes that bin's mean EPE), so any bench
+                                      fits in memory.
   """
 
   FRACTIONS = np.arange(100) / 100.0
@@ -234,10 +241,10 @@ class Sparsification:
     oracle = self.curve_from_histogram(self.by_epe)
     mean = self.by_epe[1].sum() / self.by_epe[0].sum()
     area = lambda c: float(np.trapezoid(c - oracle, self.FRACTIONS))  # noqa: E731
-    return {"ause": area(self.curve_from_histogram(self.by_unc)),
-            "ause_random": area(np.full_like(oracle, mean)),
-            "ause_per_image": float(np.mean(self.ause_image)),
-            "ause_per_image_random": float(np.mean(self.ause_image_random))}
+    return {"ause": float(np.mean(self.ause_image)),
+            "ause_random": float(np.mean(self.ause_image_random)),
+            "ause_pooled": area(self.curve_from_histogram(self.by_unc)),
+            "ause_pooled_random": area(np.full_like(oracle, mean))}
 
 
 # ---------------------------------------------------------------------------------------------

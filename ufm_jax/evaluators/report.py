@@ -8,8 +8,8 @@ from ufm_jax import evaluators
 
 # A model with a flow covariance (ufm_jax.evaluators.metrics.add_calibration); absent columns are dropped.
 CALIBRATION_COLUMNS = ["nll", "nll_laplace", "coverage_1sigma", "coverage_2sigma",
-                       "coverage_3sigma", "ause", "ause_random", "ause_per_image",
-                       "ause_per_image_random"]
+                       "coverage_3sigma", "ause", "ause_random", "ause_pooled",
+                       "ause_pooled_random"]
 TABLE_COLUMNS = {  # the paper's column order per family (metric suffixes)
     "flow": ["epe_covis", "epe_all", "px1", "px3", "px5", "fl_all", "fl_bg", "fl_fg",
              "epe_matched", "epe_unmatched", "epe_s0-10", "epe_s10-40", "epe_s40+",

@@ -228,6 +228,8 @@ class DPTFeature(nn.Module):
 
 class DPTRegressionProcessor(nn.Module):
   """conv3x3 -> bilinear (align_corners=True) resize to (H, W) -> conv3x3 -> ReLU -> conv1x1.
+  `extra` [B, H, W, k] (ufm_jax's uncertainty cues, not official) joins the channels after the
+  resize, so conv2_0 reads them at full resolution.
 
   `dtype` as DPTFeature's; the output is returned in the input features' dtype (float32)."""
   config: DPTConfig
@@ -235,7 +237,7 @@ class DPTRegressionProcessor(nn.Module):
   constrain: Optional[Callable] = None
 
   @nn.compact
-  def __call__(self, x, out_hw: Tuple[int, int]):
+  def __call__(self, x, out_hw: Tuple[int, int], extra=None):
     cfg = self.config
     c = self.constrain or (lambda t: t)
     out_dtype = jnp.promote_types(x.dtype, jnp.float32)
@@ -243,6 +245,8 @@ class DPTRegressionProcessor(nn.Module):
     x = c(_conv(h1, 3, pad=1, name="conv1", dtype=self.dtype)(x))
     self.sow("intermediates", "conv1_out", x)
     x = c(resize_bilinear_align_corners(x, *out_hw))
+    if extra is not None:
+      x = jnp.concatenate([x, extra.astype(x.dtype)], -1)
     x = c(jax.nn.relu(_conv(h2, 3, pad=1, name="conv2_0", dtype=self.dtype)(x)))
     return c(_conv(cfg.output_dim, 1, name="conv2_2", dtype=self.dtype)(x).astype(out_dtype))
 

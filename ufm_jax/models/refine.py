@@ -551,7 +551,7 @@ class UFMRefine(ufm.UFM):
     (fin1, fin2), inters = self.info_sharing(last1, last2)
     head_in = [self.constrain(t.astype(head_dtype))
                for t in (last1, inters[0][0], inters[1][0], fin1)]
-    out = self.heads(head_in, (h, w))          # the base model's DPT heads + adaptors
+    out = self.heads(head_in, (h, w), (src, tgt))   # the base model's DPT heads + adaptors
     flow = out["flow"]
 
     # Official: cat(encoder list[0], info-sharing final.float()) per view (one batch there; the

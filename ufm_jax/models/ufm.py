@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from ufm_jax.models import covariance, dinov2, dpt, layers, scan
+from ufm_jax.models import covariance, dinov2, dpt, layers, sampling, scan
 from ufm_jax.models import info_sharing as info_sharing_lib
 
 # UniCeption data_norm_type "dinov2" (ImageNet), float32 like the official tensors.
@@ -46,6 +46,11 @@ class UFMConfig:
   covisibility_head: Optional[dpt.DPTConfig] = dpt.DPTConfig(output_dim=1)
   flow_adaptor: dpt.FlowAdaptorConfig = dpt.FlowAdaptorConfig()
   detach_uncertainty_head: bool = True
+  # Per-pixel cues the uncertainty head reads beside the trunk's features, concatenated after
+  # its processor's upsampling (sampling.CUE_CHANNELS: "warp_residual", "flow_edges"; computed
+  # from the images and the predicted flow with no gradient into the flow). Not in the official
+  # model: () for every official structure.
+  uncertainty_cues: Tuple[str, ...] = ()
   # Each head's adaptors in the order they take its output channels (the official AdaptorMap
   # splits them in the order of config.json's keys, which save_pretrained sorts): "flow" (2
   # channels), "flow_cov" (3), "non_occluded_mask" (1). The head's output_dim is their sum.
@@ -97,6 +102,12 @@ class UFMConfig:
       raise ValueError("UFM feeds exactly two info-sharing intermediates to the DPT heads; "
                        f"got info_sharing.indices={self.info_sharing.indices}")
     _check_adaptors(self)
+    unknown = [c for c in self.uncertainty_cues if c not in sampling.CUE_CHANNELS]
+    if unknown or len(set(self.uncertainty_cues)) != len(self.uncertainty_cues):
+      raise ValueError(f"UFMConfig.uncertainty_cues={tuple(self.uncertainty_cues)}: each cue once, "
+                       f"of {', '.join(sampling.CUE_CHANNELS)}")
+    if self.uncertainty_cues and self.covisibility_head is None:
+      raise ValueError("UFMConfig.uncertainty_cues needs an uncertainty head (covisibility_head)")
 
   @property
   def has_flow_covariance(self) -> bool:
@@ -347,7 +358,8 @@ class UFM(nn.Module):
     """Checks and normalises the images, runs encoder + info sharing.
 
     Returns {"encoder": (view1, view2) last encoder maps, "info_sharing": (view1, view2) final
-    fusion maps, "head_features": the 4 view-1 maps the DPT heads take (float32), "hw": (H, W)}.
+    fusion maps, "head_features": the 4 view-1 maps the DPT heads take (float32), "hw": (H, W),
+    "images": the normalised (source, target)}.
     Subclasses (the refinement model) reuse it.
     """
     cfg = self.config
@@ -361,10 +373,11 @@ class UFM(nn.Module):
     # Heads see view 1 only: [encoder last, intermediate 0, intermediate 1, final], in float32.
     feats = [self.constrain(t.astype(head_dtype)) for t in (f1, inters[0][0], inters[1][0], fin1)]
     return {"encoder": (f1, f2), "info_sharing": (fin1, fin2), "head_features": feats,
-            "hw": tuple(source.shape[1:3])}
+            "hw": tuple(source.shape[1:3]), "images": (src, tgt)}
 
-  def heads(self, feats, hw) -> Dict[str, jax.Array]:
-    """DPT flow head and the (gradient-stopped) uncertainty head, each through its adaptors."""
+  def heads(self, feats, hw, images=None) -> Dict[str, jax.Array]:
+    """DPT flow head and the (gradient-stopped) uncertainty head, each through its adaptors.
+    `images`: the normalised (source, target), needed when the config has uncertainty_cues."""
     cfg = self.config
     decoded = self.head1_0_1(self.head1_0_0(feats), hw)
     self.sow("intermediates", "flow_decoded_channels", decoded)
@@ -374,8 +387,14 @@ class UFM(nn.Module):
     if cfg.covisibility_head is not None:
       unc_feats = ([jax.lax.stop_gradient(t) for t in feats] if cfg.detach_uncertainty_head
                    else feats)
+      cues = None
+      if cfg.uncertainty_cues:
+        if images is None:
+          raise ValueError("UFM.heads: the config has uncertainty_cues "
+                           f"{cfg.uncertainty_cues}, which need the images")
+        cues = sampling.uncertainty_cues(cfg.uncertainty_cues, *images, out["flow"])
       unc = dpt.split_adaptor_channels(
-          self.uncertainty_head_0_1(self.uncertainty_head_0_0(unc_feats), hw),
+          self.uncertainty_head_0_1(self.uncertainty_head_0_0(unc_feats), hw, extra=cues),
           cfg.uncertainty_head_adaptors)
     # UniFlowMatch (no uncertainty head) reads the mask from the main head (ufm.py:436-440 at
     # 3732a50); the two heads never both have one (_check_adaptors).
@@ -392,7 +411,7 @@ class UFM(nn.Module):
                train: bool = False) -> Dict[str, jax.Array]:
     del train  # no BatchNorm or dropout here; the refinement model's U-Net has BatchNorm
     b = self.backbone(source, target, symmetrized)
-    return self.heads(b["head_features"], b["hw"])
+    return self.heads(b["head_features"], b["hw"], b["images"])
 
 
 def _transposed(module_path) -> bool:

@@ -459,6 +459,10 @@ def official_config_dict(cfg: ufm.UFMConfig) -> dict:
   """The official constructor kwargs (config.json) describing cfg; inverse of
   ufm_config_from_official (used to export and to test the loader on unseen structures)."""
   e, s, fa = cfg.encoder, cfg.info_sharing, cfg.flow_adaptor
+  if cfg.uncertainty_cues:
+    raise ValueError(f"UFMConfig.uncertainty_cues={tuple(cfg.uncertainty_cues)}: the official "
+                     "uncertainty head reads only the trunk's features, so this model cannot be "
+                     "exported")
   size = {v[0]: k for k, v in dinov2.SIZES.items()}.get(e.embed_dim)
   if size is None or dinov2.SIZES[size][2] != e.num_heads:
     raise ValueError(f"encoder width {e.embed_dim} / {e.num_heads} heads is not a DINOv2 hub size "

@@ -27,6 +27,7 @@ import dataclasses
 from typing import Any, Callable
 
 from ufm_jax.data.distill_rows import TEACHER_KEYS
+from ufm_jax.models.sampling import sample  # noqa: F401  (distill.sample: its old home)
 
 INTERPOLATIONS = ("bilinear", "nearest")
 
@@ -78,30 +79,6 @@ def _inverse(m):
   inv = jnp.stack([jnp.stack([a[:, 1, 1], -a[:, 0, 1]], -1),
                    jnp.stack([-a[:, 1, 0], a[:, 0, 0]], -1)], -2) / det[:, None, None]
   return jnp.concatenate([inv, -jnp.einsum("bij,bj->bi", inv, b)[..., None]], -1)
-
-
-def sample(values, xy, interpolation: str = "bilinear"):
-  """values [B, h, w, C] at the points xy [B, H, W, 2] (x, y; pixel centres at integers), the
-  border pixels extended outwards -> [B, H, W, C]."""
-  import jax.numpy as jnp
-  b, h, w, c = values.shape
-  flat = values.reshape(b, h * w, c)
-
-  def take(ix, iy):
-    ix = jnp.clip(ix, 0, w - 1)
-    iy = jnp.clip(iy, 0, h - 1)
-    idx = (iy * w + ix).reshape(b, -1, 1)
-    return jnp.take_along_axis(flat, idx, axis=1).reshape(xy.shape[:3] + (c,))
-
-  x, y = xy[..., 0], xy[..., 1]
-  if interpolation == "nearest":
-    return take(jnp.floor(x + 0.5).astype(jnp.int32), jnp.floor(y + 0.5).astype(jnp.int32))
-  x0, y0 = jnp.floor(x), jnp.floor(y)
-  fx, fy = (x - x0)[..., None], (y - y0)[..., None]
-  x0, y0 = x0.astype(jnp.int32), y0.astype(jnp.int32)
-  top = take(x0, y0) * (1 - fx) + take(x0 + 1, y0) * fx
-  bottom = take(x0, y0 + 1) * (1 - fx) + take(x0 + 1, y0 + 1) * fx
-  return top * (1 - fy) + bottom * fy
 
 
 def warp_to_crop(outputs, to_crop0, to_crop1, crop_hw, interpolation: str = "bilinear"):

@@ -18,6 +18,9 @@ Config block (`config.optim`):
   trainable: r"..." or None                           if set, everything NOT matching is frozen
   b1, b2, eps, weight_decay (on every parameter unless no_decay: a regex of exempt paths),
   grad_clip_norm (one global norm over all gradients; None/0 = off),
+  grad_clip_apart: group names (e.g. ("uncertainty_head",)) whose gradients are clipped to
+      grad_clip_norm by their own global norm and left out of the others' (`clip_apart`), so a
+      head's loss cannot change the step size of the rest,
   warmup_epochs (official: epochs x steps per epoch, a float) or warmup_frac (of all steps),
   fractional_warmup, min_lr_rate: see `cosine_schedule`.
 """
@@ -173,9 +176,36 @@ def make_optimizer(ocfg, params, total_steps: int, trainable_fn=None,
   transforms[FROZEN] = optax.set_to_zero()
   tx = optax.multi_transform(transforms, labels)
   clip = ocfg.get("grad_clip_norm")
-  if clip:
+  apart = tuple(ocfg.get("grad_clip_apart") or ())
+  if apart and not clip:
+    raise ValueError(f"config.optim.grad_clip_apart={apart} needs a grad_clip_norm")
+  unknown = sorted(set(apart) - set(groups))
+  if unknown:
+    raise ValueError(f"config.optim.grad_clip_apart: {unknown} are not groups of "
+                     f"config.optim.groups ({sorted(groups)})")
+  if clip and apart:
+    tx = optax.chain(clip_apart(clip, labels, apart), tx)
+  elif clip:
     tx = optax.chain(optax.clip_by_global_norm(clip), tx)
   return tx, labels, schedules
+
+
+def clip_apart(max_norm: float, labels, apart) -> optax.GradientTransformation:
+  """optax.clip_by_global_norm applied separately to the gradients labelled with a group of
+  `apart` and to all the others: each part is scaled by min(1, max_norm / its own norm)."""
+  inside = jax.tree.map(lambda l: l in apart, labels)
+
+  def update(updates, state, params=None):
+    del params
+    parts = [jax.tree.map(lambda g, m, want=want: g if m == want else jnp.zeros_like(g),
+                          updates, inside) for want in (True, False)]
+    scale = [jnp.minimum(1.0, max_norm / jnp.maximum(optax.global_norm(p), 1e-30))
+             for p in parts]
+    out = jax.tree.map(lambda g, m: g * jnp.where(m, scale[0], scale[1]).astype(g.dtype),
+                       updates, inside)
+    return out, state
+
+  return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
 
 
 def split_trainable(params, labels):
