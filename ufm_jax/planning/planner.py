@@ -143,8 +143,8 @@ def target(topology: str | None = None, compile: bool = True) -> Target:  # noqa
 
 
 def host_ram_bytes() -> int:
-  """This host's RAM: MemTotal of /proc/meminfo (the pages sysconf counts elsewhere), or the
-  cgroup's memory limit where that is lower (a container)."""
+  """This host's RAM (MemTotal of /proc/meminfo, else sysconf's pages), or the cgroup's memory
+  limit where that is lower (a container)."""
   try:
     with open("/proc/meminfo") as f:
       ram = next(int(line.split()[1]) * 1024 for line in f if line.startswith("MemTotal:"))
@@ -160,34 +160,33 @@ def host_ram_bytes() -> int:
   return ram
 
 
-def capacity_source(devices) -> str:
-  """`device_capacity`'s source in words."""
-  dev = devices[0]
-  if dev.platform == "cpu":
-    local = sum(1 for d in devices if d.process_index == dev.process_index)
-    return "host RAM" + (f" over {local} CPU devices" if local > 1 else "")
+def _local_cpus(devices) -> int:
+  return sum(1 for d in devices if d.process_index == devices[0].process_index)
+
+
+def _bytes_limit(device) -> int | None:
+  """A device's allocator limit (GPUs state one in memory_stats), None where it states none."""
   try:
-    limit = (dev.memory_stats() or {}).get("bytes_limit")
+    return (device.memory_stats() or {}).get("bytes_limit") or None
   except Exception:  # noqa: BLE001 - a backend without memory statistics
-    limit = None
-  return "the allocator's bytes_limit" if limit else "HBM"
+    return None
 
 
 def device_capacity(devices, chip=None) -> int | None:
-  """The memory one of `devices` (this process's) may use: a GPU's allocator limit
-  (memory_stats()["bytes_limit"]), else its chip's HBM (topologies.CHIPS); host CPU devices
-  share the host's RAM, each an equal part."""
-  dev = devices[0]
-  if dev.platform == "cpu":
-    local = sum(1 for d in devices if d.process_index == dev.process_index)
-    return host_ram_bytes() // max(local, 1)
-  try:
-    stats = dev.memory_stats() or {}
-  except Exception:  # noqa: BLE001 - a backend without memory statistics
-    stats = {}
-  if stats.get("bytes_limit"):
-    return int(stats["bytes_limit"])
-  return chip.hbm_bytes if chip else None
+  """The memory one of `devices` (this process's) may use: host CPU devices share the host's RAM,
+  each an equal part; a GPU its allocator's limit, else its chip's HBM (topologies.CHIPS)."""
+  if devices[0].platform == "cpu":
+    return host_ram_bytes() // max(_local_cpus(devices), 1)
+  limit = _bytes_limit(devices[0])
+  return int(limit) if limit else (chip.hbm_bytes if chip else None)
+
+
+def capacity_source(devices) -> str:
+  """`device_capacity`'s source in words."""
+  if devices[0].platform == "cpu":
+    local = _local_cpus(devices)
+    return "host RAM" + (f" over {local} CPU devices" if local > 1 else "")
+  return "the allocator's bytes_limit" if _bytes_limit(devices[0]) else "HBM"
 
 
 # ----------------------------------------------------------------------------- build and compile
