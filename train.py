@@ -13,7 +13,8 @@ run accounts for its own time in WORKDIR/goodput.json across restarts (ufm_jax.t
 alone, compiles the step (on these devices, or with --topology for a TPU slice through libtpu),
 times the recipe's input pipeline on this host for the host feed (ufm_jax.testing.host_feed;
 --host_ms_per_row instead), prints the plan (ufm_jax.planning.planner; its JSON is the last line)
-and exits 0, or 1 where the step needs more HBM than the chip has (docs/scale.md).
+and exits 0 when the step fits a device's memory (a TPU chip's HBM, a GPU's, or on a CPU host its
+RAM shared by the CPU devices), 3 when it does not, 1 on an error (docs/scale.md).
 """
 
 from __future__ import annotations
@@ -36,14 +37,18 @@ _WORKDIR = flags.DEFINE_string(
     "workdir", None, "checkpoints, logs and metrics; a run resumes from it")
 _COMPILE_ONLY = flags.DEFINE_bool(
     "compile_only", False, "compile the run's step from the config, no data; print the plan; "
-    "exit 1 if HBM does not fit")
+    "exit 0 if the step fits a device's memory, 3 if it does not, 1 on an error")
 _TOPOLOGY = flags.DEFINE_string(
     "topology", None, "with --compile_only: compile for this TPU slice (v5e-8, ...) via libtpu")
 _HOST_MS = flags.DEFINE_float(
     "host_ms_per_row", None, "with --compile_only: host CPU ms per training row for the host "
-    "feed, instead of timing the recipe's input pipeline on this host (seconds)")
+    "feed, instead of timing the recipe's input pipeline on this host")
+_CAPACITY_GIB = flags.DEFINE_float(
+    "capacity_gib", None, "with --compile_only: the memory one device may use, GiB (default: "
+    "the chip's HBM, a GPU's allocator limit, or host RAM over the CPU devices)")
 flags.mark_flag_as_required("config")
-_FLAGS = (_CONFIG, _WORKDIR, _COMPILE_ONLY, _TOPOLOGY, _HOST_MS)
+_FLAGS = (_CONFIG, _WORKDIR, _COMPILE_ONLY, _TOPOLOGY, _HOST_MS, _CAPACITY_GIB)
+EXIT_DOES_NOT_FIT = 3   # --compile_only: the step needs more memory than a device has
 
 
 def main(argv):
@@ -52,13 +57,10 @@ def main(argv):
     # One console line per log step plus warnings; --verbosity=0 shows the INFO logs (orbax's too).
     logging.set_verbosity(logging.WARNING)
   config = _CONFIG.value
-  if _TOPOLOGY.value and not _COMPILE_ONLY.value:
-    print("error: --topology compiles for a slice: it needs --compile_only", file=sys.stderr)
-    return 2
-  if _HOST_MS.value is not None and not _COMPILE_ONLY.value:
-    print("error: --host_ms_per_row is a figure of the plan: it needs --compile_only",
-          file=sys.stderr)
-    return 2
+  for holder in (_TOPOLOGY, _HOST_MS, _CAPACITY_GIB):
+    if holder.value is not None and not _COMPILE_ONLY.value:
+      print(f"error: --{holder.name} plans a step: it needs --compile_only", file=sys.stderr)
+      return 2
   if not _COMPILE_ONLY.value and not _WORKDIR.value:
     print("error: --workdir is required (except with --compile_only)", file=sys.stderr)
     return 2
@@ -77,13 +79,23 @@ def main(argv):
   # ---------------------------------------------------------------------------------- plan
   if _COMPILE_ONLY.value:
     # What this run would build (mesh, shardings, grad_accum, the step), from the config alone.
+    import dataclasses
+
     from ufm_jax.planning import planner
     from ufm_jax.testing import host_feed
     feed = host_feed.for_plan(config, _HOST_MS.value)   # before the compile takes the cores
-    result = planner.plan(config, planner.target(_TOPOLOGY.value), host_feed=feed)
+    tgt = planner.target(_TOPOLOGY.value)
+    if _CAPACITY_GIB.value is not None:
+      tgt = dataclasses.replace(tgt, capacity=int(_CAPACITY_GIB.value * 2 ** 30),
+                                capacity_is="--capacity_gib")
+    result = planner.plan(config, tgt, host_feed=feed)
     planner.report(result)
     print(planner.to_json(result), flush=True)
-    return 0 if result["fits"] else 1
+    if result["fits"] is None:
+      print(f"error: no memory capacity known for {tgt.device_kind}: pass --capacity_gib",
+            file=sys.stderr)
+      return 1
+    return 0 if result["fits"] else EXIT_DOES_NOT_FIT
 
   # ---------------------------------------------------------------------------------- mesh
   workdir = pathlib.Path(_WORKDIR.value).absolute()

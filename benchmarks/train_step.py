@@ -18,7 +18,8 @@ this host (--topology NAME of ufm_jax.planning.topologies: v5e-8, v5p-8, v5e-256
 state bytes, XLA's memory per chip (HBM = temp + arguments + outputs - aliases) against the
 chip's, the collectives of the compiled HLO by kind (ufm_jax.planning.hlo_stats), the model FLOPs of the
 whole step (ufm_jax.planning.flops: every loop body, grad_accum's microbatches and the scanned blocks, by
-its trip count) and, at --mfu of the chips' bf16 peak (an assumption), the step time, the days of
+its trip count) and, at --mfu of the chips' bf16 peak (assumed, or `calibrated`: the MFU the
+paper's 560 run implies, which every plan prints), the step time, the days of
 the recipe's epochs (the mean over its training shapes) and the host CPU that feeding the chips
 at that pace needs (rows per second per host x the host ms per row, timed on this host by a short
 run of the recipe's input pipeline on stand-in data, ufm_jax.testing.host_feed, with the load
@@ -186,6 +187,7 @@ def time_only(config, hw, args):
   if feed["host_ms_per_row"]:
     print(f"host feed: {feed['host_ms_per_row']} ms/row "
           f"({planner.host_feed_source({'host_feed': feed})})")
+  mfu = planner.mfu_value(args.mfu)
   for name in args.topology.split(","):
     tgt = planner.target(name, compile=False)
     batch = _per_chip_batch(config, args, tgt.chips) * tgt.chips
@@ -193,14 +195,18 @@ def time_only(config, hw, args):
     if batch not in counted:   # slices with the same batch share the count (TPU and GPU alike)
       counted[batch] = planner.model_flops_per_row(config, set(shapes) | {hw}, batch, "tpu")
     per_row = counted[batch]
-    est = planner.estimate(config, tgt, per_row, hw, batch, args.mfu, feed["host_ms_per_row"])
+    est = planner.estimate(config, tgt, per_row, hw, batch, mfu, feed["host_ms_per_row"],
+                           calibrated=planner.paper_run()["mfu"])
     row = {"topology": name, "chips": tgt.chips, "hosts": tgt.hosts, "global_batch": batch,
            "grad_accum": int(config.grad_accum), "image_shape": list(hw), **est,
            "host_feed": feed}
     print(f"  {est['flops_per_row'] / 1e12:.3f} TFLOP per row at {hw[0]}x{hw[1]}, "
           f"{est['mean_flops_per_row'] / 1e12:.3f} on average; step {est['mean_step_s_estimate']:.3g}"
-          f" s on average at {100 * args.mfu:.0f}% MFU"
+          f" s on average at {100 * mfu:.1f}% MFU"
           + (f", {est['recipe_steps']} steps, {est['days_estimate']:.2f} days"
+             + (f" ({est['days_at_calibrated_mfu']:.2f} at the paper's run's "
+                f"{100 * est['mfu_calibrated']:.1f}% MFU)" if "days_at_calibrated_mfu" in est
+                and mfu != est["mfu_calibrated"] else "")
              if "days_estimate" in est else "")
           + (f"; host feed {est['rows_per_s_per_host']:.0f} rows/s per host = "
              f"{est['host_cores_per_host']:.1f} cores of {est['host_vcpus'] or '?'} vCPUs"
@@ -345,9 +351,10 @@ def main():
                    help="search the largest per-chip batch that fits (one compile per probe), "
                    "starting from the per-chip batch")
   tpu.add_argument("--max_probes", type=int, default=6)
-  tpu.add_argument("--mfu", type=float, default=0.4,
-                   help="assumed model FLOPs utilisation for the step time (uncalibrated; 0: no "
-                   "step time)")
+  tpu.add_argument("--mfu", default="0.4",
+                   help="model FLOPs utilisation for the step time: a fraction (default 0.4, "
+                   "assumed: a goal, not a prediction; 0: no step time), or 'calibrated': the MFU "
+                   "the paper's 560 run implies (4 days on 8 H100, planner.paper_run)")
   tpu.add_argument("--host_ms_per_row", type=float, default=None,
                    help="host CPU ms per training row for the host feed (default: timed here, "
                    "a short run of the recipe's input pipeline on stand-in data: "

@@ -4,9 +4,11 @@ default to the sharding the planner sizes, a plan's overrides reproduce it, and 
 command line says what it takes."""
 
 import json
+import os
 import pathlib
 import subprocess
 import sys
+import types
 
 import jax
 import pytest
@@ -63,7 +65,11 @@ def test_compile_only_and_the_planner_agree_on_8_devices():
   # The train state is sharded: a device holds an eighth of the kernels (and the few biases
   # that do not split over 8).
   assert ra["param_bytes_per_device"] < ra["param_bytes"] / 4
-  assert ra["hbm_capacity_bytes"] is None and ra["fits"] is True   # CPUs have no HBM limit
+  # 8 CPU devices share the host's RAM (sysconf's count of its pages): an eighth each.
+  ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+  assert ra["hbm_capacity_bytes"] == ram // 8 and ra["fits"] is True
+  assert ra["collective_link_bytes"].keys() == ra["collective_bytes"].keys()
+  assert ra["collective_link_bytes_total"] == sum(ra["collective_link_bytes"].values()) > 0
   # train.py timed the config's own input (its data_fn) for the host feed; the planner was told.
   assert ra["host_feed"]["source"] == "measured" and ra["host_feed"]["host_ms_per_row"] > 0
   assert ra["host_feed"]["load_avg_1m"] >= 0 and ra["host_feed"]["rows"] >= 96
@@ -87,6 +93,49 @@ def test_recipes_default_to_the_planned_sharding():
   c980 = config_lib.load_config(str(REPO / "configs" / "ufm980.py"))
   assert planner.largest_shape(c980) == (644, 980)
   assert planner.pairs_per_epoch(c560) == 2 * sum(d.quota for d in c560.input.datasets.values())
+
+
+def test_capacity_of_the_devices_at_hand():
+  """CPU devices share the host's RAM; a GPU's is its allocator's limit where it states one,
+  else its chip's HBM; a device that states neither has none known (its plan's "fits" is None)."""
+  ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+  assert planner.host_ram_bytes() <= ram
+  cpus = [types.SimpleNamespace(platform="cpu", process_index=0) for _ in range(4)]
+  cpus.append(types.SimpleNamespace(platform="cpu", process_index=1))   # another host's
+  assert planner.device_capacity(cpus) == planner.host_ram_bytes() // 4
+  assert planner.capacity_source(cpus) == "host RAM over 4 CPU devices"
+
+  def gpu(stats):
+    return types.SimpleNamespace(platform="gpu", process_index=0, memory_stats=lambda: stats)
+  h100 = topologies.CHIPS["h100"]
+  assert planner.device_capacity([gpu({"bytes_limit": 79 * 2 ** 30})], h100) == 79 * 2 ** 30
+  assert planner.device_capacity([gpu(None)], h100) == h100.hbm_bytes
+  assert planner.device_capacity([gpu({})], None) is None
+  assert planner.capacity_source([gpu({"bytes_limit": 1})]) == "the allocator's bytes_limit"
+
+
+@pytest.mark.slow
+def test_compile_only_exit_codes():
+  """train.py --compile_only exits 0 when the step fits, 3 when it does not (here a device of
+  --capacity_gib smaller than the tiny step's memory), 1 on an error (a batch of 3 rows in 2
+  microbatches)."""
+  common = [f"--config={TINY}", "--compile_only", "--config.input.batch_size=2"]
+  env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+  fits = _train_py(*common, env=env)
+  assert fits.returncode == 0, fits.stderr[-3000:]
+  r = _last_json(fits)
+  assert r["fits"] is True and r["hbm_capacity_bytes"] == planner.host_ram_bytes()
+  assert "step_s_estimate" not in r and "days_estimate" not in r   # no step time on a CPU
+  assert "no step time" in fits.stdout
+  small = _train_py(*common, "--capacity_gib=0.00001", env=env)
+  assert small.returncode == 3, small.stderr[-3000:]
+  r = _last_json(small)
+  assert r["fits"] is False and r["hbm_capacity_bytes"] == int(0.00001 * 2 ** 30)
+  assert r["hbm_bytes_per_chip"] > r["hbm_capacity_bytes"]
+  assert ": does not fit" in small.stdout
+  bad = _train_py(f"--config={TINY}", "--compile_only", "--config.input.batch_size=3",
+                  "--config.grad_accum=2", env=env)
+  assert bad.returncode == 1 and "does not split" in bad.stderr, bad.stderr[-3000:]
 
 
 def test_a_step_over_the_chips_hbm_does_not_fit():
@@ -213,11 +262,39 @@ def test_the_plan_carries_the_host_feed():
   assert back["host_ms_per_row"] == 20.0 and back["host_feed"]["load_avg_1m"] == 3.5
 
 
+def test_calibrated_mfu_is_the_papers_run():
+  """The paper's 560 run, "4 days on 8 H100 GPUs": 48 epochs of the recipe's 645,000 pairs (both
+  directions) at 96 rows per step; the MFU it implies by our FLOP count plans that run in 4 days
+  on h100-8, and every estimate carries it beside the assumed MFU."""
+  run = planner.paper_run()
+  assert run["rows"] == 48 * 2 * 645_000 and run["steps"] == 645_000
+  peak = 8 * 989e12
+  assert run["mfu"] == pytest.approx(645_000 * 96 * run["mean_flops_per_row"] / (4 * 86400 * peak))
+  assert planner.mfu_value("calibrated") == run["mfu"] and planner.mfu_value("0.4") == 0.4
+  with pytest.raises(ValueError, match="calibrated"):
+    planner.mfu_value("fast")
+  config = config_lib.load_config(str(REPO / "configs" / "ufm560.py"))
+  shapes = planner.training_shapes(config)
+  per_row = {s: run["mean_flops_per_row"] for s in shapes}
+  tgt = planner.target("h100-8", compile=False)
+  at_paper = planner.estimate(config, tgt, per_row, shapes[0], 96, run["mfu"], None,
+                              calibrated=run["mfu"])
+  assert at_paper["recipe_steps"] == 645_000
+  assert at_paper["days_estimate"] == pytest.approx(4.0)
+  at_goal = planner.estimate(config, tgt, per_row, shapes[0], 96, 0.4, None, calibrated=run["mfu"])
+  assert at_goal["days_estimate"] == pytest.approx(4.0 * run["mfu"] / 0.4)
+  assert at_goal["days_at_calibrated_mfu"] == pytest.approx(4.0)
+  assert at_goal["mfu_calibrated"] == run["mfu"] and at_goal["mfu_assumed"] == 0.4
+
+
 def test_train_py_help_lists_its_flags():
   out = _train_py("--help", timeout=120)
   assert out.returncode == 0, out.stderr
-  for flag in ("--config", "--workdir", "--compile_only", "--topology", "--config.KEY=VALUE"):
+  for flag in ("--config", "--workdir", "--compile_only", "--topology", "--capacity_gib",
+               "--config.KEY=VALUE"):
     assert any(line.strip().startswith(flag) for line in out.stdout.splitlines()), flag
+  assert "exit 0 if the step fits a device's memory, 3 if it does not, 1 on an error" in (
+      " ".join(out.stdout.split()))
 
 
 def test_train_py_names_a_missing_config_file():
@@ -231,7 +308,7 @@ def test_train_py_names_a_missing_config_file():
 @pytest.mark.slow
 def test_compile_only_and_the_planner_agree_on_a_tpu_slice():
   """The tiny model's step compiled for a v5e-4 through both programs (libtpu): the same HBM and
-  collectives; a batch whose step exceeds the chip's HBM makes train.py exit 1."""
+  collectives; a batch whose step exceeds the chip's HBM makes train.py exit 3."""
   if not topologies.has_libtpu():
     pytest.skip("libtpu is not installed: pip install 'ufm_jax[tpu]' (in its own virtualenv)")
   spec = str(REPO / "configs" / "synthetic.py") + ":eval=false,model=tiny,batch=16"
@@ -247,7 +324,7 @@ def test_compile_only_and_the_planner_agree_on_a_tpu_slice():
   assert ra["mesh"] == {"data": 1, "fsdp": 4} and ra["grad_accum"] == 2
   big = _train_py(f"--config={spec},size=560,batch=4096", "--compile_only", "--topology=v5e-4",
                   *common, timeout=1200)
-  assert big.returncode == 1, big.stderr[-3000:]
+  assert big.returncode == 3, big.stderr[-3000:]
   assert _last_json(big)["fits"] is False
 
 

@@ -165,6 +165,156 @@ ENTRY %main (a: bf16[4,8]) -> f32[16] {
   assert s["all-reduce"]["count"] == 24 and s["all-reduce"]["bytes"] == 24 * 16 * 4
 
 
+
+def test_link_bytes_of_each_kind():
+  # Bytes one device sends under the ideal ring, by hand: N from the explicit groups, the iota and
+  # mesh forms, and the module's device count where the op states no group.
+  text = """HloModule m, num_partitions=8
+
+ENTRY %main (a: f32[4,8]) -> f32[4,8] {
+  %ag = bf16[16,8]{1,0} all-gather(%a), channel_id=1, replica_groups={{0,1,2,3},{4,5,6,7}}, dimensions={0}
+  %rs = f32[4,8]{1,0} reduce-scatter(%b), channel_id=2, replica_groups=[2,4]<=[8], dimensions={0}, to_apply=%add
+  %ar = f32[4,8]{1,0} all-reduce(%c), channel_id=3, replica_groups={}, to_apply=%add
+  %a2a = f32[8,8]{1,0} all-to-all(%d), channel_id=4, replica_groups=[1,8]<=[8], dimensions={0}
+  %cp = bf16[8,8]{1,0} collective-permute(%e), channel_id=5, source_target_pairs={{0,1},{1,0}}
+  %ag2 = f32[2,8]{1,0} all-gather(%f), channel_id=6, replica_groups=mesh['axis_0'=2,'axis_1'=4] {'axis_0'}, dimensions={0}
+  %ar2 = f32[4,8]{1,0} all-reduce(%g), channel_id=7, replica_groups=[4,2]<=[2,4]T(1,0), to_apply=%add
+  ROOT %r = f32[4,8] add(%ar, %ar)
+}
+"""
+  by_name = {c.shape_str() + str(c.channel): c for c in hlo_stats.collectives(text)}
+  link = {c.channel: c.link_bytes for c in by_name.values()}
+  assert {c.channel: c.group for c in by_name.values()} == {
+      1: 4, 2: 4, 3: 8, 4: 8, 5: 8, 6: 2, 7: 2}
+  assert link[1] == 3 / 4 * (16 * 8 * 2)          # all-gather: (N-1)/N x its result
+  assert link[2] == 3 / 4 * (4 * 4 * 8 * 4)       # reduce-scatter: (N-1)/N x its operand (N x)
+  assert link[3] == 2 * 7 / 8 * (4 * 8 * 4)       # all-reduce: 2(N-1)/N x its size
+  assert link[4] == 7 / 8 * (8 * 8 * 4)           # all-to-all: (N-1)/N x its size
+  assert link[5] == 8 * 8 * 2                     # collective-permute: its size
+  assert link[6] == 1 / 2 * (2 * 8 * 4)
+  assert link[7] == 2 * 1 / 2 * (4 * 8 * 4)
+  s = hlo_stats.summary(list(by_name.values()))
+  assert s["all-gather"]["link_bytes"] == 192 + 32
+  assert s["all-reduce"]["bytes"] == 256 and s["all-reduce"]["link_bytes"] == 224 + 128
+  total = hlo_stats.total_link_bytes(list(by_name.values()))
+  assert total == 192 + 384 + 224 + 224 + 128 + 32 + 128
+
+
+def test_link_bytes_of_async_and_variadic_forms():
+  # XLA:GPU: *-start/-done pairs count once, at the start, by their results; a variadic
+  # all-reduce-start returns one result per operand (192 B here, not half of it); an async-start
+  # wrapper's computation is called by its done too, and counts once.
+  text = """HloModule m, num_partitions=4
+
+%rs_comp (p: f32[16,8]) -> f32[4,8] {
+  %p = f32[16,8] parameter(0)
+  ROOT %rs = f32[4,8]{1,0} reduce-scatter(%p), channel_id=4, replica_groups={{0,1,2,3}}, dimensions={0}, to_apply=%add
+}
+
+ENTRY %main (a: f32[4,4], b: f32[4,8]) -> f32[4,8] {
+  %ars = (f32[4,4]{1,0}, f32[4,8]{1,0}) all-reduce-start(%a, %b), channel_id=1, replica_groups={{0,1},{2,3}}, to_apply=%add
+  %ard = (f32[4,4]{1,0}, f32[4,8]{1,0}) all-reduce-done(%ars)
+  %ags = (bf16[4,8]{1,0}, bf16[16,8]{1,0}) all-gather-start(%c), channel_id=2, replica_groups={{0,1,2,3}}, dimensions={0}
+  %agd = bf16[16,8]{1,0} all-gather-done(%ags)
+  %cps = (f32[4]{0}, f32[4]{0}, u32[], u32[]) collective-permute-start(%d), channel_id=3, source_target_pairs={{0,1},{1,2},{2,3},{3,0}}
+  %cpd = f32[4]{0} collective-permute-done(%cps)
+  %as = ((f32[16,8]), f32[4,8], s32[]) async-start(%e), calls=%rs_comp
+  %ad = f32[4,8]{1,0} async-done(%as), calls=%rs_comp
+  ROOT %r = f32[4,8] get-tuple-element(%ard), index=1
+}
+"""
+  s = hlo_stats.summary(hlo_stats.collectives(text))
+  assert {k: v["count"] for k, v in s.items()} == {
+      "all-gather": 1, "all-reduce": 1, "reduce-scatter": 1, "collective-permute": 1}
+  assert s["all-reduce"]["bytes"] == 4 * 4 * 4 + 4 * 8 * 4 == 192
+  assert s["all-reduce"]["link_bytes"] == 2 * 1 / 2 * 192
+  assert s["all-gather"]["bytes"] == 256 and s["all-gather"]["link_bytes"] == 192
+  assert s["collective-permute"]["bytes"] == 16 and s["collective-permute"]["link_bytes"] == 16
+  assert s["reduce-scatter"]["bytes"] == 128 and s["reduce-scatter"]["link_bytes"] == 3 / 4 * 512
+
+
+def test_link_bytes_count_each_op_by_its_place_not_its_channel():
+  # XLA:TPU: an asynchronous gather is a start fusion (root AsyncCollectiveStart), a done fusion
+  # and continuations placed in the loop it overlaps, all copies under one channel_id: once per
+  # run of its start (here 3 x, in the outer loop). Two distinct collective-permutes in the
+  # 5-trip inner loop share a channel_id, as XLA:TPU gives them: each runs 3 x 5 times. A fused
+  # reduce-scatter (a fusion around an all-reduce of its operands) runs 3 times.
+  text = """HloModule m, num_partitions=8
+
+%start_comp (p0: bf16[2,8]) -> (bf16[2,8], bf16[16,8], u32[]) {
+  %ag.1 = bf16[16,8]{1,0} all-gather(%p0), channel_id=9, replica_groups=[1,8]<=[8], dimensions={0}
+  ROOT %cc = (bf16[2,8], bf16[16,8], u32[]) custom-call(%ag.1), custom_call_target="AsyncCollectiveStart"
+}
+
+%done_comp (p0: bf16[2,8], p1: bf16[16,8]) -> bf16[16,8] {
+  %ag.2 = bf16[16,8]{1,0} all-gather(%p0), channel_id=9, replica_groups=[1,8]<=[8], dimensions={0}
+  ROOT %cc = bf16[16,8] custom-call(%ag.2), custom_call_target="AsyncCollectiveDone"
+}
+
+%async_collective_fusion.3 (p0: bf16[2,8], p1: f32[8]) -> (f32[8], bf16[16,8]) {
+  %ag.3 = bf16[16,8]{1,0} all-gather(%p0), channel_id=9, replica_groups=[1,8]<=[8], dimensions={0}
+  ROOT %t = (f32[8], bf16[16,8]) tuple(%p1, %ag.3)
+}
+
+%all-reduce-scatter.4 (p0: f32[64,8]) -> f32[8,8] {
+  %ar = f32[64,8]{1,0} all-reduce(%p0), channel_id=11, replica_groups={{0,1,2,3,4,5,6,7}}, to_apply=%add
+  ROOT %ds = f32[8,8]{1,0} dynamic-slice(%ar, %z, %o), dynamic_slice_sizes={8,8}
+}
+
+%inner_body (p: (s32[], f32[8])) -> (s32[], f32[8]) {
+  %f = (f32[8], bf16[16,8]) fusion(%a, %b), kind=kCustom, calls=%async_collective_fusion.3
+  %cp.1 = f32[8]{0} collective-permute(%x), channel_id=10, source_target_pairs={{0,1},{1,0}}
+  %cp.2 = f32[2,8]{1,0} collective-permute(%y), channel_id=10, source_target_pairs={{2,3},{3,2}}
+  ROOT %t = (s32[], f32[8]) tuple(%i, %cp.1)
+}
+
+%inner_cond (p: (s32[], f32[8])) -> pred[] {
+  %constant.1 = s32[] constant(5)
+  %i = s32[] get-tuple-element(%p), index=0
+  ROOT %lt = pred[] compare(%i, %constant.1), direction=LT
+}
+
+%outer_body (p: (s32[], f32[8])) -> (s32[], f32[8]) {
+  %start = (bf16[2,8], bf16[16,8], u32[]) fusion(%w), kind=kCustom, calls=%start_comp
+  %loop = (s32[], f32[8]) while(%init), condition=%inner_cond, body=%inner_body
+  %done = bf16[16,8] fusion(%s0, %s1), kind=kCustom, calls=%done_comp
+  %rs = f32[8,8]{1,0} fusion(%g), kind=kCustom, calls=%all-reduce-scatter.4
+  ROOT %t = (s32[], f32[8]) tuple(%i, %v)
+}
+
+%outer_cond (p: (s32[], f32[8])) -> pred[] {
+  ROOT %lt = pred[] compare(%a, %b), direction=LT
+}
+
+ENTRY %main (a: f32[8]) -> f32[8] {
+  %w = (s32[], f32[8]) while(%init), condition=%outer_cond, body=%outer_body, backend_config={"known_trip_count":{"n":"3"}}
+  ROOT %r = f32[8] get-tuple-element(%w), index=1
+}
+"""
+  colls = hlo_stats.collectives(text)
+  s = hlo_stats.summary(colls)
+  assert s["all-gather"]["count"] == 3
+  assert s["all-gather"]["link_bytes"] == 3 * 7 / 8 * (16 * 8 * 2)
+  assert s["collective-permute"]["count"] == 2 * 3 * 5
+  assert s["collective-permute"]["bytes"] == 3 * 5 * (8 * 4 + 2 * 8 * 4)
+  assert s["collective-permute"]["link_bytes"] == s["collective-permute"]["bytes"]
+  assert s["reduce-scatter"]["count"] == 3 and s["reduce-scatter"]["bytes"] == 3 * 8 * 8 * 4
+  assert s["reduce-scatter"]["link_bytes"] == 3 * 7 / 8 * (64 * 8 * 4)
+  assert set(s) == {"all-gather", "collective-permute", "reduce-scatter"}
+  assert hlo_stats.total_link_bytes(colls) == round(
+      3 * 224 + 3 * 5 * 96 + 3 * 1792)
+
+
+def test_link_bytes_need_a_group():
+  text = """ENTRY %main (a: f32[4]) -> f32[4] {
+  ROOT %ar = f32[4]{0} all-reduce(%a), channel_id=1, to_apply=%add
+}
+"""
+  colls = hlo_stats.collectives(text)
+  assert hlo_stats.summary(colls)["all-reduce"]["link_bytes"] is None
+  with pytest.raises(ValueError, match="all-reduce f32\\[4\\].*no replica group"):
+    hlo_stats.total_link_bytes(colls)
+
 _TWO_STAGE = r"""
 import json
 import os
@@ -228,7 +378,7 @@ def test_gradients_reduce_in_two_stages_on_large_fsdp_axes():
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-8)
 
 
-_WIDE_ON_V5E_64 = r"""
+_WIDE_ON_V5E = r"""
 import json, sys
 import jax
 from ufm_jax import testing
@@ -236,9 +386,9 @@ from ufm_jax.planning import hlo_stats, topologies
 from ufm_jax.training import optim, sharding, trainer
 from ufm_jax.models import scan
 
-accum = int(sys.argv[1])
+topology, accum = sys.argv[1], int(sys.argv[2])
 c = testing.wide_scanned_config(grad_accum=accum)
-mesh = sharding.make_mesh(c.mesh, topologies.devices("v5e-64"))
+mesh = sharding.make_mesh(c.mesh, topologies.devices(topology))
 hw = (56, 56)
 ts = trainer.setup(c, mesh, hw, total_steps=100)
 compiled = ts.train_step.lower(ts.sharded_abstract_state(),
@@ -250,6 +400,7 @@ print(json.dumps({
     "stacked_bytes": sum(x.size * 4 for p, x in leaves
                          if scan.STACKED_PATH.search(optim.path_str(p))),
     "total": hlo_stats.total_bytes(colls),
+    "link": hlo_stats.total_link_bytes(colls),
     # run more often than once per microbatch: inside the scans over layers
     "per_layer": sum(c.bytes * c.count for c in colls if c.count > accum),
     "reduce_scatter": sum(c.bytes * c.count for c in colls if c.kind == "reduce-scatter")}))
@@ -258,21 +409,28 @@ print(json.dumps({
 
 @pytest.mark.tpu
 @pytest.mark.slow
-@pytest.mark.parametrize("grad_accum", [1, 2])
-def test_v5e_64_step_reduce_scatters_gradients(grad_accum):
-  """The suite's guard where XLA:CPU cannot see it: compiled for 64 v5e chips (libtpu), the step
-  moves at most 3x the parameter bytes per microbatch, and the scanned layers' gradients are
-  reduce-scattered: per microbatch each layer is gathered twice in bf16 (forward and remat: 1.0x
-  its float32 bytes) and its gradient reduce-scattered (1/8 of its bf16 bytes and less); a
-  gradient all-reduced whole, as XLA:TPU does on one 64-way stage, would add 0.5x."""
+@pytest.mark.parametrize("topology,grad_accum", [("v5e-8", 2), ("v5e-64", 1), ("v5e-64", 2),
+                                                 ("v5e-256", 1)])
+def test_v5e_step_link_traffic_within_the_guard(topology, grad_accum):
+  """The suite's guard where XLA:CPU cannot see it: compiled for a v5e slice (libtpu), what a chip
+  sends over its links (hlo_stats' ideal rings) per microbatch is at most 3.2x the float32
+  parameter bytes. FSDP's ideal with remat is 3(N-1)/N x the gathered bytes: each layer gathered
+  twice (forward and remat) and its gradient reduce-scattered; in bf16, 1.5(N-1)/N x the float32
+  bytes (1.31x on v5e-8). On an 8x8 torus XLA:TPU gathers a layer by all-reducing a zero-filled
+  copy, 2(N-1)/N of the weight: 2.5(N-1)/N in bf16 (2.46x on v5e-64). A gradient all-reduced whole
+  would add 1.0x, float32 gathers 1.5x. On
+  v5e-64 the scanned layers' gradients are reduce-scattered, and the result bytes of the layers'
+  collectives stay within 1.25x their float32 bytes per microbatch (each gathered twice in bf16,
+  1.0x, and reduced in 1/8 shards)."""
   from ufm_jax.planning import topologies
   if not topologies.has_libtpu():
     pytest.skip("libtpu is not installed: pip install 'ufm_jax[tpu]' (in its own virtualenv)")
-  r = subprocess.run([sys.executable, "-c", _WIDE_ON_V5E_64, str(grad_accum)],
-                     capture_output=True, text=True, cwd=REPO, timeout=1800,
+  r = subprocess.run([sys.executable, "-c", _WIDE_ON_V5E, topology, str(grad_accum)],
+                     capture_output=True, text=True, cwd=REPO, timeout=2400,
                      env={**os.environ, "JAX_PLATFORMS": "cpu"})
   assert r.returncode == 0, r.stderr[-3000:]
   res = json.loads(r.stdout.strip().splitlines()[-1])
-  assert res["total"] <= 3 * res["param_bytes"] * grad_accum, res
+  assert res["link"] <= 3.2 * res["param_bytes"] * grad_accum, res
   assert res["reduce_scatter"] > 0, res
-  assert res["per_layer"] <= 1.25 * res["stacked_bytes"] * grad_accum, res
+  if topology == "v5e-64":
+    assert res["per_layer"] <= 1.25 * res["stacked_bytes"] * grad_accum, res

@@ -18,7 +18,7 @@ GIB = 2 ** 30
 
 def test_slice_table():
   for name, s in topologies.SLICES.items():
-    gen, n = name.split("-")
+    gen, n = name.split("-")[:2]
     # v5e/v6e (and GPU nodes) are named by chips, v4/v5p by TensorCores (two per chip).
     assert s.chips * (2 if s.chip_config == "megacore" else 1) == int(n), name
     assert s.chip == gen and s.chip in topologies.CHIPS
@@ -32,6 +32,26 @@ def test_slice_table():
   assert topologies.chip_of("TPU v5 lite") is topologies.CHIPS["v5e"]
   assert topologies.chip_of("NVIDIA H100 80GB HBM3") is topologies.CHIPS["h100"]
   assert topologies.chip_of("cpu") is None
+
+
+def test_v5e_hosts_follow_the_cloud_tpu_vm_shapes():
+  """v5e-1/4/8 are one VM with all their chips (ct5lp-hightpu-1t/4t/8t), multi-host slices 4-chip
+  VMs; v5e-8-gke4 is the 2x4 slice on two 4-chip GKE nodes. `--fit`'s sbatch line asks for as
+  many nodes as the slice has hosts."""
+  from ufm_jax.planning import planner
+  hosts = {n: topologies.get(n).hosts for n in
+           ("v5e-1", "v5e-4", "v5e-8", "v5e-8-gke4", "v5e-16", "v5e-64", "v5e-256")}
+  assert hosts == {"v5e-1": 1, "v5e-4": 1, "v5e-8": 1, "v5e-8-gke4": 2, "v5e-16": 4,
+                   "v5e-64": 16, "v5e-256": 64}
+  assert topologies.get("v5e-8-gke4").topology == topologies.get("v5e-8").topology
+  assert topologies.get("v5e-8-gke4").accelerator_type == "v5litepod-8"
+  vm, gke = planner.target("v5e-8", compile=False), planner.target("v5e-8-gke4", compile=False)
+  assert (vm.hosts, vm.host_vcpus) == (1, 224) and (gke.hosts, gke.host_vcpus) == (2, 112)
+  plan = {"mesh_config": "data:1,fsdp:-1", "global_batch": 96, "grad_accum": 3}
+  assert planner.launch_lines({**plan, "hosts": vm.hosts}, "c.py")[1].startswith(
+      "sbatch --nodes=1 ")
+  assert planner.launch_lines({**plan, "hosts": gke.hosts}, "c.py")[2].startswith(
+      "export CONFIG=c.py HOSTS=2 ")
 
 
 def _affine_probe(base, per_row, capacity, log):

@@ -15,8 +15,10 @@ batch that fits and the plan that trains the recipe's own batch.
 `python benchmarks/train_step.py --topology NAME [--fit]` both run `plan` (docs/scale.md).
 
 Planning inputs that are assumptions, not compiler output (each a flag of the planner):
-- `MFU`: the model FLOPs utilisation the step time assumes. Not calibrated on any accelerator
-  (docs/gpu.md).
+- `MFU`: the model FLOPs utilisation the step time assumes: a goal, not a prediction (no train
+  step of this code has been timed on an accelerator, docs/gpu.md). Every plan prints beside it
+  the MFU that the one training run of known length implies (`paper_run`: the paper's 560 run,
+  "4 days on 8 H100 GPUs", by our FLOP count), and `mfu="calibrated"` plans at that one.
 
 Measured by the plan command, not here: the host CPU milliseconds per training row, a `host_feed`
 dict the callers pass in (`ufm_jax.testing.host_feed.for_plan`: a short run of the recipe's own
@@ -28,12 +30,19 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import json
 import math
 import os
+import pathlib
 import time
 
 MFU = 0.4
+# The one training run whose length is known, from the paper (ufm_paper.tex, Training Details):
+# the 560 recipe, 48 epochs at 96 rows per step, "The training takes 4 days on 8 H100 GPUs".
+PAPER_RUN = {"recipe": "configs/ufm560.py", "epochs": 48, "batch": 96, "days": 4.0,
+             "slice": "h100-8"}
+REPO = pathlib.Path(__file__).resolve().parents[2]
 
 GIB = 2 ** 30
 
@@ -93,8 +102,9 @@ def quantum(config) -> int:
 
 @dataclasses.dataclass
 class Target:
-  """What the step is compiled for: devices, the chip's HBM (None: unknown, e.g. host CPUs),
-  peak bf16 FLOP/s, hosts, the platform whose branch of platform-dependent code runs."""
+  """What the step is compiled for: devices, the memory one device may use (a chip's HBM, a
+  GPU's bytes_limit, host RAM shared by the CPU devices; None: unknown), peak bf16 FLOP/s,
+  hosts, the platform whose branch of platform-dependent code runs."""
   name: str
   devices: list | None     # None: a slice only estimated, never compiled for (--time_only)
   chips: int
@@ -104,6 +114,7 @@ class Target:
   hosts: int
   platform: str
   host_vcpus: int | None = None   # per host (None: unknown)
+  capacity_is: str = ""           # what the capacity is, in words ("HBM", "host RAM over 8 ...")
 
 
 def target(topology: str | None = None, compile: bool = True) -> Target:  # noqa: A002
@@ -116,17 +127,64 @@ def target(topology: str | None = None, compile: bool = True) -> Target:  # noqa
     slc = topologies.get(topology)
     chip = topologies.CHIPS[slc.chip]
     devices = list(topologies.devices(topology)) if compile else None
-    per_host = min(math.prod(slc.host_bounds) if slc.host_bounds else slc.chips, slc.chips)
+    per_host = slc.chips // slc.hosts
     vcpus = chip.host_vcpus_per_chip and int(chip.host_vcpus_per_chip * per_host)
     return Target(topology, devices, slc.chips, chip.device_kind, chip.hbm_bytes,
-                  chip.peak_bf16_flops, max(1, slc.chips // per_host),
-                  "tpu" if slc.topology else "gpu", vcpus)
+                  chip.peak_bf16_flops, slc.hosts,
+                  "tpu" if slc.topology else "gpu", vcpus, "HBM")
   devices = jax.devices()
   chip = topologies.chip_of(devices[0].device_kind)
   return Target(f"{len(devices)} x {devices[0].device_kind}", list(devices), len(devices),
-                devices[0].device_kind, chip.hbm_bytes if chip else None,
+                devices[0].device_kind, device_capacity(devices, chip),
                 chip.peak_bf16_flops if chip else None, jax.process_count(), devices[0].platform,
-                os.cpu_count())
+                os.cpu_count(), capacity_source(devices))
+
+
+def host_ram_bytes() -> int:
+  """This host's RAM (MemTotal of /proc/meminfo, else sysconf's pages), or the cgroup's memory
+  limit where that is lower (a container)."""
+  try:
+    with open("/proc/meminfo") as f:
+      ram = next(int(line.split()[1]) * 1024 for line in f if line.startswith("MemTotal:"))
+  except (OSError, StopIteration):
+    ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+  for limit in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+    try:
+      text = pathlib.Path(limit).read_text().strip()
+    except OSError:
+      continue
+    if text.isdigit():
+      ram = min(ram, int(text))
+  return ram
+
+
+def _local_cpus(devices) -> int:
+  return sum(1 for d in devices if d.process_index == devices[0].process_index)
+
+
+def _bytes_limit(device) -> int | None:
+  """A device's allocator limit (GPUs state one in memory_stats), None where it states none."""
+  try:
+    return (device.memory_stats() or {}).get("bytes_limit") or None
+  except Exception:  # noqa: BLE001 - a backend without memory statistics
+    return None
+
+
+def device_capacity(devices, chip=None) -> int | None:
+  """The memory one of `devices` (this process's) may use: host CPU devices share the host's RAM,
+  each an equal part; a GPU its allocator's limit, else its chip's HBM (topologies.CHIPS)."""
+  if devices[0].platform == "cpu":
+    return host_ram_bytes() // max(_local_cpus(devices), 1)
+  limit = _bytes_limit(devices[0])
+  return int(limit) if limit else (chip.hbm_bytes if chip else None)
+
+
+def capacity_source(devices) -> str:
+  """`device_capacity`'s source in words."""
+  if devices[0].platform == "cpu":
+    local = _local_cpus(devices)
+    return "host RAM" + (f" over {local} CPU devices" if local > 1 else "")
+  return "the allocator's bytes_limit" if _bytes_limit(devices[0]) else "HBM"
 
 
 # ----------------------------------------------------------------------------- build and compile
@@ -211,7 +269,9 @@ def compile_step(ts, batch: int, image_shape, row_ids: bool = True) -> dict:
           "compile_s": round(compile_s, 1), "lower_s": round(lower_s, 1),
           "collective_bytes": {k: v["bytes"] for k, v in summ.items()},
           "collective_count": {k: v["count"] for k, v in summ.items()},
-          "collective_bytes_total": hlo_stats.total_bytes(colls), "_summary": summ,
+          "collective_bytes_total": hlo_stats.total_bytes(colls),
+          "collective_link_bytes": {k: v["link_bytes"] for k, v in summ.items()},
+          "collective_link_bytes_total": hlo_stats.total_link_bytes(colls), "_summary": summ,
           "_text": text}
 
 
@@ -242,13 +302,61 @@ def model_flops_per_row(config, shapes, rows: int, platform: str) -> dict:
   return {s: flops.model_flops(config, s, rows, platform).flops / rows for s in shapes}
 
 
+@functools.lru_cache(maxsize=None)
+def paper_run(count: str = "analytic") -> dict:
+  """The paper's 560 run (PAPER_RUN) by our FLOP count, and the MFU it implies: the recipe's rows
+  (its epochs x rows per epoch) in steps of its batch, the model FLOPs of those steps (the mean
+  over the recipe's training shapes, as a plan's days take them, at its batch of 96), over 4 days
+  of 8 H100s' dense bf16 peak. `count`: "analytic", flops.analytic_step_flops (from the model's
+  dimensions: one trainer.setup, seconds), or "jaxpr", flops.model_flops (the count a plan's
+  FLOPs are: a trace per shape, minutes each on a 2-core host); the two agree within 0.1%
+  (docs/scale.md)."""
+  import jax
+
+  from ufm_jax.planning import flops, topologies
+  from ufm_jax.training import config_lib, sharding, trainer
+  config = config_lib.load_config(str(REPO / PAPER_RUN["recipe"]))
+  batch, shapes = PAPER_RUN["batch"], training_shapes(config)
+  if count == "jaxpr":
+    per_row = model_flops_per_row(config, shapes, batch, "gpu")
+  elif count == "analytic":
+    mesh = sharding.make_mesh("data:1,fsdp:1", jax.devices()[:1])
+    ts = trainer.setup(config, mesh, shapes[0], total_steps=1000)
+    per_row = {s: flops.analytic_step_flops(config, ts, s, batch)["total"] / batch
+               for s in shapes}
+  else:
+    raise ValueError(f"count={count!r}: 'analytic' or 'jaxpr'")
+  mean_row = sum(per_row[s] for s in shapes) / len(shapes)
+  rows = PAPER_RUN["epochs"] * pairs_per_epoch(config)
+  steps = math.ceil(rows / batch)
+  slc = topologies.get(PAPER_RUN["slice"])
+  peak = slc.chips * topologies.CHIPS[slc.chip].peak_bf16_flops
+  seconds = PAPER_RUN["days"] * 86400
+  return {"mfu": steps * batch * mean_row / (seconds * peak), "mean_flops_per_row": mean_row,
+          "rows": rows, "steps": steps, "count": count, **PAPER_RUN}
+
+
+def mfu_value(mfu) -> float:
+  """A planner's --mfu: a fraction, or "calibrated" (the paper's run's, `paper_run`)."""
+  if isinstance(mfu, str):
+    if mfu.strip().lower() == "calibrated":
+      return paper_run()["mfu"]
+    try:
+      return float(mfu)
+    except ValueError:
+      raise ValueError(f"--mfu {mfu!r}: a fraction (0.4) or 'calibrated'") from None
+  return float(mfu)
+
+
 def estimate(config, tgt: Target, per_row: dict, hw, batch: int, mfu: float,
-             host_ms_per_row: float | None, executed: float | None = None) -> dict:
+             host_ms_per_row: float | None, executed: float | None = None,
+             calibrated: float | None = None) -> dict:
   """Step time at `hw` on `tgt` at `mfu` of its bf16 peak, the recipe's days (each step draws
   one of its shapes uniformly: the mean FLOPs over them), and the host CPU that feeding the
-  chips at that pace takes (rows per second per host x `host_ms_per_row`)."""
+  chips at that pace takes (rows per second per host x `host_ms_per_row`). `calibrated`: the
+  paper's run's MFU (`paper_run`), whose step time and days go beside the assumed ones."""
   out = {"flops_per_step": per_row[hw] * batch, "flops_per_row": per_row[hw],
-         "executed_flops_per_step": executed, "mfu_assumed": mfu}
+         "executed_flops_per_step": executed, "mfu_assumed": mfu, "mfu_calibrated": calibrated}
   if not tgt.peak_flops or not mfu:
     return out
   peak = tgt.chips * tgt.peak_flops
@@ -257,10 +365,14 @@ def estimate(config, tgt: Target, per_row: dict, hw, batch: int, mfu: float,
   mean_row = sum(per_row[s] for s in shapes) / len(shapes)
   mean_step_s = mean_row * batch / (peak * mfu)
   out.update(step_s_estimate=step_s, mean_flops_per_row=mean_row, mean_step_s_estimate=mean_step_s)
+  if calibrated:
+    out["mean_step_s_at_calibrated_mfu"] = mean_step_s * mfu / calibrated
   if config.get("num_epochs") and pairs_per_epoch(config):
     rows = config.num_epochs * pairs_per_epoch(config)
     steps = math.ceil(rows / batch)
     out.update(recipe_rows=rows, recipe_steps=steps, days_estimate=steps * mean_step_s / 86400)
+    if calibrated:
+      out["days_at_calibrated_mfu"] = out["days_estimate"] * mfu / calibrated
   rows_s_host = batch / mean_step_s / tgt.hosts
   out.update(hosts=tgt.hosts, rows_per_s_per_host=rows_s_host, host_ms_per_row=host_ms_per_row,
              host_vcpus=tgt.host_vcpus)
@@ -274,13 +386,14 @@ def estimate(config, tgt: Target, per_row: dict, hw, batch: int, mfu: float,
 # ----------------------------------------------------------------------------- the plan
 
 
-def plan(config, tgt: Target, *, batch: int | None = None, image_shape=None, mfu: float = MFU,
+def plan(config, tgt: Target, *, batch: int | None = None, image_shape=None, mfu=MFU,
          host_feed: dict | None = None, flops: bool = True, log=print) -> dict:
   """The step of `config` (config.mesh, config.grad_accum) compiled for `tgt` at global `batch`
   (default config.input.batch_size): the planner's JSON-able result. "fits" is False where the
-  compiled step needs more HBM than the chip has, or XLA refused it. With `flops`, the FLOPs,
-  step time, days and host feed (of `host_feed`, module docstring) too (`add_estimates`). Keys
-  starting with "_" are not for JSON (the HLO text, the collectives' summary)."""
+  compiled step needs more memory than a device has (tgt.capacity), or XLA refused it. `mfu`: a
+  fraction or "calibrated" (`mfu_value`). With `flops`, the FLOPs, step time, days and host feed
+  (of `host_feed`, module docstring) too (`add_estimates`). Keys starting with "_" are not for
+  JSON (the HLO text, the collectives' summary)."""
   config = copy.deepcopy(config)
   mesh, ts, hw = setup(config, tgt.devices, image_shape)
   batch = int(batch or config.input.batch_size)
@@ -302,17 +415,20 @@ def plan(config, tgt: Target, *, batch: int | None = None, image_shape=None, mfu
         f"{info['teacher_resolution'][0]}x{info['teacher_resolution'][1]}", flush=True)
   r = compile_step(ts, batch, hw, row_ids=not config.input.get("data_fn"))
   fits = "refused" not in r and (tgt.capacity is None or r["hbm_bytes_per_chip"] <= tgt.capacity)
+  if tgt.capacity is None and "refused" not in r:
+    fits = None   # no capacity known for this device (an unknown GPU): the plan cannot tell
   result = {"target": tgt.name, "chips": tgt.chips, "device_kind": tgt.device_kind,
             "hosts": tgt.hosts, "mesh": dict(mesh.shape), "mesh_config": config.mesh,
             "grad_accum": int(config.grad_accum), "global_batch": batch,
             "per_chip_batch": batch // shards, "image_shape": list(hw),
-            "hbm_capacity_bytes": tgt.capacity, "fits": fits, **info, **r}
+            "hbm_capacity_bytes": tgt.capacity, "capacity_is": tgt.capacity_is, "fits": fits,
+            **info, **r}
   if flops:
     add_estimates(result, config, tgt, ts, mfu, host_feed)
   return result
 
 
-def add_estimates(result: dict, config, tgt: Target, ts=None, mfu: float = MFU,
+def add_estimates(result: dict, config, tgt: Target, ts=None, mfu=MFU,
                   host_feed: dict | None = None):
   """Adds to a compiled plan (`plan`) the model FLOPs of its step at every training shape, the
   FLOPs the compiled step executes (remat included: its TrainSetup `ts`, set up again if None),
@@ -325,7 +441,9 @@ def add_estimates(result: dict, config, tgt: Target, ts=None, mfu: float = MFU,
   ts = ts or setup(config, tgt.devices, hw)[1]
   executed = flops.step_flops(ts, batch, hw, tgt.platform).flops
   host_ms_per_row = host_feed and host_feed["host_ms_per_row"]
-  result.update(estimate(config, tgt, per_row, hw, batch, mfu, host_ms_per_row, executed))
+  result.update(estimate(config, tgt, per_row, hw, batch, mfu_value(mfu), host_ms_per_row,
+                         executed, paper_run()["mfu"]))
+  result["mfu_is"] = "calibrated" if str(mfu).strip().lower() == "calibrated" else "assumed"
   if host_feed:
     result["host_feed"] = dict(host_feed)
   return result
@@ -342,30 +460,46 @@ def report(result: dict, log=print):
         f"{gib(r['argument_bytes_per_device'])}, outputs {gib(r['output_bytes_per_device'])}, "
         f"aliased {gib(r['alias_bytes_per_device'])}; trace+lower {r['lower_s']:.1f} s, "
         f"compile {r['compile_s']:.1f} s")
-    total = r["collective_bytes_total"]
-    log(f"  collectives per chip per step: {gib(total)} "
-        f"({total / max(r['param_bytes'], 1):.2f}x the parameter bytes)")
+    total, link = r["collective_bytes_total"], r["collective_link_bytes_total"]
+    per_param = link / max(r["param_bytes"], 1)
+    log(f"  collectives per chip per step: {gib(link)} sent over the links under ideal rings "
+        f"({per_param:.2f}x the parameter bytes" +
+        (f", {per_param / r['grad_accum']:.2f}x per microbatch" if r["grad_accum"] > 1 else "") +
+        f"); results {gib(total)}")
     if "_summary" in r:   # a variadic collective's shapes can run to thousands of characters
       log("\n".join(line if len(line) <= 160 else line[:157] + "..."
                      for line in hlo_stats.format_summary(r["_summary"]).splitlines()))
     cap = r["hbm_capacity_bytes"]
-    log(f"  HBM per chip: {gib(r['hbm_bytes_per_chip'])}" +
-        (f" of {gib(cap)} ({100 * r['hbm_bytes_per_chip'] / cap:.0f}%)" if cap else
-         " (no capacity known for this device)") + ("" if r["fits"] else ": does not fit"))
+    what = r.get("capacity_is") or "HBM"
+    log(f"  memory per device: {gib(r['hbm_bytes_per_chip'])}" +
+        (f" of {gib(cap)} ({what}; {100 * r['hbm_bytes_per_chip'] / cap:.0f}%)" if cap else
+         " (no capacity known for this device)") +
+        {True: ": fits", False: ": does not fit", None: ""}[r["fits"]])
   if "flops_per_step" in r:
     ex = r.get("executed_flops_per_step")
     log(f"  model FLOPs per step: {r['flops_per_step'] / 1e12:.4g} TFLOP "
         f"({r['flops_per_row'] / 1e9:.0f} GFLOP per row at {r['image_shape'][0]}x"
         f"{r['image_shape'][1]}, {r['grad_accum']} microbatch(es))" +
         (f"; executed with remat's recomputation {ex / 1e12:.4g} TFLOP" if ex else ""))
+  if r.get("mfu_calibrated"):
+    calibrated = (f"the paper's 560 run (\"4 days on 8 H100 GPUs\") implies "
+                  f"{100 * r['mfu_calibrated']:.1f}% by our FLOP count")
+    if r.get("mfu_is") == "calibrated":
+      log(f"  MFU {100 * r['mfu_assumed']:.1f}%, calibrated: {calibrated}")
+    else:
+      log(f"  MFU {100 * r['mfu_assumed']:.0f}% assumed (a goal, not a prediction); {calibrated}")
   if "step_s_estimate" in r:
-    log(f"  at {100 * r['mfu_assumed']:.0f}% MFU (assumed, uncalibrated): "
+    log(f"  at {100 * r['mfu_assumed']:.1f}% MFU ({r.get('mfu_is', 'assumed')}): "
         f"{r['step_s_estimate']:.3g} s per step at the largest shape, {r['mean_step_s_estimate']:.3g}"
         f" s on average over the training shapes ({r['mean_flops_per_row'] / 1e9:.0f} GFLOP per "
         f"row)")
     if "days_estimate" in r:
+      other = ""
+      if r.get("days_at_calibrated_mfu") and r.get("mfu_is") != "calibrated":
+        other = (f"; {r['days_at_calibrated_mfu']:.2f} days at the paper's run's "
+                 f"{100 * r['mfu_calibrated']:.1f}%")
       log(f"  recipe: {r['recipe_rows']} rows = {r['recipe_steps']} steps of {r['global_batch']}:"
-          f" {r['days_estimate']:.2f} days")
+          f" {r['days_estimate']:.2f} days at {100 * r['mfu_assumed']:.1f}% MFU{other}")
     feed = (f"{r['rows_per_s_per_host']:.0f} rows/s per host ({r['hosts']} hosts)")
     if r.get("host_cores_per_host") is not None:
       have = (f"; the hosts have {r['host_vcpus']} vCPUs: they "
@@ -376,10 +510,13 @@ def report(result: dict, log=print):
     else:
       why = (r.get("host_feed") or {}).get("source") or "not measured"
       log(f"  host feed: {feed}; no host ms/row ({why}; --host_ms_per_row gives one)")
-  elif (r.get("host_feed") or {}).get("host_ms_per_row"):
-    log(f"  host feed: {r['host_feed']['host_ms_per_row']} ms/row ({host_feed_source(r)}); no "
-        f"step time on this target, so no rows/s to feed")
-
+  else:
+    if "flops_per_step" in r:
+      log(f"  no step time: no peak FLOP/s known for {r['device_kind']} (plan for an accelerator: "
+          "--topology, or benchmarks/train_step.py --time_only)")
+    if (r.get("host_feed") or {}).get("host_ms_per_row"):
+      log(f"  host feed: {r['host_feed']['host_ms_per_row']} ms/row ({host_feed_source(r)}); no "
+          f"step time on this target, so no rows/s to feed")
 
 def host_feed_source(result: dict) -> str:
   """Where a plan's host ms/row comes from, in words: measured here (rows, load average) or
@@ -403,7 +540,7 @@ def to_json(result: dict) -> str:
 
 
 def fit(config, tgt: Target, start_per_chip: int, *, image_shape=None, max_probes: int = 6,
-        mfu: float = MFU, host_feed: dict | None = None, log=print) -> dict:
+        mfu=MFU, host_feed: dict | None = None, log=print) -> dict:
   """The largest per-chip batch whose step fits `tgt` (one compile per probe,
   topologies.fit_search), then the plan that trains the recipe's own batch
   (config.input.batch_size) with the fewest microbatches (grad_accum, from the config's) whose
@@ -414,6 +551,8 @@ def fit(config, tgt: Target, start_per_chip: int, *, image_shape=None, max_probe
   "probes"."""
   from ufm_jax.planning import topologies
   from ufm_jax.training import sharding
+  if tgt.capacity is None:
+    raise ValueError(f"{tgt.name}: no memory capacity known for {tgt.device_kind}: nothing to fit")
   mesh = sharding.make_mesh(config.mesh, tgt.devices)
   shards = sharding.batch_divisor(mesh)
   q = quantum(config)
@@ -430,8 +569,7 @@ def fit(config, tgt: Target, start_per_chip: int, *, image_shape=None, max_probe
         flush=True)
     return r
 
-  best, fails, _ = topologies.fit_search(probe, start_per_chip, q, tgt.capacity or 2 ** 62,
-                                         max_probes)
+  best, fails, _ = topologies.fit_search(probe, start_per_chip, q, tgt.capacity, max_probes)
   exact = fails is not None and fails - best <= q
   listed = ", ".join(f"{b} {'fits' if r['fits'] else 'no'}" for b, r in sorted(probed.items()))
   log(f"  largest per-chip batch that fits at grad_accum {k0}: {best or 'none'}"

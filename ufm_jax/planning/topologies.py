@@ -6,9 +6,10 @@ peak speed, for planning a run before renting it (benchmarks/train_step.py --top
   devices = topologies.devices("v5e-8")     # 8 abstract TPU v5e devices (needs libtpu)
   mesh = sharding.make_mesh("data:1,fsdp:-1", devices)
 
-The slice layouts follow MaxText's `accelerator_to_spec_map.py` (topology name, chips per host,
-wrap-around links). A slice name counts chips for v5e/v6e and TensorCores for v4/v5p (two per
-chip, compiled as one "megacore" device), so v5p-8 is 4 chips.
+The slice layouts follow MaxText's `accelerator_to_spec_map.py` (topology name, wrap-around links);
+the v5e/v6e hosts follow the Cloud TPU VM shapes (below). A slice name counts chips for v5e/v6e
+and TensorCores for v4/v5p (two per chip, compiled as one "megacore" device), so v5p-8 is 4
+chips.
 
 Compiling for a slice needs libtpu (`pip install "ufm_jax[tpu]"`), never a TPU: jax's
 `jax.experimental.topologies.get_topology_desc` describes the slice and XLA:TPU compiles for it.
@@ -67,23 +68,41 @@ class Slice:
     return math.prod(int(d) for d in self.topology.split(":")[1].split("x"))
 
   @property
+  def hosts(self) -> int:
+    """Hosts (VMs, or GKE nodes) of the slice: its chips over the chips per host."""
+    per_host = math.prod(self.host_bounds) if self.host_bounds else self.chips
+    return max(1, self.chips // per_host)
+
+  @property
   def accelerator_type(self) -> str:
     """The name a TPU VM of this slice reports (TPU_ACCELERATOR_TYPE)."""
-    gen, n = self.name.split("-")
-    return f"v5litepod-{n}" if gen == "v5e" else self.name
+    gen, n = self.name.split("-")[:2]
+    return f"v5litepod-{n}" if gen == "v5e" else f"{gen}-{n}"
+
+
+# Chips per host of the v5e and v6e slices as Cloud TPU VMs (cloud.google.com/tpu/docs/v5e and
+# .../v6e, their system architecture tables): a slice of 1, 4 or 8 chips is one VM holding all
+# of them (v5e: ct5lp-hightpu-1t, -4t, -8t, with 24, 112 and 224 vCPUs; v6e: ct6e-standard-1t,
+# -4t, -8t); a slice of 16 chips or more is multi-host, 4 chips per VM. GKE runs the same slices
+# on node pools of those machine types; on 4-chip nodes (ct5lp-hightpu-4t) a 2x4 slice is two
+# nodes: the named option "v5e-8-gke4" (launch/kubernetes/jobset-tpu.yaml's example).
+_HOST_BOUNDS_2D = {1: (1, 1, 1), 4: (2, 2, 1), 8: (2, 4, 1)}
+FOUR_CHIP_HOSTS = (2, 2, 1)
 
 
 def _slices():
   out = {}
-  # v5e, v6e: 2-D, four chips per host; 16x8 and 16x16 close the torus.
+  # v5e, v6e: 2-D; 16x8 and 16x16 close the torus.
   shapes_2d = {1: "1x1", 4: "2x2", 8: "2x4", 16: "4x4", 32: "4x8", 64: "8x8", 128: "8x16",
                256: "16x16"}
   wraps_2d = {128: (False, True, False), 256: (True, True, False)}
   for gen, prefix in (("v5e", "v5e"), ("v6e", "v6e")):
     for n, shape in shapes_2d.items():
       out[f"{gen}-{n}"] = Slice(f"{gen}-{n}", gen, f"{prefix}:{shape}", "default",
-                                (1, 1, 1) if n == 1 else (2, 2, 1),
+                                _HOST_BOUNDS_2D.get(n, FOUR_CHIP_HOSTS),
                                 wraps_2d.get(n, (False, False, False)))
+    out[f"{gen}-8-gke4"] = dataclasses.replace(out[f"{gen}-8"], name=f"{gen}-8-gke4",
+                                               host_bounds=FOUR_CHIP_HOSTS)
   # v4, v5p: 3-D, named by TensorCores (2 per chip); a full 4x4x4 cube and up wrap around.
   shapes_3d = {4: "2x2x1", 8: "2x2x2", 16: "2x2x4", 32: "2x4x4", 64: "4x4x4", 128: "4x4x8",
                256: "4x8x8", 512: "8x8x8"}
