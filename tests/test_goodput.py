@@ -3,7 +3,6 @@
 and a synthetic run killed with SIGKILL between checkpoints, restarted, whose file still adds up."""
 
 import json
-import os
 import pathlib
 import signal
 import subprocess
@@ -13,6 +12,7 @@ import time
 import pytest
 
 from ufm_jax.training import goodput, profiling
+from ufm_jax.testing import train_support
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 PARTS = ("productive_s", "lost_s", "compile_s", "checkpoint_s", "data_wait_s", "eval_s",
@@ -103,13 +103,7 @@ def test_a_bad_profile_steps_is_one_error_line(tmp_path):
 
 
 def _env(cache):
-  env = dict(os.environ)
-  env["PYTHONPATH"] = str(REPO)
-  env["JAX_PLATFORMS"] = "cpu"
-  env["JAX_COMPILATION_CACHE_DIR"] = str(cache)
-  env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
-  env.pop("XLA_FLAGS", None)
-  return env
+  return train_support.subprocess_env(REPO, cache)
 
 
 def _train(workdir, cache, name, *args):

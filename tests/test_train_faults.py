@@ -3,7 +3,6 @@ step, SIGTERM to one of two processes, a corrupt newest checkpoint, a run of non
 a failed background checkpoint write. Each run is a subprocess; they share an XLA cache."""
 
 import json
-import os
 import pathlib
 import re
 import signal
@@ -15,6 +14,10 @@ import time
 import pytest
 
 from ufm_jax.runtime import checkpoint
+from ufm_jax.testing import train_support
+
+# Slow tier: train.py runs killed, corrupted and restarted (pytest -m slow).
+pytestmark = pytest.mark.slow
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 CONFIG = f"--config={REPO}/ufm_jax/testing/train_support.py"
@@ -24,9 +27,6 @@ CONFIG = f"--config={REPO}/ufm_jax/testing/train_support.py"
 _FAILING_WRITER = """
 import os, runpy, sys
 from orbax.checkpoint._src.path import atomicity
-
-# Slow tier: train.py runs killed, corrupted and restarted (pytest -m slow).
-pytestmark = pytest.mark.slow
 _finalize = atomicity.AtomicRenameTemporaryPath.finalize
 async def finalize(self, *a, **k):
   if self.get_final().name == os.environ["UFM_TEST_FAIL_CKPT_STEP"]:
@@ -44,14 +44,7 @@ def xla_cache(tmp_path_factory):
 
 
 def _env(cache, **extra):
-  env = dict(os.environ)
-  env["PYTHONPATH"] = str(REPO)
-  env["JAX_PLATFORMS"] = "cpu"
-  env["JAX_COMPILATION_CACHE_DIR"] = str(cache)
-  env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
-  env.pop("XLA_FLAGS", None)
-  env.update(extra)
-  return env
+  return train_support.subprocess_env(REPO, cache, **extra)
 
 
 class Run:

@@ -5,7 +5,6 @@ SIGTERM saves a checkpoint at the current step and exits with status 0.
 The runs share a persistent XLA compilation cache, so only the first one compiles."""
 
 import json
-import os
 import pathlib
 import re
 import signal
@@ -16,6 +15,7 @@ import time
 import pytest
 
 from ufm_jax.runtime import checkpoint
+from ufm_jax.testing import train_support
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 TOTAL = 34
@@ -24,13 +24,7 @@ CONFIG = [f"--config={REPO}/configs/synthetic.py:steps={TOTAL},batch=2,size=56,e
 
 
 def _env(cache):
-  env = dict(os.environ)
-  env["PYTHONPATH"] = str(REPO)
-  env["JAX_PLATFORMS"] = "cpu"
-  env["JAX_COMPILATION_CACHE_DIR"] = str(cache)
-  env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
-  env.pop("XLA_FLAGS", None)
-  return env
+  return train_support.subprocess_env(REPO, cache)
 
 
 class Run:

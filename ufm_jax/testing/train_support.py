@@ -98,3 +98,17 @@ def get_config(arg=None):
       k, v = kv.split("=")
       c[k] = type(c[k])(v) if c[k] is not None else v
   return c
+
+
+def subprocess_env(repo, cache, **extra) -> dict:
+  """The environment of a train.py subprocess in a test: this checkout first on the path, the
+  CPU, its own compilation cache (every compile cached), no inherited XLA flags."""
+  import os
+  env = dict(os.environ)
+  env["PYTHONPATH"] = str(repo)
+  env["JAX_PLATFORMS"] = "cpu"
+  env["JAX_COMPILATION_CACHE_DIR"] = str(cache)
+  env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+  env.pop("XLA_FLAGS", None)
+  env.update(extra)
+  return env
