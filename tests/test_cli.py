@@ -132,10 +132,10 @@ def test_convert_help_matches_the_readme():
   r = _run("convert", "--help", timeout=120)
   assert r.returncode == 0, r.stderr
   usage = " ".join(r.stdout.split("\n\n")[0].split())
-  # The README's form: `python -m ufm_jax convert UFM-Base/ ckpt/`.
+  # docs/inference.md's form: `python -m ufm_jax convert UFM-Base/ ckpt/`.
   assert usage.startswith("usage: python -m ufm_jax convert") and usage.endswith("snapshot_dir out_dir")
-  readme = (REPO / "README.md").read_text()
-  assert "python -m ufm_jax convert UFM-Base/ ckpt/" in readme
+  guide = (REPO / "docs" / "inference.md").read_text()
+  assert "python -m ufm_jax convert UFM-Base/ ckpt/" in guide
 
 
 def test_top_level_help_gives_the_whole_first_sentence(capsys):

@@ -229,7 +229,7 @@ def test_demo_shows_the_uncertainty(snap, images, tmp_path):
   analyser = demo.Analyser(model, params, tmp_path)
   *_, npz, summary, uncertainty = analyser(src, tgt, 0.0, 200)
   np.testing.assert_array_equal(uncertainty, viz.uncertainty_view(pred["flow_covariance"]))
-  assert uncertainty.shape == (150 + 30, 240, 3)
+  assert uncertainty.shape[1] == max(210, viz.LEGEND_MIN_WIDTH) and uncertainty.shape[0] > 150
   assert "median match sigma" in summary
   saved = np.load(npz)
   assert saved["covariance"].shape == (len(saved["keypoints0"]), 2, 2)

@@ -229,7 +229,7 @@ def test_photometric_off_keeps_the_geometric_crop_only():
     assert same == (not photometric)
 
 
-def test_distill_config_defaults_official_colour_and_a_fresh_student():
+def test_distill_config_defaults_official_colour_and_a_fresh_student(tmp_path, monkeypatch):
   """Both recipes take the official colour augmentation unless colour=false, and start the
   student from its own init (no model_init) unless init=teacher, for every kind of teacher."""
   import pathlib
@@ -241,6 +241,9 @@ def test_distill_config_defaults_official_colour_and_a_fresh_student():
   assert get(synth + ",colour=false").input.augment["photometric"] is False
   frames = "teacher=variant:ufm_base,student=ufm_small,data=frames,data_root=/data/frames"
   assert get(frames).input.augment["photometric"] is True
+  # A teacher workdir that exists (a missing path that looks like org/name reads as a Hub ID).
+  monkeypatch.chdir(tmp_path)
+  (tmp_path / "workdirs" / "synthetic").mkdir(parents=True)
   workdir = "teacher=workdirs/synthetic,student=synth_small,data=synthetic"
   hub = "teacher=infinity1096/UFM-Base,student=ufm_small,data=frames,data_root=/data/frames"
   for arg in (synth, frames, workdir, hub):

@@ -199,7 +199,7 @@ def info_sharing_config_from_official(kw: dict, shapes: dict, prefix: str = "inf
         f" with a {views}-row view table: the official forward draws view 2's embedding row at "
         f"random from rows 1..{views - 1} on every call, eval included, so its outputs change "
         "from run to run (by pixels). ufm_jax always uses row 1, the row of the fixed-index "
-        "setting (README: 'Snapshots with random view embeddings').", stacklevel=3)
+        "setting (docs/inference.md, 'Snapshots with random view embeddings').", stacklevel=3)
   return cfg
 
 
