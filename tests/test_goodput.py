@@ -145,12 +145,14 @@ def test_sigkill_between_checkpoints_then_restart_adds_up(tmp_path):
   # The profile of steps 2-3 was written before the kill.
   assert list((wd / "profile").glob("plugins/profile/*/*.xplane.pb"))
 
+  # The newest complete checkpoint (orbax renames a step's folder into place when its write
+  # ends): step 50 (or 100), or step 1 if that write had not finished at the kill.
+  complete = [int(p.name) for p in (wd / "checkpoints").iterdir() if p.name.isdigit()]
   proc = _train(wd, cache, "second", f"--config.total_steps={written + 5}")
   assert proc.wait(600) == 0, (wd.parent / "second.err").read_text()[-3000:]
   out = (wd.parent / "second.out").read_text()
-  # The checkpoint of step 50 (or 100), or none if its async write had not finished.
   resumed = int(out.split("resumed from step ")[1].split()[0]) if "resumed from" in out else 0
-  assert resumed % 50 == 0 and resumed < written
+  assert resumed == max(complete, default=0) and resumed < written
   g = _read(wd / goodput.FILE)
   assert g["restarts"] == 1 and [r["ended"] for r in g["runs"]] == [False, True]
   assert g["runs"][1]["start_step"] == resumed and g["runs"][1]["last_step"] == written + 5
@@ -160,7 +162,10 @@ def test_sigkill_between_checkpoints_then_restart_adds_up(tmp_path):
   # Run 1's lost share: its loop time per step x the steps after the checkpoint run 2 took.
   r1 = g["runs"][0]
   assert g["lost_s"] == pytest.approx(r1["step_s"] * (written - resumed) / written, abs=2e-3)
-  assert "goodput " in out.splitlines()[-1] and "over 2 run(s)" in out.splitlines()[-1]
+  # The summary line comes after the loop's last line, before the checkpoint and next commands.
+  summary = [x for x in out.splitlines() if x.startswith("goodput ")]
+  assert len(summary) == 1 and "over 2 run(s)" in summary[0]
+  assert out.index(summary[0]) < out.index("checkpoint: ")
   assert list((wd / "tb").glob("events.out.tfevents.*"))
   logged = [json.loads(x) for x in (wd / "goodput.jsonl").read_text().splitlines()]
   assert logged[-1]["restarts"] == 1 and logged[-1]["wall_s"] == g["wall_s"]
