@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from ufm_jax.training import distill
+from ufm_jax.models import sampling
 from ufm_jax.data import augment, distill_rows, get_source, official_ops, pipeline
 from ufm_jax.data.official_ops import FlowCrop
 
@@ -181,12 +182,12 @@ def test_sampling_is_opencv_bilinear_with_replicated_borders():
   rng = np.random.default_rng(0)
   values = rng.normal(size=(1, 9, 11, 2)).astype(np.float32)
   xy = rng.uniform(-2, 12, size=(1, 5, 6, 2)).astype(np.float32)
-  got = np.asarray(distill.sample(jnp.asarray(values), jnp.asarray(xy)))[0]
+  got = np.asarray(sampling.sample(jnp.asarray(values), jnp.asarray(xy)))[0]
   for c in range(2):
     want = cv2.remap(values[0, ..., c], xy[0, ..., 0], xy[0, ..., 1], cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE)
     np.testing.assert_allclose(got[..., c], want, atol=2e-3)   # OpenCV: 1/32 px weights
-  near = np.asarray(distill.sample(jnp.asarray(values), jnp.asarray(xy), "nearest"))[0]
+  near = np.asarray(sampling.sample(jnp.asarray(values), jnp.asarray(xy), "nearest"))[0]
   ix = np.clip(np.floor(xy[0, ..., 0] + 0.5), 0, 10).astype(int)
   iy = np.clip(np.floor(xy[0, ..., 1] + 0.5), 0, 8).astype(int)
   np.testing.assert_array_equal(near, values[0][iy, ix])

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import copy
 import os
-import shutil
 import tempfile
 import time
 import types
@@ -41,17 +40,14 @@ def stand_in_root(name: str, hw, cache_dir: str = DEFAULT_CACHE) -> str:
   h, w = (int(x) for x in hw)
   root = os.path.join(cache_dir, f"{name}_{h}x{w}")
   if not os.path.isdir(root):
+    from ufm_jax.data import io
     os.makedirs(cache_dir, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=f".{name}_", dir=cache_dir)
     try:
-      official_trees.write_official_dataset(tmp, name, (h, w))
-      try:
-        os.rename(tmp, root)
-      except OSError:          # another plan wrote it first
-        if not os.path.isdir(root):
-          raise
-    finally:
-      shutil.rmtree(tmp, ignore_errors=True)
+      with io.atomic_dir(root) as tmp:
+        official_trees.write_official_dataset(str(tmp), name, (h, w))
+    except OSError:          # another plan wrote it first
+      if not os.path.isdir(root):
+        raise
   return os.path.join(root, official_trees.FOLDERS[name])
 
 

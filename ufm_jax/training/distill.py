@@ -27,7 +27,7 @@ import dataclasses
 from typing import Any, Callable
 
 from ufm_jax.data.distill_rows import TEACHER_KEYS
-from ufm_jax.models.sampling import sample  # noqa: F401  (distill.sample: its old home)
+from ufm_jax.models.sampling import sample
 
 INTERPOLATIONS = ("bilinear", "nearest")
 
