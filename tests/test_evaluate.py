@@ -12,6 +12,7 @@ from ufm_jax import evaluators
 from ufm_jax.evaluators import metrics
 from ufm_jax.data.io import read_flo
 from ufm_jax.evaluators import base, report
+from ufm_jax import testing
 from ufm_jax.testing import wide_trees
 
 
@@ -150,7 +151,7 @@ def test_saved_predictions_reproduce_reported_epe(tmp_path):
 
 def test_an_earlier_results_json_is_kept_not_replaced(tmp_path):
   import json
-  import evaluate
+  evaluate = testing.load_script("evaluate.py")
   out = tmp_path / "results.json"
   assert evaluate.keep_previous(out) is None
   out.write_text(json.dumps({"date": "2026-12-07T10:11:12+00:00", "metrics": {"a": 1}}))

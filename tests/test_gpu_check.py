@@ -1,12 +1,13 @@
 """benchmarks/gpu_check.py keeps working: its --smoke mode on CPU runs every measurement path."""
 
-import importlib.util
 import json
 import pathlib
 import subprocess
 import sys
 
 import pytest
+
+from ufm_jax import testing
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -40,10 +41,7 @@ def test_gpu_check_smoke_runs_parity_forward_and_train_step(reference_dir, tmp_p
 
 
 def test_attention_kernels_counts_fused_custom_calls():
-  # The benchmark is a script, not a module of the package: load it by path.
-  spec = importlib.util.spec_from_file_location("gpu_check", REPO / "benchmarks" / "gpu_check.py")
-  gc = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(gc)
+  gc = testing.load_script("benchmarks/gpu_check.py")
   hlo = ('%a = custom-call(), custom_call_target="__cudnn$fmhaSoftmax"\n'
          '%b = custom-call(), custom_call_target="__cublas$gemm"\n'
          '%c = custom-call(), custom_call_target="__cudnn$fmhaSoftmax"\n')

@@ -1,6 +1,5 @@
 """Pair samplers and miners: Kubric-4D sampler statistics, covisibility mining (ScanNet++ rule)."""
 
-import importlib.util
 import json
 import pathlib
 
@@ -10,16 +9,11 @@ import pytest
 from ufm_jax import data
 from ufm_jax.data.sources import kubric4d
 from ufm_jax.data.sources.exr import write_exr
+from ufm_jax import testing
 from ufm_jax.testing import wide_trees as trees
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
-
-def _tool(path):
-  spec = importlib.util.spec_from_file_location(pathlib.Path(path).stem, REPO / path)
-  mod = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(mod)
-  return mod
 
 
 def test_kubric_camera_weight_closed_form():
@@ -70,7 +64,7 @@ def test_kubric_sampler_statistics():
 def test_kubric_sampler_tool_end_to_end(tmp_path):
   scene = trees.KubricScene(num_frames=6)
   trees.write_kubric4d(str(tmp_path), scene, name="scn00007")
-  tool = _tool("data/kubric4d/sample_pairs.py")
+  tool = testing.load_script("data/kubric4d/sample_pairs.py")
   out = tool.main(["--root", str(tmp_path), "--split", "train", "--pairs_per_scene", "20",
                    "--seed", "1", "--no_progress"])
   lines = [l.split() for l in open(out) if not l.startswith("#")]
@@ -97,7 +91,7 @@ def test_mine_pairs_scannetpp_rule(tmp_path):
   write_exr(str(tmp_path / name / "rendered_depth" / "DSC00002.exr"), np.zeros((36, 48)))
   meta["frames"].append(extra)
   meta_path.write_text(json.dumps(meta))
-  tool = _tool("data/mine_pairs.py")
+  tool = testing.load_script("data/mine_pairs.py")
   out = tool.main(["--dataset", "scannetpp", "--root", str(tmp_path), "--max_side", "64"])
   lines = [l.split() for l in open(out) if not l.startswith("#")]
   assert [l[:3] for l in lines] == [[name, f0, f1]]

@@ -9,6 +9,7 @@ import numpy as np
 
 from ufm_jax import data
 from ufm_jax.data.sources import _tawb_sampler as ts
+from ufm_jax import testing
 from ufm_jax.testing import wide_trees as trees
 
 ROOM = np.array([[-5.0, 5.0], [-4.0, 4.0], [-3.0, 3.0]])  # x, y, z (NED world: z down)
@@ -140,19 +141,15 @@ def test_tawb_sampler_end_to_end(tmp_path):
     assert (ferr < 0.05).mean() > 0.8 and np.median(ferr) < 1e-3, ((ferr < 0.05).mean(), ferr.max())
     R0, R1 = s["meta"]["cam2world0"][:3, :3], s["meta"]["cam2world1"][:3, :3]
     assert np.allclose(R0.T @ R0, np.eye(3), atol=1e-5)
+  assert np.allclose(R1.T @ R1, np.eye(3), atol=1e-5)
 
 
 def test_sample_pairs_cli(tmp_path):
-  import importlib.util
-  import pathlib
   rng = np.random.default_rng(1)
   centres = np.stack([rng.uniform(-3.5, 3.5, 10), rng.uniform(-2.8, 2.8, 10),
                       rng.uniform(-1.5, 1.5, 10)], 1)
   write_cube_scene(str(tmp_path / "tav2"), centres, size=64)
-  path = pathlib.Path(__file__).resolve().parents[1] / "data" / "tawb" / "sample_pairs.py"
-  spec = importlib.util.spec_from_file_location("tawb_sample_pairs", path)
-  tool = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(tool)
+  tool = testing.load_script("data/tawb/sample_pairs.py")
   n = tool.main(["--tav2", str(tmp_path / "tav2"), "--out", str(tmp_path / "out"), "--split",
                  "val", "--pairs_per_env", "3", "--height", "64", "--width", "64",
                  "--voxel_size", "0.5", "--min_dist", "1.0", "--min_matches", "5",

@@ -1,7 +1,6 @@
 """Preparation tools of the benchmark sets: ETH3D (distorted GT depth -> undistorted geometry),
 TA-WB (Hugging Face shards -> extracted layout)."""
 
-import importlib.util
 import json
 import pathlib
 
@@ -10,16 +9,11 @@ import numpy as np
 import pytest
 
 from ufm_jax import data
+from ufm_jax import testing
 from ufm_jax.testing import wide_trees as trees
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
-
-def _tool(path):
-  spec = importlib.util.spec_from_file_location(pathlib.Path(path).stem + "_tool", REPO / path)
-  mod = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(mod)
-  return mod
 
 
 def _fisheye_k1_unproject(xd, yd, k1):
@@ -68,7 +62,7 @@ def test_eth3d_prepare_undistorts_depth(tmp_path):
   (scene_dir / "dslr_calibration_undistorted/images.txt").write_text(
       "# i\n" + "".join(l + "\n" for l in images))
   (scene_dir / "dslr_calibration_jpg/cameras.txt").write_text("# c\n" + "\n".join(cams_d))
-  tool = _tool("data/eth3d/prepare.py")
+  tool = testing.load_script("data/eth3d/prepare.py")
   pairs_path = tool.main(["--raw", str(raw), "--out", str(out), "--scale", "0.5",
                           "--no_progress"])
   lines = [l.split() for l in open(pairs_path) if not l.startswith("#")]
@@ -97,7 +91,7 @@ def test_eth3d_prepare_undistorts_depth(tmp_path):
 
 
 def test_eth3d_prepare_missing_raw_names_path(tmp_path):
-  tool = _tool("data/eth3d/prepare.py")
+  tool = testing.load_script("data/eth3d/prepare.py")
   with pytest.raises(FileNotFoundError, match="nope"):
     tool.main(["--raw", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--no_progress"])
 
@@ -142,7 +136,7 @@ def test_tawb_prepare_from_release_shards(tmp_path, grouped):
   (dl / "test_camera_data" / "metadata.json").write_text(json.dumps(
       {"columns": ["img1_env", "img2_env"], "index": list(range(n)),
        "data": [[e, e] for e in envs]}))
-  tool = _tool("data/tawb/prepare.py")
+  tool = testing.load_script("data/tawb/prepare.py")
   assert tool.main(["--download", str(dl), "--out", str(out), "--no_progress"]) == 2
   src = data.get_source("tawb", str(out))
   assert [tuple(p) for p in src.pairs] == [("Sewerage", "00000005_0", "00000005_1"),
@@ -156,7 +150,7 @@ def test_tawb_prepare_from_release_shards(tmp_path, grouped):
 
 def test_tawb_prepare_missing_camera_data(tmp_path):
   (tmp_path / "test").mkdir()
-  tool = _tool("data/tawb/prepare.py")
+  tool = testing.load_script("data/tawb/prepare.py")
   with pytest.raises(FileNotFoundError, match="test_camera_data"):
     tool.main(["--download", str(tmp_path), "--out", str(tmp_path / "o"), "--no_progress"])
 
@@ -166,7 +160,7 @@ def test_dtu_prepare_mines_covisible_pairs(tmp_path):
   trees.write_dtu(str(tmp_path), scene, views=(0, 1))
   trees.write_dtu(str(tmp_path), trees.PlaneScene(
       c2w1=trees.look_at((0, 0, 0), (0, 0, -5.0))), scan="scan4", views=(2, 3))  # shared Cameras/
-  out = _tool("data/dtu/prepare.py").main(["--root", str(tmp_path), "--no_progress"])
+  out = testing.load_script("data/dtu/prepare.py").main(["--root", str(tmp_path), "--no_progress"])
   lines = [l.split()[:3] for l in open(out) if not l.startswith("#")]
   # scan4's second camera looks away from the plane: no covisible pair there
   assert lines == [["scan1", "0", "1"]]
@@ -186,7 +180,7 @@ def test_scannet1500_prepare_from_loftr(tmp_path):
   color.mkdir(parents=True)
   for f in (15, 585):
     trees.write_image(str(color / f"{f}.jpg"), np.zeros((48, 64, 3), np.uint8))
-  tool = _tool("data/scannet1500/prepare.py")
+  tool = testing.load_script("data/scannet1500/prepare.py")
   n, missing = tool.main(["--root", str(tmp_path / "root"), "--loftr_npz", str(tmp_path / "test.npz"),
                           "--loftr_intrinsics", str(tmp_path / "intrinsics.npz")])
   assert (n, missing) == (1, 0)
