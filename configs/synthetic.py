@@ -19,7 +19,8 @@ have none), cov (a flow covariance in the uncertainty head, trained by the Gauss
 pixels the flow term supervises: `config_lib.add_flow_covariance`, docs/uncertainty.md; the head
 also reads the warp residual and the flow's edges, `model.uncertainty_cues`, and its gradients are
 clipped apart from the flow's, `optim.grad_clip_apart`; cov_head=main puts it in the flow head
-instead, with neither):
+instead, with neither), tie (the fusion blocks' query/key tie at init,
+`info_sharing.tied_qk_init`; -1, the default, keeps the variant's: 2.0 for synth):
 
   python train.py --config=configs/synthetic.py:cov=True --workdir=workdirs/synthetic_cov
 
@@ -48,7 +49,7 @@ _NO_AUGMENT = {"enabled": False, "supervise_out_of_view": True}
 def get_config(arg=None):
   arg = config_lib.parse_arg(arg, pairs="shift", steps=2000, batch=8, size=56, eval=True,
                              model="synth", lr=1e-3, loss="l1", aligned=0.0, max_shift=10,
-                             cov=False, cov_head="uncertainty")
+                             cov=False, cov_head="uncertainty", tie=-1.0)
   hw = (arg.size, arg.size)
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.seed = 0
@@ -81,6 +82,8 @@ def get_config(arg=None):
   # docs/synthetic_training.md are of this layout.
   c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
   c.model.detach_uncertainty_head = True   # the variant's; a key so that flags can change it
+  if arg.tie >= 0:
+    c.model.info_sharing = {"tied_qk_init": arg.tie}
   # `ufm_jax.predict` on the workdir infers at the size it trained at (the default is 420x560).
   c.model.inference_resolution = hw
   # Cues the uncertainty head reads beside the trunk's features (ufm.UFMConfig; none without

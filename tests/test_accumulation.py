@@ -59,6 +59,7 @@ def _setup(spec, grad_accum=1, groups=1):
   return mesh, trainer.setup(config, mesh, (56, 56), 4, dataset_names=("synthetic",))
 
 
+@pytest.mark.slow
 def test_accumulated_step_is_the_update_of_the_mean_microbatch_loss():
   """grad_accum=2 on a batch == one step whose loss is the mean of two per-group losses
   (loss.groups=2, consecutive row blocks) on the same rows reordered so that block j holds
@@ -96,6 +97,7 @@ def test_accumulated_step_is_the_update_of_the_mean_microbatch_loss():
   assert abs(float(m["loss"]) - float(m_pooled["loss"])) > 1e-4 * abs(float(m_pooled["loss"]))
 
 
+@pytest.mark.slow
 def test_batch_norm_statistics_move_once_by_the_microbatch_mean():
   """The refinement recipe's BatchNorm: each microbatch normalises with its own statistics (a
   DDP replica's), and the running statistics take one momentum step towards their mean."""

@@ -24,6 +24,7 @@ def tiny():
   return model, jax.tree.map(np.asarray, params)
 
 
+@pytest.mark.slow
 def test_dinov2_hf_into_ufm_encoder(tmp_path, tiny):
   _, template = tiny
   enc = template["encoder"]

@@ -9,6 +9,7 @@ import sys
 import textwrap
 
 import numpy as np
+import pytest
 
 from ufm_jax.data.io import write_image
 
@@ -39,6 +40,7 @@ def _infer(args, env_extra):
   return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_second_infer_loads_the_forward_from_the_cache(reference_dir, tmp_path):
   io = np.load(reference_dir / "base" / "io.npz")
   src, tgt = tmp_path / "a.png", tmp_path / "b.png"

@@ -113,6 +113,7 @@ def test_match_cli_writes_covariance_and_precision(snap, images, tmp_path):
   assert 0 < len(kept["sigma"]) < n and (kept["sigma"] <= cut).all()
 
 
+@pytest.mark.slow
 def test_models_without_the_head_are_unchanged(reference_dir, tmp_path):
   """The base fixture (no flow covariance): no covariance files, no fifth tile, no match
   covariance, exports flow + covisibility only; --max-sigma is refused naming why."""
@@ -138,6 +139,7 @@ def test_models_without_the_head_are_unchanged(reference_dir, tmp_path):
       "npy", "cnpy", "cpng", "panel", "flo"}
 
 
+@pytest.mark.slow
 def test_stablehlo_export_carries_the_covariance(snap, tmp_path):
   d, model, params, io_ = snap
   src, tgt = io_["img1_uint8"][:1], io_["img2_uint8"][:1]

@@ -81,6 +81,7 @@ def _kernels(text):
       r"stablehlo\.convolution.*tensor<\d+x\d+x\d+x\d+x\w+>, tensor<\d+x\d+x(\d+)x(\d+)x", text)]
 
 
+@pytest.mark.slow
 def test_ufm_base_bf16_lowering_on_cpu():
   """UFM-Refine's structure in bf16 (dtype and head_dtype), lowered for CPU (abstract params,
   nothing runs): the convolutions left to XLA are the narrow ones, and every dot but the
@@ -101,6 +102,7 @@ def test_ufm_base_bf16_lowering_on_cpu():
   assert len(_kernels(_lowered(fwd, params, img, img, platform="cuda"))) > 2 * len(narrow)
 
 
+@pytest.mark.slow
 def test_refine_bf16_close_to_the_fixture(reference_dir):
   """UFM-Refine with dtype and head_dtype bf16 (the official code under CPU autocast), held to
   the bf16 bound of test_model.test_bfloat16_compute against the official float32 outputs:

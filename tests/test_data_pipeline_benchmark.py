@@ -8,11 +8,14 @@ import pathlib
 import subprocess
 import sys
 
+import pytest
+
 from ufm_jax.data import mixture
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_table1_mixture_cpu_per_row(tmp_path):
   cmd = [sys.executable, str(REPO / "benchmarks" / "data_pipeline.py"), "--table1",
          "--longest_side", "112", "--batches", "2", "--warmup", "1", "--batch_size", "4"]

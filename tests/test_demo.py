@@ -83,6 +83,7 @@ def pair(tmp_path_factory):
   return src, tgt
 
 
+@pytest.mark.slow
 def test_api_end_to_end_and_threshold_changes_matches(client, pair):
   from gradio_client import handle_file
   src, tgt = pair
@@ -113,6 +114,7 @@ def test_api_end_to_end_and_threshold_changes_matches(client, pair):
   assert "forward" in s_low and "prediction cached" in s_high  # the slider does not re-run the model
 
 
+@pytest.mark.slow
 def test_concurrent_clients_each_get_their_whole_download(server, client, pair, tmp_path):
   """8 clients on loopback send 3 requests each at once, identical ones among them (the same pair
   and threshold from several clients): every download (the four pictures and the .npz) arrives

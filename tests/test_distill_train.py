@@ -82,6 +82,7 @@ def test_no_label_reaches_the_loss():
   assert float(m["loss"]) != float(m_bad["loss"])
 
 
+@pytest.mark.slow
 def test_the_step_compiles_ahead_of_time_with_an_abstract_teacher():
   """`train_step.lower(state, batch)` (the planner's call) takes the teacher's sharded shapes:
   nothing is loaded, and the distillation batch has the teacher's keys and no labels. The
@@ -254,6 +255,7 @@ def test_a_student_is_an_ordinary_checkpoint_for_every_tool(frames_runs, tmp_pat
   assert not (tmp_path / "snap").exists()
 
 
+@pytest.mark.slow
 def test_teacher_agreement_eval_scores_the_student_against_the_teacher(tmp_path):
   """Held-out frames, no labels: the teacher's predictions are the labels. A student equal to
   the teacher agrees with it everywhere; another one does not."""
@@ -275,6 +277,7 @@ def test_teacher_agreement_eval_scores_the_student_against_the_teacher(tmp_path)
   assert other["epe"] > 0.1
 
 
+@pytest.mark.slow
 def test_the_planner_sets_up_the_distillation_step_with_its_teacher():
   """planner.setup (train.py --compile_only) builds the distillation step from the config alone:
   the teacher's variables are counted beside the student's state, and the step's FLOPs are the

@@ -80,6 +80,7 @@ def fixture_model(request, reference_dir):
               ref={k: np.asarray(v) for k, v in ref.items()})
 
 
+@pytest.mark.slow
 def test_stablehlo_roundtrip_in_fresh_process(fixture_model, tmp_path):
   """Base: dynamic batch. Refine: fixed batch 2 with an extra output (batch 1 is padded)."""
   fm = fixture_model
@@ -114,6 +115,7 @@ def test_stablehlo_roundtrip_in_fresh_process(fixture_model, tmp_path):
   assert not list(tmp_path.glob(".*tmp*"))
 
 
+@pytest.mark.slow
 def test_bfloat16_export_runs_the_bf16_model(reference_dir, tmp_path):
   d = reference_dir / "base"
   model, variables = snapshot.load_official(d)
@@ -230,6 +232,7 @@ def test_onnx_dynamic_batch_is_refused_with_the_alternative(reference_dir, tmp_p
   assert "fixed --batch N" in capsys.readouterr().err and not list(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_onnx_failure_names_primitive_and_model_part(tmp_path):
   _need_onnx()
 

@@ -2,6 +2,7 @@
 
 import ml_collections
 import numpy as np
+import pytest
 
 from ufm_jax.training import sharding, trainer
 from ufm_jax.evaluators import train_evals
@@ -47,6 +48,7 @@ def test_zero_flow_and_exact_predictions():
   assert abs(res["epe_zero"] - zero_bar) < 1e-9
 
 
+@pytest.mark.slow
 def test_eval_predictions_ignore_the_symmetrized_training_kwarg():
   # Training batches are (a, b), (b, a) rows encoded once (`symmetrized`); evaluation pairs are
   # arbitrary, and predicting them with the training kwargs gives every odd row the reverse of

@@ -10,6 +10,8 @@ import pathlib
 import subprocess
 import sys
 
+import pytest
+
 from ufm_jax.models import variants
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -25,6 +27,7 @@ def _breakdown(config, tmp_path):
   return json.loads(out.read_text())
 
 
+@pytest.mark.slow
 def test_breakdown_counts_every_head_of_cpu_attention(tmp_path):
   res = _breakdown("fixture_small", tmp_path)
   enc = variants.get("fixture_small").encoder
@@ -35,6 +38,7 @@ def test_breakdown_counts_every_head_of_cpu_attention(tmp_path):
   assert matmuls <= stage["gflop"] * 1e9 <= 1.25 * matmuls, (stage, matmuls / 1e9)
 
 
+@pytest.mark.slow
 def test_breakdown_times_the_refiner_stages(tmp_path):
   # UFMRefine shares the refiner's scope with the root: its stages must still be found.
   stages = {s["stage"]: s for s in _breakdown("tiny_refine", tmp_path)["stages"]}
@@ -44,6 +48,7 @@ def test_breakdown_times_the_refiner_stages(tmp_path):
   assert all(stages[k]["gflop"] > 0 for k in stages if k.startswith("refiner"))
 
 
+@pytest.mark.slow
 def test_official_side_by_side_says_why_it_is_not_available(tmp_path):
   # A folder without the official packages: the benchmark starts again with it on PYTHONPATH
   # (the clone is a checkout, not an installed package), still cannot import `uniflowmatch`,

@@ -6,7 +6,6 @@ training configs' partial sub-config overrides (the flow adaptor normalisation).
 
 import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -29,6 +28,7 @@ def _check_uniform(x, bound, what):
 
 @pytest.mark.parametrize("variant,scan", [("tiny_refine", False), ("tiny_refine", True),
                                           ("tiny_refine_recipe", True)])
+@pytest.mark.slow
 def test_official_init_draws_as_the_official_modules(variant, scan):
   """tiny_refine_recipe: BatchNorm scale 1 / bias 0 (torch's), the up-convolutions still found
   by name among the BatchNorm DoubleConvs (`unet_feature/ups_{even}`)."""
@@ -66,6 +66,7 @@ def test_official_init_draws_as_the_official_modules(variant, scan):
   assert p["unet_feature/ups_0/kernel"].shape[-2] != p["unet_feature/ups_0/kernel"].shape[-1]
 
 
+@pytest.mark.slow
 def test_official_init_is_deterministic_and_differs_from_flax():
   model = variants.build_model("tiny", param_init="official")
   a, b = _flat(trainer.random_params(model, 0)), _flat(trainer.random_params(model, 0))
@@ -98,6 +99,7 @@ def test_partial_flow_adaptor_override_scales_the_output():
   assert ufm.config_from_dict(ufm.config_to_dict(cfg)) == cfg
 
 
+@pytest.mark.slow
 def test_official_init_model_exports_to_an_official_snapshot(tmp_path):
   """param_init is an initializer option, not structure: a model trained from it exports (the
   snapshot has no such key and reads back as the same structure)."""

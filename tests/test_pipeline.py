@@ -318,6 +318,7 @@ def test_bad_batch_sizes(tmp_path):
     pipeline.create(cfg, seed=0, process_index=0, process_count=2)
 
 
+@pytest.mark.slow
 @pytest.mark.multiprocess
 def test_worker_processes_same_batches_and_resume(tmp_path):
   cfg = make_config(tmp_path, [(12, {"n": 30, "code": 1}), (9, {"n": 5, "code": 2, "corrupt": [4]})],

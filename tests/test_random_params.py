@@ -4,6 +4,7 @@ import functools
 
 import jax
 import numpy as np
+import pytest
 
 from ufm_jax.training import optim, trainer
 from ufm_jax.models import variants
@@ -17,6 +18,7 @@ def test_small_models_skip_backend_optimisations_and_full_size_keeps_them():
   assert trainer.init_compiler_options(count("ufm_base")) == {}
 
 
+@pytest.mark.slow
 def test_random_params_equal_with_and_without_backend_optimisations():
   model = variants.build_model("tiny")
   key = jax.random.PRNGKey(3)

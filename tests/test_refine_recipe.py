@@ -128,6 +128,7 @@ def tiny():
   return model, _variables(model, 0), x, np.roll(x, 2, axis=2)
 
 
+@pytest.mark.slow
 def test_tiny_recipe_trains_batch_stats_and_infers_from_them(tiny):
   model, variables, src, tgt = tiny
   assert set(ufm.variable_shapes(model)) == {"params", "batch_stats"}

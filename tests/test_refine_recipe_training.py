@@ -293,6 +293,7 @@ def _save_workdir(path, model_name, variables, model_block=None):
                                                 "model": model_block or {}}))
 
 
+@pytest.mark.slow
 def test_ckpt_init_carries_batch_stats_and_checks_the_workdir_config(tmp_path):
   model = variants.build_model("tiny_refine_recipe")
   trained = jax.tree.map(lambda x: x + 41, _template(model))

@@ -107,6 +107,7 @@ def test_taps_truncate_towards_zero_at_the_left_border():
   assert abs(float(trunc) - float(floor)) > 1e-3
 
 
+@pytest.mark.slow
 def test_window_bounds_rows_and_nan_ground_truth():
   f0, f1, bias = _case(2, h=2, w=8)
   flow = np.zeros((1, 2, 8, 2), np.float32)
@@ -142,6 +143,7 @@ def test_pixel_cap_keeps_about_the_cap():
   assert rt.buffer_size(100, None) == 100
 
 
+@pytest.mark.slow
 def test_recipe_rows_from_dataset_ids_and_the_shared_cleanup():
   f0, f1, bias = _case(4, h=2, w=4)
   flow = np.zeros((1, 2, 4, 2), np.float32)
@@ -202,6 +204,7 @@ def test_eval_loss_window_and_gradients():
   assert np.abs(np.asarray(g_flow)[0, 0, 0]).max() > 0   # target weights depend on the flow
 
 
+@pytest.mark.slow
 def test_refine_stage_trains_only_the_refiner():
   """Tiny UFM-Refine, the refine-560 learning rates (base groups at 0): a few steps of the
   refinement loss on a fixed GT offset lower it, and the base parameters stay bitwise."""
@@ -248,6 +251,7 @@ def test_refine_stage_trains_only_the_refiner():
       assert np.array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow
 def test_eight_groups_are_the_mean_of_eight_group_losses_each_capped_on_its_own():
   """The recipes' loss.groups=8 (one per GPU of the paper's run): the total is the mean of the
   losses of 8 consecutive 2-row blocks, each block with its own means and its own pixel cap

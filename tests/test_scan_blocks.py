@@ -13,7 +13,7 @@ from safetensors.numpy import save_file
 
 from ufm_jax.runtime import checkpoint, model_io
 from ufm_jax.training import model_init, trainer
-from ufm_jax.models import dinov2, layers, scan, ufm
+from ufm_jax.models import layers, scan, ufm
 from ufm_jax.official import keymap, snapshot
 
 
@@ -70,6 +70,7 @@ def _hook(c):
   return lambda x: x * w.astype(x.dtype)
 
 
+@pytest.mark.slow
 def test_remat_scan_gradients_and_activation_hook_match_unrolled(official):
   """remat inside the scan, with the activation hook at every block boundary: forward and
   gradients equal the unrolled remat model's with the same hook."""
@@ -107,6 +108,7 @@ def test_remat_scan_gradients_and_activation_hook_match_unrolled(official):
                            "kernel")]).max()) > 0
 
 
+@pytest.mark.slow
 def test_model_init_puts_any_layout_into_the_model(official, reference_dir, tmp_path):
   """Per-layer sources (snapshot, DINOv2 weights) into a scan template, and a scan run's
   checkpoint into a per-layer template."""
@@ -142,6 +144,7 @@ def test_model_init_puts_any_layout_into_the_model(official, reference_dir, tmp_
   assert rep.unused and any("blocks_0" in k for k in rep.left_at_init)
 
 
+@pytest.mark.slow
 def test_workdir_of_a_scan_run_loads_as_a_usable_model(tmp_path):
   """model_io.load_workdir rebuilds the scan model from config.json; its stacked params run and
   equal the per-layer model on the unstacked params."""

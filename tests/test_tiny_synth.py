@@ -25,6 +25,7 @@ def test_sincos_pos_embed_closed_form():
     dinov2.sincos_pos_embed(3, 6)
 
 
+@pytest.mark.slow
 def test_tiny_synth_init_and_forward():
   cfg = models.get("tiny_synth")
   assert cfg.encoder.patch_size == 7 and cfg.encoder.pos_grid == 8
@@ -44,6 +45,7 @@ def test_tiny_synth_init_and_forward():
     ufm.param_shapes(ufm.model_from_config(bad))
 
 
+@pytest.mark.slow
 def test_flax_init_uses_the_configured_position_table():
   # `model.init` (train.py's init) used to draw DINOv2's random table whatever the config said;
   # the default `tiny` keeps that random table.
@@ -138,6 +140,7 @@ def _twin_attention(tied: bool) -> float:
   return float(np.mean(weights)) * n2
 
 
+@pytest.mark.slow
 def test_tied_qk_init_starts_attention_on_the_matching_token():
   # What the tie is for: at init a token already looks at its twin in the other view (measured
   # ~5x uniform attention) where independent q/k projections give no preference (~1x).

@@ -97,6 +97,7 @@ def _wait_for(pred, runs, timeout=240):
     time.sleep(0.05)
 
 
+@pytest.mark.slow
 def test_sigterm_on_a_save_step_exits_0_with_one_checkpoint(tmp_path, xla_cache):
   wd = tmp_path / "wd"
   # Every step is a save step, so the signal lands on one.
@@ -112,6 +113,7 @@ def test_sigterm_on_a_save_step_exits_0_with_one_checkpoint(tmp_path, xla_cache)
   assert int(checkpoint.read_state_numpy(wd, step)[0]["step"]) == step
 
 
+@pytest.mark.slow
 def test_corrupt_newest_checkpoint_resumes_from_the_one_before(tmp_path, xla_cache):
   wd = tmp_path / "wd"
   args = ["--config.ckpt_steps=4", "--config.keep_ckpt=3"]
@@ -128,6 +130,7 @@ def test_corrupt_newest_checkpoint_resumes_from_the_one_before(tmp_path, xla_cac
   assert checkpoint.checkpoint_steps(wd)[-1] == 10
 
 
+@pytest.mark.slow
 def test_runaway_nonfinite_updates_stop_with_status_1(tmp_path, xla_cache):
   wd = tmp_path / "wd"
   run = Run(wd, ["--config.total_steps=40", "--config.ckpt_steps=2", "--config.max_nonfinite_steps=5",
@@ -177,6 +180,7 @@ def _logged_steps(run):
   return [int(m) for m in re.findall(r"process \d+ metrics \{\"step\": (\d+)", run.err)]
 
 
+@pytest.mark.slow
 @pytest.mark.multiprocess
 def test_sigterm_to_one_of_two_processes_saves_the_same_step_on_both(tmp_path, xla_cache):
   wd = tmp_path / "wd"

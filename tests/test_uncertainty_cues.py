@@ -37,6 +37,7 @@ def test_warp_residual_and_flow_edges_by_hand():
     sampling.uncertainty_cues(("edges",), rgb(src), rgb(tgt), jnp.asarray(flow))
 
 
+@pytest.mark.slow
 def test_the_cues_pass_no_gradient_to_the_flow():
   cfg = ufm.with_flow_covariance(variants.get("tiny_synth")).replace(
       uncertainty_cues=("warp_residual", "flow_edges"))
