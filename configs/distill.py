@@ -39,7 +39,9 @@ of held-out pairs of the same kind as data=: every 1000 steps, 100 in recipe syn
 student is scored against the teacher's predictions on 32 of them, `teacher_agreement`;
 data=synthetic is also scored against the true flow of its val split), colour (the colour part
 of the student's augmentation, `input.augment.photometric`: default true, the official
-augmentation, in both recipes; colour=false drops it; docs/distillation.md has both runs).
+augmentation, in both recipes; colour=false drops it; docs/distillation.md has both runs), tie
+(the student's query/key tie at init, `info_sharing.tied_qk_init`; -1, the default, keeps the
+variant's: 2.0 for synth_small).
 
 recipe=synthetic follows configs/synthetic.py (56 px shift pairs, 2000 steps of 8 rows, lr 1e-3
 everywhere, loss l1, float32, the student from its own init; with data=synthetic the held-out
@@ -105,7 +107,7 @@ def get_config(arg=None):
   arg = config_lib.parse_arg(arg, teacher="", student="ufm_small", data="synthetic",
                              data_root="", strides="1", pairs=0, steps=0, batch=0, size=56,
                              lr=0.0, loss="", labels=0.0, teacher_res="", eval=True,
-                             recipe="", eval_root="", init="", colour="")
+                             recipe="", eval_root="", init="", colour="", tie=-1.0)
   if not arg.teacher:
     raise ValueError("configs/distill.py: name the teacher, e.g. "
                      "configs/distill.py:teacher=workdirs/synthetic,student=synth_small")
@@ -157,6 +159,8 @@ def get_config(arg=None):
     c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
     # The student infers at the size it trained at (`ufm_jax.predict`, evaluate.py).
     c.model.inference_resolution = hw
+  if arg.tie >= 0:
+    c.model.info_sharing = {"tied_qk_init": arg.tie}
   else:
     c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
     c.model.param_init = "official"
