@@ -132,6 +132,7 @@ def test_bfloat16_export_runs_the_bf16_model(reference_dir, tmp_path):
   assert json.loads(export.sidecar_path(art).read_text())["dtype"] == "bfloat16"
 
 
+@pytest.mark.slow
 def test_export_errors_name_the_problem(reference_dir, tmp_path, capsys):
   d = str(reference_dir / "base")
   assert cli.main(["export", "--checkpoint", d, "--size", "100x154", "--out",

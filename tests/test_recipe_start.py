@@ -58,6 +58,7 @@ def _zeros(model):
   return jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), ufm.variable_shapes(model))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(RECIPES))
 def test_recipes_start_from_a_ufm_base_snapshot(name, snapshot):
   config = _recipe(name, f"snapshot:{snapshot}")
@@ -94,6 +95,7 @@ def test_recipes_start_from_a_ufm_base_snapshot(name, snapshot):
 COMMIT = "0123456789abcdef0123456789abcdef01234567"
 
 
+@pytest.mark.slow
 def test_a_hub_id_starts_the_refine_recipe_offline(snapshot, tmp_path):
   """`snapshot:infinity1096/UFM-Base` read from huggingface_hub's standard cache (offline), as is
   and at a revision (`@COMMIT`); the report names the commit, and an unknown revision is refused

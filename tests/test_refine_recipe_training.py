@@ -232,6 +232,7 @@ def _template(model):
   return _zeros({k: v for k, v in ufm.variable_shapes(model).items()})
 
 
+@pytest.mark.slow
 def test_snapshot_init_refuses_another_flow_normalisation(reference_dir):
   """The fixture snapshot's normalisation is (1.5, -2) / (12, 9) px at 120 x 160: a model config
   with the recipe's (std 25 at 224 x 224) is refused before training, naming both values and the
