@@ -96,7 +96,7 @@ def _lookup(config, dotted):
 
 @pytest.mark.parametrize("arg, message", [
     ("stpes=10", "unknown config arg 'stpes'; valid keys: aligned, batch, cov, cov_head, eval, "
-                 "loss, lr, max_shift, model, pairs, size, steps"),
+                 "loss, lr, max_shift, model, pairs, size, steps, tie"),
     ("cov=maybe", "config arg cov='maybe' is not a bool; valid values: true, false, 1, 0")])
 def test_train_py_reports_a_bad_config_arg_in_one_line(arg, message):
   import subprocess
