@@ -159,14 +159,14 @@ def get_config(arg=None):
     c.model = config_lib.model_options(dtype="float32", remat=False, scan_blocks=False)
     # The student infers at the size it trained at (`ufm_jax.predict`, evaluate.py).
     c.model.inference_resolution = hw
-  if arg.tie >= 0:
-    c.model.info_sharing = {"tied_qk_init": arg.tie}
   else:
     c.model = config_lib.model_options(dtype="bfloat16", remat=True, scan_blocks=True)
     c.model.param_init = "official"
     c.model.flow_adaptor = ml_collections.ConfigDict({
         "flow_mean": (0.0, 0.0), "flow_std": (25.0, 25.0), "base_shape": (224, 224),
         "scale_strategy": "scale_both"})
+  if arg.tie >= 0:
+    c.model.info_sharing = {"tied_qk_init": arg.tie}
   # dinov2:PATH (facebook/dinov2-small for ufm_small / ufm_tiny), snapshot:DIR or ckpt:WORKDIR;
   # init=teacher: every parameter the student shares with the teacher (path and shape) from it.
   init = arg.init or "fresh"

@@ -52,6 +52,22 @@ def _labelled(batch, poison: bool):
               flow_valid=jnp.ones((b, h, w), bool), covis_valid=jnp.ones((b, h, w), bool))
 
 
+def test_recipes_keep_their_model_blocks_and_tie_only_sets_the_tie():
+  """The synthetic recipe's student is float32, unrolled, from flax's init; the 560 recipe's bf16,
+  scanned, from the official init; `tie=` changes the fusion blocks' tie and nothing else."""
+  synth = _config()
+  assert (synth.model.dtype, synth.model.scan_blocks, synth.model.remat) == ("float32", False, False)
+  assert synth.model.get("param_init") in (None, "flax") and "info_sharing" not in synth.model
+  tied = _config(",tie=3.0")
+  assert tied.model.info_sharing.to_dict() == {"tied_qk_init": 3.0}
+  del tied.model["info_sharing"]
+  assert tied.model.to_dict() == synth.model.to_dict()
+  real = config_lib.load_config(f"{REPO}/configs/distill.py:teacher=variant:ufm_base,"
+                                "student=ufm_small,data=synthetic,recipe=560")
+  assert (real.model.dtype, real.model.scan_blocks, real.model.param_init) == (
+      "bfloat16", True, "official")
+
+
 @pytest.mark.slow
 def test_no_label_reaches_the_loss():
   config = _config()
