@@ -146,3 +146,21 @@ def test_tied_qk_init_starts_attention_on_the_matching_token():
   # ~5x uniform attention) where independent q/k projections give no preference (~1x).
   assert _twin_attention(tied=True) > 3.0
   assert _twin_attention(tied=False) < 1.5
+
+
+def test_the_layers_task_ties_query_and_key_at_three_times():
+  """configs/synthetic.py: pairs=layers starts the fusion tie at 3x (at synth's 2x one seed stayed
+  on the zero-flow plateau, docs/uncertainty.md); the shift task keeps the variant's 2x; `tie=`
+  overrides either."""
+  import pathlib
+
+  from ufm_jax.training import config_lib
+  config = pathlib.Path(__file__).resolve().parents[1] / "configs" / "synthetic.py"
+
+  def tie(arg):
+    c = config_lib.load_config(f"{config}:{arg}")
+    return models.get(c.model_name, **c.model.to_dict()).info_sharing.tied_qk_init
+
+  assert tie("pairs=layers") == tie("cov=True,pairs=layers") == 3.0
+  assert tie("pairs=shift") == models.get("synth").info_sharing.tied_qk_init == 2.0
+  assert tie("pairs=layers,tie=2.0") == 2.0 and tie("tie=1.5") == 1.5
