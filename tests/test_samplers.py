@@ -1,7 +1,6 @@
 """Pair samplers and miners: Kubric-4D sampler statistics, covisibility mining (ScanNet++ rule)."""
 
 import json
-import pathlib
 
 import numpy as np
 import pytest
@@ -11,9 +10,6 @@ from ufm_jax.data.sources import kubric4d
 from ufm_jax.data.sources.exr import write_exr
 from ufm_jax import testing
 from ufm_jax.testing import wide_trees as trees
-
-REPO = pathlib.Path(__file__).resolve().parents[1]
-
 
 
 def test_kubric_camera_weight_closed_form():

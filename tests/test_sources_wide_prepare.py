@@ -2,7 +2,6 @@
 TA-WB (Hugging Face shards -> extracted layout)."""
 
 import json
-import pathlib
 
 import h5py
 import numpy as np
@@ -11,9 +10,6 @@ import pytest
 from ufm_jax import data
 from ufm_jax import testing
 from ufm_jax.testing import wide_trees as trees
-
-REPO = pathlib.Path(__file__).resolve().parents[1]
-
 
 
 def _fisheye_k1_unproject(xd, yd, k1):
