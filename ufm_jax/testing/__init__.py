@@ -17,13 +17,13 @@ import numpy as np
 from ufm_jax.models import dinov2, dpt, info_sharing, refine, ufm
 
 
-def load_script(relpath: str, name: str | None = None):
+def load_script(relpath: str):
   """The repository's script at `relpath` (train.py, evaluate.py, data/*/prepare.py, a benchmark)
   loaded as a module by its path: scripts are not part of the installed package, and `pytest`
   run from a fresh clone does not put the repository root on sys.path."""
   import importlib.util
   path = pathlib.Path(__file__).resolve().parents[2] / relpath
-  spec = importlib.util.spec_from_file_location(name or f"_script_{path.stem}", path)
+  spec = importlib.util.spec_from_file_location(f"_script_{path.stem}", path)
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   return module
