@@ -230,18 +230,22 @@ def test_photometric_off_keeps_the_geometric_crop_only():
     assert same == (not photometric)
 
 
-def test_distill_config_defaults_official_colour_and_a_fresh_student(tmp_path, monkeypatch):
-  """Both recipes take the official colour augmentation unless colour=false, and start the
-  student from its own init (no model_init) unless init=teacher, for every kind of teacher."""
+def test_distill_config_colour_defaults_and_a_fresh_student(tmp_path, monkeypatch):
+  """The 560 recipe takes the official colour augmentation unless colour=false, the synthetic
+  recipe drops it unless colour=true; both start the student from its own init (no model_init)
+  unless init=teacher, for every kind of teacher."""
   import pathlib
   from ufm_jax.training import config_lib
   config = pathlib.Path(__file__).resolve().parents[1] / "configs" / "distill.py"
   get = lambda a: config_lib.load_config(f"{config}:{a}")   # noqa: E731
   synth = "teacher=variant:synth,student=synth_small,data=synthetic"
-  assert get(synth).input.augment["photometric"] is True
-  assert get(synth + ",colour=false").input.augment["photometric"] is False
+  assert get(synth).input.augment["photometric"] is False
+  assert get(synth + ",colour=true").input.augment["photometric"] is True
   frames = "teacher=variant:ufm_base,student=ufm_small,data=frames,data_root=/data/frames"
   assert get(frames).input.augment["photometric"] is True
+  assert get(frames + ",colour=false").input.augment["photometric"] is False
+  # The recipe, not the source, picks the default.
+  assert get(frames + ",recipe=synthetic").input.augment["photometric"] is False
   # A teacher workdir that exists (a missing path that looks like org/name reads as a Hub ID).
   monkeypatch.chdir(tmp_path)
   (tmp_path / "workdirs" / "synthetic").mkdir(parents=True)
