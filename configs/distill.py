@@ -39,18 +39,17 @@ of held-out pairs of the same kind as data=: every 1000 steps, 100 in recipe syn
 student is scored against the teacher's predictions on 32 of them, `teacher_agreement`;
 data=synthetic is also scored against the true flow of its val split), colour (the colour part
 of the student's augmentation, `input.augment.photometric`: recipe 560, default true, the official
-augmentation; recipe synthetic, default false, a departure measured over 3 seeds in
-docs/distillation.md; colour=true restores it), tie
+augmentation; recipe synthetic, default false, a departure docs/distillation.md explains;
+colour=true restores it), tie
 (the student's query/key tie at init, `info_sharing.tied_qk_init`; -1, the default, keeps the
 variant's: 2.0 for synth_small).
 
 recipe=synthetic follows configs/synthetic.py (56 px shift pairs, batches of 8 rows, lr 1e-3
 everywhere, loss l1, float32, the student from its own init; with data=synthetic the held-out
-eval every 100 steps), except for 4000 steps (at the teacher's 2000, three students averaged
-1.40x its EPE: docs/distillation.md) and that the student's input takes the official flow-pathway
-augmentation's geometry (resize, shared crop, the teacher's outputs warped into it; its colour
-jitter only with colour=true), where configs/synthetic.py trains the teacher on its shift pairs
-without any;
+eval every 100 steps), except for 4000 steps (twice the teacher's: docs/distillation.md has why)
+and that the student's input takes the official flow-pathway augmentation's geometry (resize,
+shared crop, the teacher's outputs warped into it; its colour jitter only with colour=true),
+where configs/synthetic.py trains the teacher on its shift pairs without any;
 recipe=560 follows the 560 recipe (configs/ufm560.py: its shapes, scaled to the student's
 inference width for ufm_tiny's 392, AdamW, encoder lr 5e-6 and 1e-4 elsewhere, 10% warmup and
 cosine to 1%, bf16, scan, remat, the official init). The
@@ -120,16 +119,16 @@ def get_config(arg=None):
   synthetic = recipe == "synthetic"
   if arg.colour.lower() not in ("", "true", "false", "1", "0"):
     raise ValueError(f"configs/distill.py: colour must be true or false, got {arg.colour!r}")
-  # The synthetic recipe drops the colour jitter: with it none of three students left the
-  # zero-flow plateau, without it all three did (docs/distillation.md). The 560 recipe keeps it.
+  # The synthetic recipe drops the colour jitter, with which its students stay on the zero-flow
+  # plateau (docs/distillation.md); the 560 recipe keeps it.
   colour = arg.colour.lower() in ("true", "1") if arg.colour else not synthetic
   loss = arg.loss or ("l1" if synthetic else "paper")
   if loss not in ("paper", "l1"):
     raise ValueError(f"configs/distill.py: loss must be 'paper' or 'l1', got {arg.loss!r}")
   c = config_lib.training_defaults(ml_collections.ConfigDict())
   c.teacher = _teacher_block(arg)
-  # 4000 synthetic steps, twice the teacher's: the student leaves the zero-flow plateau between
-  # steps 400 and 800; at 2000 three of them averaged 1.40x the teacher's EPE.
+  # Twice the teacher's synthetic steps: the student first spends a few hundred on the zero-flow
+  # plateau, and the cosine schedule must not run out before it has caught up.
   c.total_steps = arg.steps or (4000 if synthetic else 100_000)
   c.num_epochs = config_lib.unset(int)
 
